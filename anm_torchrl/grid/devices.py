@@ -1,0 +1,141 @@
+"""Device feasible sets as polygons ``G x <= h`` and their exact batched Euclidean projection.
+
+A controllable device's set-point ``x = (P, Q)`` (p.u.) is mapped onto its feasible set by
+``argmin ||x - target||^2 s.t. G x <= h`` (gym-anm solves this with cvxpy + OSQP on every call; spec §3.3).
+Here ``G`` (m, 2) is constant per device and only ``h`` depends on the state (P_pot, SoC), so the
+projection is computed exactly by enumerating candidates: the target, its projection onto every line and
+every pairwise vertex; the closest feasible candidate is the projection (the QP is strictly convex in 2-D).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import torch
+
+from anm_torchrl.grid.network import Network
+
+# Column indices of the device table (gym_anm/simulator/components/constants.py).
+PMAX, PMIN, QMAX, QMIN, P_PLUS, P_MINUS, Q_PLUS, Q_MINUS, SOC_MAX, SOC_MIN, EFF = range(4, 15)
+
+GEN_ROWS = 7
+DES_ROWS = 10
+_FEAS_TOL = 1e-10  # p.u.; candidates on a line carry ~1e-16 round-off
+
+
+def _slopes(row: list[float]) -> tuple[float, ...]:
+    """Capability-line slopes and offsets (tau1, rho1, tau2, rho2, tau3, rho3, tau4, rho4), spec §1.5."""
+    pmax, pmin, qmax, qmin = row[PMAX], row[PMIN], row[QMAX], row[QMIN]
+    pp, pm, qp, qm = row[P_PLUS], row[P_MINUS], row[Q_PLUS], row[Q_MINUS]
+    if pmax == pp:
+        t1 = t2 = 0.0
+    else:
+        t1 = (qp - qmax) / (pmax - pp)
+        t2 = (qm - qmin) / (pmax - pp)
+    r1, r2 = qmax - t1 * pp, qmin - t2 * pp
+    if pm != pm or pmin == pm:  # NaN (generator) or no left corner
+        t3 = t4 = 0.0
+        r3, r4 = qmin, qmax
+    else:
+        t3 = (qmin - qm) / (pm - pmin)
+        t4 = (qmax - qp) / (pm - pmin)
+        r3, r4 = qmin - t3 * pm, qmax - t4 * pm
+    return t1, r1, t2, r2, t3, r3, t4, r4
+
+
+def generator_polygon(net: Network, dev_ids: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Constant part of the 7-row generator sets of ``dev_ids``.
+
+    Returns ``G`` (n_gen, 7, 2) and ``h0`` (n_gen, 7); row 2 (P <= P_pot) of ``h0`` is +inf and is filled
+    by :func:`generator_h`. Rows: -P<=-PMIN, P<=PMAX, P<=P_pot, -Q<=-QMIN, Q<=QMAX, Q-t1 P<=r1, t2 P-Q<=-r2.
+    """
+    gs, hs = [], []
+    for d in dev_ids:
+        row = net.dev[d].tolist()
+        t1, r1, t2, r2, *_ = _slopes(row)
+        gs.append([[-1, 0], [1, 0], [1, 0], [0, -1], [0, 1], [-t1, 1], [t2, -1]])
+        hs.append([-row[PMIN], row[PMAX], float("inf"), -row[QMIN], row[QMAX], r1, -r2])
+    kw = dict(dtype=net.dev.dtype, device=net.dev.device)
+    return torch.tensor(gs, **kw), torch.tensor(hs, **kw)
+
+
+def generator_h(h0: torch.Tensor, p_pot: torch.Tensor) -> torch.Tensor:
+    """Right-hand side (N, n_gen, 7) for potentials ``p_pot`` (N, n_gen) p.u. (already clipped)."""
+    h = h0.expand(*p_pot.shape, GEN_ROWS).clone()
+    h[..., 2] = p_pot
+    return h
+
+
+def storage_polygon(net: Network, dev_id: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Constant part of the 10-row storage set: ``G`` (10, 2), ``h0`` (10,) with the SoC rows 8, 9 = +inf.
+
+    Rows: -P<=-PMIN, P<=PMAX, -Q<=-QMIN, Q<=QMAX, Q-t1 P<=r1, t2 P-Q<=-r2, t3 P-Q<=-r3, Q-t4 P<=r4,
+    -P <= -(SoC-SOC_MAX)/(dt EFF), P <= EFF (SoC-SOC_MIN)/dt.
+    """
+    row = net.dev[dev_id].tolist()
+    t1, r1, t2, r2, t3, r3, t4, r4 = _slopes(row)
+    g = [[-1, 0], [1, 0], [0, -1], [0, 1], [-t1, 1], [t2, -1], [t3, -1], [-t4, 1], [-1, 0], [1, 0]]
+    inf = float("inf")
+    h = [-row[PMIN], row[PMAX], -row[QMIN], row[QMAX], r1, -r2, -r3, r4, inf, inf]
+    kw = dict(dtype=net.dev.dtype, device=net.dev.device)
+    return torch.tensor(g, **kw), torch.tensor(h, **kw)
+
+
+def storage_h(net: Network, dev_id: int, h0: torch.Tensor, soc: torch.Tensor) -> torch.Tensor:
+    """Right-hand side (N, 10) for the state of charge ``soc`` (N,) p.u.·h before the step."""
+    row = net.dev[dev_id]
+    dt, eff = net.delta_t, row[EFF]
+    h = h0.expand(*soc.shape, DES_ROWS).clone()
+    h[..., 8] = -(soc - row[SOC_MAX]) / (dt * eff)
+    h[..., 9] = eff * (soc - row[SOC_MIN]) / dt
+    return h
+
+
+def project(target: torch.Tensor, g: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """Exact Euclidean projection of ``target`` (..., 2) onto ``{x : g x <= h}``.
+
+    Args:
+        target: (..., 2) points to project.
+        g: (..., m, 2) constraint normals (broadcast against ``target``).
+        h: (..., m) right-hand sides; the set must be non-empty (true for every gym-anm device).
+
+    Returns:
+        (..., 2) the unique closest feasible point.
+    """
+    m = g.shape[-2]
+    x = target.unsqueeze(-2)  # (..., 1, 2)
+    gn2 = (g * g).sum(-1)  # (..., m)
+    viol = (g * x).sum(-1) - h
+    on_lines = x - (viol / gn2).unsqueeze(-1) * g  # (..., m, 2)
+    i, j = (torch.tensor(ix, device=g.device) for ix in zip(*itertools.combinations(range(m), 2)))
+    a_i, b_i, a_j, b_j = g[..., i, 0], g[..., i, 1], g[..., j, 0], g[..., j, 1]
+    h_i, h_j = h[..., i], h[..., j]
+    det = a_i * b_j - a_j * b_i
+    parallel = det.abs() < 1e-12
+    det = torch.where(parallel, torch.ones_like(det), det)
+    vx = (h_i * b_j - h_j * b_i) / det
+    vy = (a_i * h_j - a_j * h_i) / det
+    verts = torch.stack([vx, vy], -1)
+    verts = torch.where(parallel.unsqueeze(-1), torch.full_like(verts, float("nan")), verts)
+    cand = torch.cat([x.expand(*on_lines.shape[:-2], 1, 2), on_lines, verts], dim=-2)  # (..., c, 2)
+    lhs = torch.einsum("...mk,...ck->...cm", g, cand)
+    feasible = (lhs <= h.unsqueeze(-2) + _FEAS_TOL * (1 + h.abs().clamp(max=1e6).unsqueeze(-2))).all(-1)
+    feasible &= ~torch.isnan(cand).any(-1)
+    dist = ((cand - x) ** 2).sum(-1)
+    dist = torch.where(feasible, dist, torch.full_like(dist, float("inf")))
+    best = dist.argmin(-1, keepdim=True)
+    return torch.gather(cand, -2, best.unsqueeze(-1).expand(*best.shape, 2)).squeeze(-2)
+
+
+def projection_duals(x_star: torch.Tensor, target: torch.Tensor, g: torch.Tensor, h: torch.Tensor,
+                     active_tol: float = 1e-9) -> torch.Tensor:
+    """Lagrange multipliers (..., m) of ``min 1/2 ||x - target||^2 s.t. g x <= h`` at the solution ``x_star``.
+
+    Solves ``g_A^T lam_A = -(x_star - target)`` in the least-norm sense over the active rows ``A``
+    (|g x - h| <= ``active_tol``); inactive rows get 0. Used to check the KKT residual code.
+    """
+    active = ((g * x_star.unsqueeze(-2)).sum(-1) - h).abs() <= active_tol
+    ga = torch.where(active.unsqueeze(-1), g, torch.zeros_like(g))  # (..., m, 2)
+    rhs = -(x_star - target)
+    lam = torch.linalg.lstsq(ga.transpose(-1, -2), rhs.unsqueeze(-1), driver="gelsd").solution.squeeze(-1)
+    return torch.where(active, lam, torch.zeros_like(lam))
