@@ -184,7 +184,14 @@ class GridSimulator:
         des = self.project_storage(des_target, soc)
         p_dev[:, self._did], q_dev[:, self._did] = des[..., 0], des[..., 1]
         soc_next = self.soc_update(soc, des[..., 0])
-        # 4. bus injections and AC power flow (slack injection still 0).
+        return self._solve(p_dev, q_dev, p_pot, soc_next)
+
+    def _solve(self, p_dev: torch.Tensor, q_dev: torch.Tensor, p_pot: torch.Tensor, soc: torch.Tensor) -> Transition:
+        """Power flow, slack injection, branch flows and reward for device injections (N, n_dev) p.u."""
+        net = self.net
+        # 4. bus injections and AC power flow (the slack injection is 0 at this point).
+        p_dev[:, self.slack_ids[0]] = 0.0
+        q_dev[:, self.slack_ids[0]] = 0.0
         s_bus = torch.complex(p_dev @ net.incidence, q_dev @ net.incidence)
         pf = newton_raphson(net.y_bus, s_bus)
         # 5. slack injection and branch flows from the (possibly non-converged) voltages.
@@ -193,15 +200,37 @@ class GridSimulator:
         p_dev[:, self.slack_ids[0]] = torch.where(torch.isnan(s_slack.real), inf, s_slack.real)
         q_dev[:, self.slack_ids[0]] = torch.where(torch.isnan(s_slack.imag), inf, s_slack.imag)
         s_max = branch_flows(pf.v, net.branches)["s_apparent_max"]
-        # 6. reward terms.
-        curt = curtailment(p_pot, gen[..., 0])
+        # 6. reward terms; a non-converged power flow is terminal.
+        curt = curtailment(p_pot, p_dev[:, self._gid])
         e_loss = energy_loss(p_dev, self.counted, curt, net.delta_t)
         pen = penalty(pf.v.abs(), s_max, net, self.lamb)
         reward = clipped_reward(e_loss, pen, self.costs_clipping)
         reward = torch.where(pf.converged, reward, torch.full_like(reward, self.terminal_reward))
-        return Transition(p_dev=p_dev, q_dev=q_dev, soc=soc_next, p_pot=p_pot, v=pf.v, s_apparent_max=s_max,
+        return Transition(p_dev=p_dev, q_dev=q_dev, soc=soc, p_pot=p_pot, v=pf.v, s_apparent_max=s_max,
                           converged=pf.converged, n_iter=pf.n_iter, e_loss=e_loss, penalty=pen,
                           curtailment=curt, reward=reward)
+
+    def operating_point(self, state: torch.Tensor) -> Transition:
+        """Re-solve the power flow of the injections written in ``state`` (N, state_dim) MW… .
+
+        Gives the grid quantities (voltages, flows, ΔE, λΦ) of a state that was set rather than reached by a
+        transition; for a reached state they equal the transition's (up to the NR tolerance).
+        """
+        sl, b = self.state_slices(), self.net.base_mva
+        return self._solve(state[:, sl["dev_p"]] / b, state[:, sl["dev_q"]] / b, state[:, sl["gen_p_max"]] / b,
+                           state[:, sl["des_soc"]] / b)
+
+    def with_exogenous(self, state: torch.Tensor, t_index: torch.Tensor) -> torch.Tensor:
+        """A copy of ``state`` (N, state_dim) whose exogenous entries — load P and Q, renewable potentials and
+        the time index — are those of the series at ``t_index`` (N,) (perfect foresight)."""
+        sl, b = self.state_slices(), self.net.base_mva
+        out = state.clone()
+        p_load, q_load = self.loads_at(t_index)
+        out[:, sl["dev_p"].start + self._lid] = p_load * b
+        out[:, sl["dev_q"].start + self._lid] = q_load * b
+        out[:, sl["gen_p_max"]] = self.p_pot_at(t_index) * b
+        out[:, sl["aux"]] = t_index.unsqueeze(1).to(out)
+        return out
 
     def build_state(self, tr: Transition, aux: torch.Tensor) -> torch.Tensor:
         """State (N, state_dim) in MW/MVAr/MWh after ``tr``; zeros where the power flow did not converge."""
@@ -246,27 +275,61 @@ class GridSimulator:
         Generators are set to their raw potential P and ``q_gen`` (MVAr), storage to (0, 0) with SoC at
         SOC_MIN, one transition at time ``t0`` is solved, then the SoC is overwritten with ``soc`` (MWh).
 
-        Returns the state (n, state_dim) and whether its power flow converged (n,).
+        Returns the state (n, state_dim) and the :class:`Transition` of that initial power flow.
         """
         b = self.net.base_mva
         setpoints = torch.cat([self.p_max_series[:, t0].T, q_gen / b, soc.new_zeros(soc.shape[0], 2 * self.n_des)], 1)
         soc_min = self.net.dev[self._did, dv.SOC_MIN].expand_as(soc)
         tr = self.transition(soc_min, t0, setpoints)
         tr.soc = soc / b
-        return self.build_state(tr, t0), tr.converged
+        return self.build_state(tr, t0), tr
 
     def reset(self, n: int, generator: torch.Generator | None = None, intended: bool = False,
-              max_attempts: int = 100) -> torch.Tensor:
-        """Sample ``n`` initial states (n, state_dim), re-drawing any whose power flow fails (gym-anm: ≤ 100)."""
-        state = None
-        todo = torch.arange(n, device=self.net.dev.device)
-        for _ in range(max_attempts):
-            s, ok = self.initial_state(*self.sample_initial(todo.numel(), generator, intended))
-            state = s if state is None else state.index_copy(0, todo, s)
-            todo = todo[~ok]
+              max_attempts: int = 100) -> tuple[torch.Tensor, Transition]:
+        """Sample ``n`` gym-anm initial states (n, state_dim) and their initial transitions.
+
+        Rows whose initial power flow fails are re-drawn, at most ``max_attempts`` times (as gym-anm).
+        """
+        return self._resample(lambda k: self.initial_state(*self.sample_initial(k, generator, intended)), n,
+                              max_attempts)
+
+    def random_state(self, n: int, generator: torch.Generator | None = None,
+                     max_attempts: int = 100) -> tuple[torch.Tensor, Transition]:
+        """States spread over the whole reachable state space, (n, state_dim), with their transitions.
+
+        The free variables are drawn uniformly — time index in [0, T), SoC in [SOC_MIN, SOC_MAX), set-points
+        over the action box — and everything else follows from one transition at that time index (projection,
+        SoC update, power flow). Non-converging draws are re-drawn.
+        """
+        dev, b = self.net.dev, self.net.base_mva
+        a_low, a_high = self.action_bounds()
+        d = dev[self._did]
+        kw = dict(generator=generator, dtype=dev.dtype, device=dev.device)
+
+        def draw(k: int) -> tuple[torch.Tensor, Transition]:
+            t = torch.randint(0, self.n_time, (k,), generator=generator, device=dev.device)
+            soc = d[:, dv.SOC_MIN] + torch.rand(k, self.n_des, **kw) * (d[:, dv.SOC_MAX] - d[:, dv.SOC_MIN])
+            a = a_low + torch.rand(k, self.action_dim, **kw) * (a_high - a_low)
+            tr = self.transition(soc, t, a / b)
+            return self.build_state(tr, t), tr
+
+        return self._resample(draw, n, max_attempts)
+
+    @staticmethod
+    def _resample(draw, n: int, max_attempts: int) -> tuple[torch.Tensor, Transition]:
+        state, tr = draw(n)
+        for _ in range(max_attempts - 1):
+            todo = (~tr.converged).nonzero().squeeze(1)
             if todo.numel() == 0:
-                return state
-        raise RuntimeError(f"{todo.numel()} initial states did not converge after {max_attempts} attempts")
+                return state, tr
+            s_new, tr_new = draw(todo.numel())
+            state = state.index_copy(0, todo, s_new)
+            tr = Transition(**{f.name: getattr(tr, f.name).index_copy(0, todo, getattr(tr_new, f.name))
+                               for f in dataclasses.fields(Transition)})
+        if not tr.converged.all():
+            raise RuntimeError(f"{int((~tr.converged).sum())} sampled states did not converge after "
+                               f"{max_attempts} attempts")
+        return state, tr
 
 
 def anm6_easy_simulator(device=None) -> GridSimulator:
