@@ -1,0 +1,24 @@
+"""Where trained artifacts (surrogates, datasets) live by default.
+
+``$ANM_TORCHRL_HOME`` if set, else ``~/.cache/anm_torchrl``. Recipes and loaders accept explicit paths too.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def artifact_home() -> Path:
+    """Root folder of cached artifacts (created on demand by writers, not here)."""
+    return Path(os.environ.get("ANM_TORCHRL_HOME", Path.home() / ".cache" / "anm_torchrl")).expanduser()
+
+
+def surrogate_dir(name: str, dataset: str | None = None) -> Path:
+    """Default folder of a trained surrogate, e.g. ``<home>/surrogates/xgb_agent`` or ``<home>/surrogates/pinn``."""
+    return artifact_home() / "surrogates" / (name if dataset is None else f"{name}_{dataset}")
+
+
+def dataset_dir(kind: str, size: int, seed: int) -> Path:
+    """Default folder of a dataset, e.g. ``<home>/datasets/generative_100000_s0``."""
+    return artifact_home() / "datasets" / f"{kind}_{size}_s{seed}"
