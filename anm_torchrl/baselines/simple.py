@@ -34,11 +34,11 @@ class DoNothingPolicy(TensorDictModuleBase):
         self.in_keys, self.out_keys = [in_key], ["action"]
         a = torch.zeros(sim.action_dim, dtype=torch.float32)
         a[:sim.n_gen] = hi[:sim.n_gen].float()
-        self.register_buffer("action", a)
+        self.register_buffer("action_value", a)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         x = tensordict.get(self.in_keys[0])
-        a = self.action.to(x.device).expand(*x.shape[:-1], self.action.numel()).clone()
+        a = self.action_value.to(x.device).expand(*x.shape[:-1], self.action_value.numel()).clone()
         tensordict.set(self.out_keys[0], a)
         return tensordict
 

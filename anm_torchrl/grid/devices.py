@@ -20,7 +20,7 @@ PMAX, PMIN, QMAX, QMIN, P_PLUS, P_MINUS, Q_PLUS, Q_MINUS, SOC_MAX, SOC_MIN, EFF 
 
 GEN_ROWS = 7
 DES_ROWS = 10
-_FEAS_TOL = 1e-10  # p.u.; candidates on a line carry ~1e-16 round-off
+_FEAS_TOL = 1e-10  # p.u. (|h| ≲ 500); candidates on a line carry ~1e-16 round-off
 
 
 def _slopes(row: list[float]) -> tuple[float, ...]:
@@ -91,40 +91,55 @@ def storage_h(net: Network, dev_id: int, h0: torch.Tensor, soc: torch.Tensor) ->
     return h
 
 
+class Polygon:
+    """A constant-normal polygon ``{x : G x <= h}`` (G fixed, h per call) with its exact projection.
+
+    Precomputes, once, the row norms and the inverse of every non-parallel pair of rows, so that a batched
+    projection is a handful of dense ops: candidates = target, its projection onto each line, each pairwise
+    vertex; answer = the closest feasible candidate.
+
+    Args:
+        g: (m, 2) constraint normals.
+    """
+
+    def __init__(self, g: torch.Tensor):
+        self.g = g
+        self.gn2 = (g * g).sum(-1)
+        pairs = [(i, j) for i, j in itertools.combinations(range(g.shape[0]), 2)
+                 if abs(float(g[i, 0] * g[j, 1] - g[j, 0] * g[i, 1])) > 1e-12]
+        self.pair_i = torch.tensor([p[0] for p in pairs], device=g.device)
+        self.pair_j = torch.tensor([p[1] for p in pairs], device=g.device)
+        self.pair_inv = torch.linalg.inv(torch.stack([g[self.pair_i], g[self.pair_j]], 1))  # (p, 2, 2)
+
+    def project(self, target: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """Closest point (..., 2) of the polygon with right-hand sides ``h`` (..., m) to ``target`` (..., 2)."""
+        g = self.g
+        viol = target @ g.T - h  # (..., m)
+        on_lines = target.unsqueeze(-2) - (viol / self.gn2).unsqueeze(-1) * g  # (..., m, 2)
+        hv = torch.stack([h[..., self.pair_i], h[..., self.pair_j]], -1)  # (..., p, 2)
+        verts = (self.pair_inv @ hv.unsqueeze(-1)).squeeze(-1)  # (..., p, 2)
+        cand = torch.cat([target.unsqueeze(-2), on_lines, verts], -2)  # (..., c, 2)
+        feasible = ((cand @ g.T) <= h.unsqueeze(-2) + _FEAS_TOL).all(-1)
+        dist = ((cand - target.unsqueeze(-2)) ** 2).sum(-1)
+        dist = torch.where(feasible, dist, torch.full_like(dist, float("inf")))
+        best = dist.argmin(-1, keepdim=True)
+        return torch.gather(cand, -2, best.unsqueeze(-1).expand(*best.shape, 2)).squeeze(-2)
+
+
 def project(target: torch.Tensor, g: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
     """Exact Euclidean projection of ``target`` (..., 2) onto ``{x : g x <= h}``.
 
     Args:
         target: (..., 2) points to project.
-        g: (..., m, 2) constraint normals (broadcast against ``target``).
-        h: (..., m) right-hand sides; the set must be non-empty (true for every gym-anm device).
+        g: (m, 2) constraint normals, or (k, m, 2) for k devices with ``target`` (..., k, 2).
+        h: (..., m) or (..., k, m) right-hand sides; the set must be non-empty (true for every gym-anm device).
 
     Returns:
-        (..., 2) the unique closest feasible point.
+        (..., 2) or (..., k, 2): the unique closest feasible point.
     """
-    m = g.shape[-2]
-    x = target.unsqueeze(-2)  # (..., 1, 2)
-    gn2 = (g * g).sum(-1)  # (..., m)
-    viol = (g * x).sum(-1) - h
-    on_lines = x - (viol / gn2).unsqueeze(-1) * g  # (..., m, 2)
-    i, j = (torch.tensor(ix, device=g.device) for ix in zip(*itertools.combinations(range(m), 2)))
-    a_i, b_i, a_j, b_j = g[..., i, 0], g[..., i, 1], g[..., j, 0], g[..., j, 1]
-    h_i, h_j = h[..., i], h[..., j]
-    det = a_i * b_j - a_j * b_i
-    parallel = det.abs() < 1e-12
-    det = torch.where(parallel, torch.ones_like(det), det)
-    vx = (h_i * b_j - h_j * b_i) / det
-    vy = (a_i * h_j - a_j * h_i) / det
-    verts = torch.stack([vx, vy], -1)
-    verts = torch.where(parallel.unsqueeze(-1), torch.full_like(verts, float("nan")), verts)
-    cand = torch.cat([x.expand(*on_lines.shape[:-2], 1, 2), on_lines, verts], dim=-2)  # (..., c, 2)
-    lhs = torch.einsum("...mk,...ck->...cm", g, cand)
-    feasible = (lhs <= h.unsqueeze(-2) + _FEAS_TOL * (1 + h.abs().clamp(max=1e6).unsqueeze(-2))).all(-1)
-    feasible &= ~torch.isnan(cand).any(-1)
-    dist = ((cand - x) ** 2).sum(-1)
-    dist = torch.where(feasible, dist, torch.full_like(dist, float("inf")))
-    best = dist.argmin(-1, keepdim=True)
-    return torch.gather(cand, -2, best.unsqueeze(-1).expand(*best.shape, 2)).squeeze(-2)
+    if g.ndim == 2:
+        return Polygon(g).project(target, h)
+    return torch.stack([Polygon(g[k]).project(target[..., k, :], h[..., k, :]) for k in range(g.shape[0])], -2)
 
 
 def projection_duals(x_star: torch.Tensor, target: torch.Tensor, g: torch.Tensor, h: torch.Tensor,

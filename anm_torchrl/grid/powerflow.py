@@ -47,17 +47,23 @@ def _mismatch(v: torch.Tensor, y_bus: torch.Tensor, s_bus: torch.Tensor) -> torc
 
 
 def _jacobian(v: torch.Tensor, y_bus: torch.Tensor) -> torch.Tensor:
-    """Polar Jacobian (N, 2n-2, 2n-2) of the mismatch w.r.t. [θ, |V|] on the non-slack buses."""
-    i = torch.einsum("ij,nj->ni", y_bus, v)
-    yv = y_bus * v.unsqueeze(1)  # Y diag(V): (N, n, n)
-    vn = v / v.abs()
-    diag_i = torch.diag_embed(i)
-    ds_dth = 1j * v.unsqueeze(-1) * (diag_i - yv).conj()
-    ds_dvm = torch.diag_embed(vn * i.conj()) + v.unsqueeze(-1) * (y_bus * vn.unsqueeze(1)).conj()
-    ds_dth, ds_dvm = ds_dth[:, 1:, 1:], ds_dvm[:, 1:, 1:]
-    top = torch.cat([ds_dth.real, ds_dvm.real], 2)
-    bot = torch.cat([ds_dth.imag, ds_dvm.imag], 2)
-    return torch.cat([top, bot], 1)
+    """Polar Jacobian (N, 2n-2, 2n-2) of the mismatch w.r.t. [θ, |V|] on the non-slack buses.
+
+    ∂S/∂θ = j diag(V) conj(diag(I) − Y diag(V)),  ∂S/∂|V| = diag(V/|V|) conj(diag(I)) + diag(V) conj(Y diag(V/|V|)).
+    """
+    y = y_bus[1:, 1:]
+    vs = v[:, 1:]
+    i = (v @ y_bus.T)[:, 1:]
+    vn = vs / vs.abs()
+    ds_dth = -1j * vs.unsqueeze(-1) * (y * vs.unsqueeze(1)).conj()  # off-diagonal part
+    ds_dvm = vs.unsqueeze(-1) * (y * vn.unsqueeze(1)).conj()
+    ds_dth = ds_dth + torch.diag_embed(1j * vs * i.conj())
+    ds_dvm = ds_dvm + torch.diag_embed(vn * i.conj())
+    jac = torch.empty(v.shape[0], 2 * (v.shape[1] - 1), 2 * (v.shape[1] - 1), dtype=v.real.dtype, device=v.device)
+    k = v.shape[1] - 1
+    jac[:, :k, :k], jac[:, :k, k:] = ds_dth.real, ds_dvm.real
+    jac[:, k:, :k], jac[:, k:, k:] = ds_dth.imag, ds_dvm.imag
+    return jac
 
 
 def newton_raphson(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL,
@@ -76,21 +82,25 @@ def newton_raphson(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL,
                    torch.ones(n_env, n - 1, dtype=real, device=s_bus.device)], 1)
     diff = _mismatch(_voltages(x, n), y_bus, s_bus).abs().amax(1)
     n_iter = torch.zeros(n_env, dtype=torch.long, device=s_bus.device)
-    for it in range(max_iter):
-        # NaN > tol is False: a NaN iterate stops its env, as in gym-anm.
-        active = (diff > tol).nonzero().squeeze(1)
-        if active.numel() == 0:
+    # The active rows are carried compactly and only written back when they stop, so the rare env that runs
+    # all max_iter iterations costs a few small ops per iteration. NaN > tol is False: NaN stops an env.
+    idx = (diff > tol).nonzero().squeeze(1)
+    xa, sa = x[idx], s_bus[idx]
+    va = _voltages(xa, n)
+    fa = _mismatch(va, y_bus, sa)
+    for it in range(1, max_iter + 1):
+        if idx.numel() == 0:
             break
-        xa, sa = x[active], s_bus[active]
-        va = _voltages(xa, n)
-        f = _mismatch(va, y_bus, sa)
-        jac = _jacobian(va, y_bus)
-        dx, info = torch.linalg.solve_ex(jac, f.unsqueeze(-1))
-        dx = dx.squeeze(-1)
-        dx = torch.where((info != 0).unsqueeze(1), torch.full_like(dx, float("nan")), dx)  # singular J
+        dx, info = torch.linalg.solve_ex(_jacobian(va, y_bus), fa.unsqueeze(-1))
+        dx = torch.where((info != 0).unsqueeze(1), float("nan"), dx.squeeze(-1))  # singular J -> NaN, as spsolve
         xa = xa - dx
-        x[active] = xa
-        diff[active] = _mismatch(_voltages(xa, n), y_bus, sa).abs().amax(1)
-        n_iter[active] = it + 1
+        va = _voltages(xa, n)
+        fa = _mismatch(va, y_bus, sa)
+        da = fa.abs().amax(1)
+        going = (da > tol) & (it < max_iter)
+        if not bool(going.all()):
+            stop = ~going
+            x[idx[stop]], diff[idx[stop]], n_iter[idx[stop]] = xa[stop], da[stop], it
+            idx, xa, va, fa, sa = idx[going], xa[going], va[going], fa[going], sa[going]
     converged = ~torch.isnan(diff) & (diff <= tol)
     return PowerFlowResult(v=_voltages(x, n), converged=converged, n_iter=n_iter, mismatch_inf=diff)

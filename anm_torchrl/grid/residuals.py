@@ -17,7 +17,7 @@ def bus_voltage(v_magn: torch.Tensor, v_ang: torch.Tensor) -> torch.Tensor:
 
 def power_injection(v: torch.Tensor, y_bus: torch.Tensor) -> torch.Tensor:
     """Complex power injected at each bus, ``S = V ⊙ conj(Y V)`` (..., n_bus) p.u., for ``v`` (..., n_bus)."""
-    return v * torch.einsum("ij,...j->...i", y_bus, v).conj()
+    return v * (v @ y_bus.T).conj()
 
 
 def power_flow_mismatch(v: torch.Tensor, y_bus: torch.Tensor, s_bus: torch.Tensor) -> torch.Tensor:

@@ -73,6 +73,8 @@ class GridSimulator:
         polys = [dv.storage_polygon(net, d) for d in self.des_ids]
         self.des_g = torch.stack([p[0] for p in polys]) if polys else None
         self.des_h0 = torch.stack([p[1] for p in polys]) if polys else None
+        self._gen_poly = [dv.Polygon(g) for g in self.gen_g]
+        self._des_poly = [dv.Polygon(g) for g in self.des_g] if polys else []
         gid, did, lid = (torch.tensor(ix, dtype=torch.long, device=net.dev.device)
                          for ix in (self.gen_ids, self.des_ids, self.load_ids))
         self._gid, self._did, self._lid = gid, did, lid
@@ -139,7 +141,8 @@ class GridSimulator:
 
     def project_generators(self, target: torch.Tensor, p_pot: torch.Tensor) -> torch.Tensor:
         """Feasible (P, Q) (N, n_gen, 2) p.u. for set-points ``target`` (N, n_gen, 2) and ``p_pot`` (N, n_gen)."""
-        return dv.project(target, self.gen_g, dv.generator_h(self.gen_h0, p_pot))
+        h = self.generator_h(p_pot)
+        return torch.stack([poly.project(target[:, k], h[:, k]) for k, poly in enumerate(self._gen_poly)], 1)
 
     def generator_h(self, p_pot: torch.Tensor) -> torch.Tensor:
         """Generator right-hand sides (N, n_gen, 7) for ``p_pot`` (N, n_gen) p.u."""
@@ -152,7 +155,8 @@ class GridSimulator:
 
     def project_storage(self, target: torch.Tensor, soc: torch.Tensor) -> torch.Tensor:
         """Feasible (P, Q) (N, n_des, 2) p.u. for set-points (N, n_des, 2) and SoC (N, n_des) p.u.·h."""
-        return dv.project(target, self.des_g, self.storage_h(soc))
+        h = self.storage_h(soc)
+        return torch.stack([poly.project(target[:, k], h[:, k]) for k, poly in enumerate(self._des_poly)], 1)
 
     def soc_update(self, soc: torch.Tensor, p_des: torch.Tensor) -> torch.Tensor:
         """SoC after applying ``p_des`` (N, n_des) p.u. for Δt; one-way efficiency both ways, then clipped."""

@@ -1,0 +1,224 @@
+"""Deterministic evaluation of a policy on the true simulator (``ANM6Env``) or on gym-anm itself.
+
+Protocol (Henry & Ernst's gym-anm paper, used by the PPO recipe and ``recipes/evaluate.py``):
+
+* a fixed set of initial states, drawn once from gym-anm's reset distribution with a seed
+  (:func:`draw_initial_states`);
+* one episode of at most ``max_steps`` steps (default 3,000) per initial state, the policy in deterministic mode;
+* an episode ends at its first termination (power flow did not converge): rewards are counted up to and including
+  that step, nothing after it;
+* metrics per episode, then averaged over episodes:
+
+  ============================  ======================================================================
+  ``return``                    Σ_t r_t (undiscounted)
+  ``discounted_return``         Σ_t γ^t r_t, γ = 0.995 (the gym-anm paper's score)
+  ``e_loss``                    Σ_t ΔE_c,t — clipped energy-loss term of the reward (p.u.·h, clipped at 1 per step)
+  ``penalty``                   Σ_t Pen_c,t — clipped constraint penalty λΦ (clipped at 100 per step)
+  ``steps``                     number of counted steps (≤ max_steps)
+  ``terminated``                fraction of episodes that terminated
+  ============================  ======================================================================
+
+  On a terminal step the energy-loss and penalty terms are set to the clipping values (1, 100), as gym-anm does,
+  so ``return == -(e_loss + penalty)`` for episodes that do not terminate.
+
+:func:`evaluate_policy` rolls every episode out in one batched ``ANM6Env`` (``break_when_any_done=False``, the
+states set with ``reset(..., set_state=True)``); :func:`evaluate_policy_gym_anm` steps gym-anm's ``ANM6Easy``
+environments in lock-step (one batched policy call per step), injecting the same initial states through
+gym-anm's ``init_state`` hook (gym-anm's ``reset(options=...)`` cannot set a state). Injected states are
+reproduced by gym-anm to ~1e-12 MW, so both simulators run the same episodes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+
+EVAL_GAMMA = 0.995
+EVAL_MAX_STEPS = 3000
+METRICS = ("return", "discounted_return", "e_loss", "penalty", "steps", "terminated")
+
+
+@dataclasses.dataclass
+class EvalResult:
+    """Per-episode results (tensors of shape (E,)) and their means (:meth:`metrics`)."""
+
+    returns: torch.Tensor
+    discounted_returns: torch.Tensor
+    e_loss: torch.Tensor
+    penalty: torch.Tensor
+    steps: torch.Tensor
+    terminated: torch.Tensor
+    max_steps: int
+    gamma: float
+    wall_time: float
+
+    @property
+    def num_episodes(self) -> int:
+        return int(self.returns.numel())
+
+    def metrics(self) -> dict[str, float]:
+        """Means over episodes, keyed as :data:`METRICS` (``terminated`` is the terminated fraction)."""
+        return {
+            "return": float(self.returns.mean()),
+            "discounted_return": float(self.discounted_returns.mean()),
+            "e_loss": float(self.e_loss.mean()),
+            "penalty": float(self.penalty.mean()),
+            "steps": float(self.steps.float().mean()),
+            "terminated": float(self.terminated.float().mean()),
+        }
+
+
+def draw_initial_states(num_episodes: int, seed: int, sim: GridSimulator | None = None) -> torch.Tensor:
+    """``num_episodes`` initial states (E, 18) float64 MW/MVAr/MWh from gym-anm's reset distribution.
+
+    Drawn with a fresh ``torch.Generator`` seeded with ``seed`` (the same seed gives the same states).
+    """
+    sim = anm6_easy_simulator() if sim is None else sim
+    generator = torch.Generator(device=sim.net.dev.device).manual_seed(int(seed))
+    states, _ = sim.reset(int(num_episodes), generator)
+    return states.cpu()
+
+
+def episode_metrics(reward: torch.Tensor, e_loss: torch.Tensor, penalty: torch.Tensor, terminated: torch.Tensor,
+                    gamma: float = EVAL_GAMMA, costs_clipping: tuple[float, float] = (1.0, 100.0),
+                    max_steps: int | None = None, wall_time: float = 0.0) -> EvalResult:
+    """Episode metrics from step arrays of shape (E, T) (float rewards and raw reward terms, bool terminations).
+
+    Steps after an episode's first termination are ignored; the terminal step itself counts. ``e_loss`` and
+    ``penalty`` are clipped as in the reward (``costs_clipping``) and set to the clipping values on terminal steps.
+    """
+    reward, e_loss, penalty = (x.to(torch.float64) for x in (reward, e_loss, penalty))
+    terminated = terminated.to(torch.bool)
+    n_steps = reward.shape[1]
+    # alive[t]: no termination strictly before t
+    before = torch.cumsum(terminated.long(), 1) - terminated.long()
+    alive = before == 0
+    e_c = torch.sign(e_loss) * e_loss.abs().clamp(max=costs_clipping[0])
+    pen_c = penalty.clamp(min=0.0, max=costs_clipping[1])
+    e_c = torch.where(terminated, torch.full_like(e_c, costs_clipping[0]), e_c)
+    pen_c = torch.where(terminated, torch.full_like(pen_c, costs_clipping[1]), pen_c)
+    # NaN terms outside the counted steps must not leak into the sums
+    zero = torch.zeros((), dtype=torch.float64)
+    discount = gamma ** torch.arange(n_steps, dtype=torch.float64)
+    return EvalResult(
+        returns=torch.where(alive, reward, zero).sum(1),
+        discounted_returns=torch.where(alive, reward * discount, zero).sum(1),
+        e_loss=torch.where(alive, e_c, zero).sum(1),
+        penalty=torch.where(alive, pen_c, zero).sum(1),
+        steps=alive.sum(1),
+        terminated=(terminated & alive).any(1),
+        max_steps=int(max_steps if max_steps is not None else n_steps),
+        gamma=float(gamma),
+        wall_time=float(wall_time),
+    )
+
+
+@torch.no_grad()
+def evaluate_policy(policy: TensorDictModuleBase, initial_states: torch.Tensor, max_steps: int = EVAL_MAX_STEPS,
+                    gamma: float = EVAL_GAMMA, env: EnvBase | None = None,
+                    exploration_type: ExplorationType = ExplorationType.DETERMINISTIC) -> EvalResult:
+    """Roll ``policy`` out from every initial state (E, 18) in one batched env of E grids.
+
+    Args:
+        policy: reads ``"observation"`` and/or ``"state"``, writes ``"action"`` (E, 6) MW/MVAr.
+        initial_states: (E, 18) float64 states (e.g. :func:`draw_initial_states`).
+        max_steps: episode length T.
+        gamma: discount of ``discounted_return``.
+        env: an env with batch size [E] honouring ``reset(..., set_state=True)``; default a new ``ANM6Env(E)``
+            (the true simulator).
+        exploration_type: default deterministic (the distribution's mean, inside the action box).
+    """
+    from anm_torchrl.envs import ANM6Env
+
+    n = int(initial_states.shape[0])
+    if env is None:
+        env = ANM6Env(n, seed=0)
+    if tuple(env.batch_size) != (n,):
+        raise ValueError(f"env batch size {tuple(env.batch_size)} does not match {n} initial states")
+    sim = getattr(env, "sim", None)
+    clipping = tuple(sim.costs_clipping) if sim is not None else (1.0, 100.0)
+    t0 = time.perf_counter()
+    td = env.reset(TensorDict({"state": initial_states.to(env.device, torch.float64)}, [n], device=env.device),
+                   set_state=True)
+    with set_exploration_type(exploration_type):
+        # auto-resets after a termination are harmless: everything after the first termination is masked
+        roll = env.rollout(int(max_steps), policy, tensordict=td, auto_reset=False, break_when_any_done=False)
+    nxt = roll.get("next")
+    nan = torch.full(nxt["reward"].shape[:2], float("nan"))
+
+    def term(key: str) -> torch.Tensor:
+        return nxt.get(("grid", key)).squeeze(-1).cpu() if ("grid", key) in nxt.keys(True) else nan
+
+    return episode_metrics(nxt["reward"].squeeze(-1).cpu(), term("e_loss"), term("penalty"),
+                           nxt["terminated"].squeeze(-1).cpu(), gamma=gamma, costs_clipping=clipping,
+                           max_steps=max_steps, wall_time=time.perf_counter() - t0)
+
+
+@torch.no_grad()
+def evaluate_policy_gym_anm(policy: TensorDictModuleBase, initial_states: torch.Tensor,
+                            max_steps: int = EVAL_MAX_STEPS, gamma: float = EVAL_GAMMA,
+                            exploration_type: ExplorationType = ExplorationType.DETERMINISTIC,
+                            progress: bool = False) -> EvalResult:
+    """Same protocol on the original gym-anm 2.0.1 ``ANM6Easy`` (slow, ≈25 steps/s per episode).
+
+    One gym-anm env per initial state, stepped in lock-step; the policy gets a TensorDict with ``"state"``
+    (gym-anm's ``env.state``, float64) and ``"observation"`` (float32) for the episodes still running. The state
+    is injected by replacing the env's ``init_state`` before ``reset``; terms are gym-anm's clipped
+    ``env.e_loss`` / ``env.penalty``.
+    """
+    try:
+        from gym_anm.envs import ANM6Easy
+    except ImportError as err:  # pragma: no cover - depends on the install
+        raise ImportError("evaluation on gym-anm needs the gym-anm package: pip install gym-anm==2.0.1") from err
+
+    n = int(initial_states.shape[0])
+    envs, obs = [], []
+    for i in range(n):
+        env = ANM6Easy()
+        s0 = initial_states[i].to(torch.float64).numpy().copy()
+        env.init_state = lambda s0=s0: s0.copy()  # gym-anm's reset calls self.init_state()
+        o, _ = env.reset(seed=i)
+        envs.append(env)
+        obs.append(o)
+    shape = (n, int(max_steps))
+    reward, e_loss, penalty = np.zeros(shape), np.zeros(shape), np.zeros(shape)
+    terminated = np.zeros(shape, dtype=bool)
+    running = np.ones(n, dtype=bool)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=int(max_steps), desc="gym-anm", leave=False)
+    t0 = time.perf_counter()
+    with set_exploration_type(exploration_type):
+        for t in range(int(max_steps)):
+            idx = np.flatnonzero(running)
+            if idx.size == 0:
+                break
+            td = TensorDict({"state": torch.as_tensor(np.stack([envs[i].state for i in idx])),
+                             "observation": torch.as_tensor(np.stack([obs[i] for i in idx]), dtype=torch.float32)},
+                            [idx.size])
+            actions = policy(td).get("action").detach().to(torch.float64).cpu().numpy()
+            for k, i in enumerate(idx):
+                o, r, term, _, _ = envs[i].step(actions[k])
+                obs[i] = o
+                reward[i, t], e_loss[i, t], penalty[i, t] = r, envs[i].e_loss, envs[i].penalty
+                terminated[i, t] = term
+                running[i] = not term
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    clipping = tuple(float(c) for c in envs[0].costs_clipping)
+    return episode_metrics(torch.from_numpy(reward), torch.from_numpy(e_loss), torch.from_numpy(penalty),
+                           torch.from_numpy(terminated), gamma=gamma, costs_clipping=clipping,
+                           max_steps=max_steps, wall_time=time.perf_counter() - t0)
+
