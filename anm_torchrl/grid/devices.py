@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import itertools
 
+import numpy as np
 import torch
 
 from anm_torchrl.grid.network import Network
+from anm_torchrl.grid.residuals import constraint_slack
 
 # Column indices of the device table (gym_anm/simulator/components/constants.py).
 PMAX, PMIN, QMAX, QMIN, P_PLUS, P_MINUS, Q_PLUS, Q_MINUS, SOC_MAX, SOC_MIN, EFF = range(4, 15)
@@ -24,16 +26,22 @@ _FEAS_TOL = 1e-10  # p.u. (|h| ≲ 500); candidates on a line carry ~1e-16 round
 
 
 def _slopes(row: list[float]) -> tuple[float, ...]:
-    """Capability-line slopes and offsets (tau1, rho1, tau2, rho2, tau3, rho3, tau4, rho4), spec §1.5."""
+    """Capability-line slopes and offsets (tau1, rho1, tau2, rho2, tau3, rho3, tau4, rho4), spec §1.5.
+
+    Corners that are not given (NaN) take gym-anm's defaults P+ = PMAX, P- = PMIN, Q+ = QMAX, Q- = QMIN,
+    which make the corresponding lines flat (a plain box).
+    """
     pmax, pmin, qmax, qmin = row[PMAX], row[PMIN], row[QMAX], row[QMIN]
-    pp, pm, qp, qm = row[P_PLUS], row[P_MINUS], row[Q_PLUS], row[Q_MINUS]
+    given = lambda v, default: default if v != v else v  # noqa: E731  (NaN -> default)
+    pp, pm = given(row[P_PLUS], pmax), given(row[P_MINUS], pmin)
+    qp, qm = given(row[Q_PLUS], qmax), given(row[Q_MINUS], qmin)
     if pmax == pp:
         t1 = t2 = 0.0
     else:
         t1 = (qp - qmax) / (pmax - pp)
         t2 = (qm - qmin) / (pmax - pp)
     r1, r2 = qmax - t1 * pp, qmin - t2 * pp
-    if pm != pm or pmin == pm:  # NaN (generator) or no left corner
+    if pmin == pm:  # no left corner
         t3 = t4 = 0.0
         r3, r4 = qmin, qmax
     else:
@@ -103,24 +111,39 @@ class Polygon:
     """
 
     def __init__(self, g: torch.Tensor):
-        self.g = g
-        self.gn2 = (g * g).sum(-1)
-        pairs = [(i, j) for i, j in itertools.combinations(range(g.shape[0]), 2)
-                 if abs(float(g[i, 0] * g[j, 1] - g[j, 0] * g[i, 1])) > 1e-12]
+        self.g_rows = g
+        # Rows with the same normal (e.g. P <= PMAX and P <= P_pot) bound the same half-plane: keep the tightest.
+        normals: list[tuple[float, float]] = []
+        groups: list[list[int]] = []
+        for r, row in enumerate(g.tolist()):
+            if tuple(row) in normals:
+                groups[normals.index(tuple(row))].append(r)
+            else:
+                normals.append(tuple(row))
+                groups.append([r])
+        width = max(len(grp) for grp in groups)
+        self.group_idx = torch.tensor([grp + grp[:1] * (width - len(grp)) for grp in groups], device=g.device)
+        self.g = torch.tensor(normals, dtype=g.dtype, device=g.device)
+        self.gn2 = (self.g * self.g).sum(-1)
+        pairs = [(i, j) for i, j in itertools.combinations(range(len(normals)), 2)
+                 if abs(float(self.g[i, 0] * self.g[j, 1] - self.g[j, 0] * self.g[i, 1])) > 1e-12]
         self.pair_i = torch.tensor([p[0] for p in pairs], device=g.device)
         self.pair_j = torch.tensor([p[1] for p in pairs], device=g.device)
-        self.pair_inv = torch.linalg.inv(torch.stack([g[self.pair_i], g[self.pair_j]], 1))  # (p, 2, 2)
+        self.pair_inv = torch.linalg.inv(torch.stack([self.g[self.pair_i], self.g[self.pair_j]], 1))  # (p, 2, 2)
 
     def project(self, target: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
         """Closest point (..., 2) of the polygon with right-hand sides ``h`` (..., m) to ``target`` (..., 2)."""
         g = self.g
-        viol = target @ g.T - h  # (..., m)
+        h = h[..., self.group_idx].amin(-1)  # (..., m_unique)
+        viol = target @ g.T - h
         on_lines = target.unsqueeze(-2) - (viol / self.gn2).unsqueeze(-1) * g  # (..., m, 2)
         hv = torch.stack([h[..., self.pair_i], h[..., self.pair_j]], -1)  # (..., p, 2)
-        verts = (self.pair_inv @ hv.unsqueeze(-1)).squeeze(-1)  # (..., p, 2)
+        verts = torch.einsum("pab,...pb->...pa", self.pair_inv, hv)  # (..., p, 2)
         cand = torch.cat([target.unsqueeze(-2), on_lines, verts], -2)  # (..., c, 2)
-        feasible = ((cand @ g.T) <= h.unsqueeze(-2) + _FEAS_TOL).all(-1)
-        dist = ((cand - target.unsqueeze(-2)) ** 2).sum(-1)
+        lhs = (cand.reshape(-1, 2) @ g.T).reshape(*cand.shape[:-1], g.shape[0])  # one GEMM: (..., c, m)
+        feasible = (lhs <= h.unsqueeze(-2) + _FEAS_TOL).all(-1)
+        d = cand - target.unsqueeze(-2)
+        dist = torch.einsum("...ck,...ck->...c", d, d)
         dist = torch.where(feasible, dist, torch.full_like(dist, float("inf")))
         best = dist.argmin(-1, keepdim=True)
         return torch.gather(cand, -2, best.unsqueeze(-1).expand(*best.shape, 2)).squeeze(-2)
@@ -144,13 +167,26 @@ def project(target: torch.Tensor, g: torch.Tensor, h: torch.Tensor) -> torch.Ten
 
 def projection_duals(x_star: torch.Tensor, target: torch.Tensor, g: torch.Tensor, h: torch.Tensor,
                      active_tol: float = 1e-9) -> torch.Tensor:
-    """Lagrange multipliers (..., m) of ``min 1/2 ||x - target||^2 s.t. g x <= h`` at the solution ``x_star``.
+    """Lagrange multipliers λ ≥ 0 (N, m) of ``min 1/2 ||x - target||^2 s.t. g x <= h`` at the solution ``x_star``.
 
-    Solves ``g_A^T lam_A = -(x_star - target)`` in the least-norm sense over the active rows ``A``
-    (|g x - h| <= ``active_tol``); inactive rows get 0. Used to check the KKT residual code.
+    Solves ``g_Aᵀ λ_A = -(x_star - target)`` by non-negative least squares over the active rows ``A``
+    (|g x - h| <= ``active_tol``); inactive rows get 0. NNLS rather than least-norm because active rows can be
+    opposite (P >= 0 and P <= P_pot = 0), where a least-norm split gives λ < 0. A reference for tests and
+    validation (a per-row loop over scipy), not for hot paths.
+
+    Args:
+        x_star, target: (..., 2).  g: (..., m, 2), broadcast against ``h``.  h: (..., m).
     """
-    active = ((g * x_star.unsqueeze(-2)).sum(-1) - h).abs() <= active_tol
-    ga = torch.where(active.unsqueeze(-1), g, torch.zeros_like(g))  # (..., m, 2)
-    rhs = -(x_star - target)
-    lam = torch.linalg.lstsq(ga.transpose(-1, -2), rhs.unsqueeze(-1), driver="gelsd").solution.squeeze(-1)
-    return torch.where(active, lam, torch.zeros_like(lam))
+    from scipy.optimize import nnls
+
+    m = h.shape[-1]
+    g = g.expand(*h.shape, 2).reshape(-1, m, 2)
+    x_flat, t_flat, h_flat = x_star.reshape(-1, 2), target.reshape(-1, 2), h.reshape(-1, m)
+    active = (constraint_slack(x_flat, g, h_flat).abs() <= active_tol).cpu().numpy()
+    gn, rhs = g.detach().cpu().numpy(), (t_flat - x_flat).detach().cpu().numpy()
+    lam = np.zeros(h_flat.shape, dtype=np.float64)
+    for r in range(h_flat.shape[0]):
+        rows = np.flatnonzero(active[r])
+        if rows.size:
+            lam[r, rows] = nnls(gn[r, rows].T, rhs[r])[0]
+    return torch.as_tensor(lam, dtype=h.dtype, device=h.device).reshape(h.shape)

@@ -12,7 +12,7 @@ import dataclasses
 
 import torch
 
-from anm_torchrl.grid.residuals import power_flow_mismatch
+from anm_torchrl.grid.residuals import power_injection
 
 TOL = 1e-5
 MAX_ITER = 100
@@ -41,28 +41,33 @@ def _voltages(x: torch.Tensor, n: int) -> torch.Tensor:
     return torch.polar(mag, ang)
 
 
-def _mismatch(v: torch.Tensor, y_bus: torch.Tensor, s_bus: torch.Tensor) -> torch.Tensor:
-    m = power_flow_mismatch(v, y_bus, s_bus)[:, 1:]
+def _mismatch(s_inj: torch.Tensor, s_bus: torch.Tensor) -> torch.Tensor:
+    """F = [Re, Im] of the non-slack mismatch (N, 2n-2) from ``power_injection`` (N, n) and ``s_bus``."""
+    m = (s_inj - s_bus)[:, 1:]
     return torch.cat([m.real, m.imag], 1)
 
 
-def _jacobian(v: torch.Tensor, y_bus: torch.Tensor) -> torch.Tensor:
-    """Polar Jacobian (N, 2n-2, 2n-2) of the mismatch w.r.t. [θ, |V|] on the non-slack buses.
+def _jacobian(v: torch.Tensor, s_inj: torch.Tensor, y_conj: torch.Tensor) -> torch.Tensor:
+    """Polar Jacobian (N, 2n-2, 2n-2) of F w.r.t. [θ, |V|] on the non-slack buses.
 
-    ∂S/∂θ = j diag(V) conj(diag(I) − Y diag(V)),  ∂S/∂|V| = diag(V/|V|) conj(diag(I)) + diag(V) conj(Y diag(V/|V|)).
+    From ∂S/∂θ = j diag(V) conj(diag(I) − Y diag(V)) and ∂S/∂|V| = diag(V/|V|) conj(diag(I)) +
+    diag(V) conj(Y diag(V/|V|)), written with A_ik = V_i conj(Y_ik V_k) and S_i = V_i conj(I_i):
+    ∂S/∂θ = −jA + diag(jS), ∂S/∂|V| = A / |V_k| + diag(S / |V|). ``y_conj`` = conj(Y[1:, 1:]).
     """
-    y = y_bus[1:, 1:]
-    vs = v[:, 1:]
-    i = (v @ y_bus.T)[:, 1:]
-    vn = vs / vs.abs()
-    ds_dth = -1j * vs.unsqueeze(-1) * (y * vs.unsqueeze(1)).conj()  # off-diagonal part
-    ds_dvm = vs.unsqueeze(-1) * (y * vn.unsqueeze(1)).conj()
-    ds_dth = ds_dth + torch.diag_embed(1j * vs * i.conj())
-    ds_dvm = ds_dvm + torch.diag_embed(vn * i.conj())
-    jac = torch.empty(v.shape[0], 2 * (v.shape[1] - 1), 2 * (v.shape[1] - 1), dtype=v.real.dtype, device=v.device)
-    k = v.shape[1] - 1
-    jac[:, :k, :k], jac[:, :k, k:] = ds_dth.real, ds_dvm.real
-    jac[:, k:, :k], jac[:, k:, k:] = ds_dth.imag, ds_dvm.imag
+    vs, s = v[:, 1:], s_inj[:, 1:]
+    k = vs.shape[1]
+    vm = vs.abs()
+    a = vs.unsqueeze(-1) * (y_conj * vs.conj().unsqueeze(1))
+    b = a / vm.unsqueeze(1)
+    jac = torch.empty(v.shape[0], 2 * k, 2 * k, dtype=vm.dtype, device=v.device)
+    jac[:, :k, :k], jac[:, k:, :k] = a.imag, -a.real
+    jac[:, :k, k:], jac[:, k:, k:] = b.real, b.imag
+    sr, si = s.real, s.imag
+    diag = jac.diagonal(0, 1, 2)
+    diag[:, :k] -= si
+    diag[:, k:] += si / vm
+    jac.diagonal(k, 1, 2).add_(sr / vm)
+    jac.diagonal(-k, 1, 2).add_(sr)
     return jac
 
 
@@ -80,27 +85,34 @@ def newton_raphson(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL,
     real = torch.float64 if s_bus.dtype == torch.complex128 else torch.float32
     x = torch.cat([torch.zeros(n_env, n - 1, dtype=real, device=s_bus.device),
                    torch.ones(n_env, n - 1, dtype=real, device=s_bus.device)], 1)
-    diff = _mismatch(_voltages(x, n), y_bus, s_bus).abs().amax(1)
+    y_conj = y_bus[1:, 1:].conj()
+    diff = _mismatch(power_injection(_voltages(x, n), y_bus), s_bus).abs().amax(1)
     n_iter = torch.zeros(n_env, dtype=torch.long, device=s_bus.device)
     # The active rows are carried compactly and only written back when they stop, so the rare env that runs
     # all max_iter iterations costs a few small ops per iteration. NaN > tol is False: NaN stops an env.
     idx = (diff > tol).nonzero().squeeze(1)
     xa, sa = x[idx], s_bus[idx]
     va = _voltages(xa, n)
-    fa = _mismatch(va, y_bus, sa)
+    sia = power_injection(va, y_bus)
+    fa = _mismatch(sia, sa)
     for it in range(1, max_iter + 1):
         if idx.numel() == 0:
             break
-        dx, info = torch.linalg.solve_ex(_jacobian(va, y_bus), fa.unsqueeze(-1))
+        if it == 1:  # every env is still at the flat start: one Jacobian, one LU factorisation for all
+            lu, piv, info = torch.linalg.lu_factor_ex(_jacobian(va[:1], sia[:1], y_conj))
+            dx = torch.linalg.lu_solve(lu, piv, fa.unsqueeze(-1))
+        else:
+            dx, info = torch.linalg.solve_ex(_jacobian(va, sia, y_conj), fa.unsqueeze(-1))
         dx = torch.where((info != 0).unsqueeze(1), float("nan"), dx.squeeze(-1))  # singular J -> NaN, as spsolve
         xa = xa - dx
         va = _voltages(xa, n)
-        fa = _mismatch(va, y_bus, sa)
+        sia = power_injection(va, y_bus)
+        fa = _mismatch(sia, sa)
         da = fa.abs().amax(1)
         going = (da > tol) & (it < max_iter)
         if not bool(going.all()):
             stop = ~going
             x[idx[stop]], diff[idx[stop]], n_iter[idx[stop]] = xa[stop], da[stop], it
-            idx, xa, va, fa, sa = idx[going], xa[going], va[going], fa[going], sa[going]
+            idx, xa, va, sia, fa, sa = idx[going], xa[going], va[going], sia[going], fa[going], sa[going]
     converged = ~torch.isnan(diff) & (diff <= tol)
     return PowerFlowResult(v=_voltages(x, n), converged=converged, n_iter=n_iter, mismatch_inf=diff)

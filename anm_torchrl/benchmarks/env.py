@@ -1,0 +1,170 @@
+"""Transitions per second of ``ANM6Env`` and ``GridSimulator.step`` against batch size, and of gym-anm.
+
+Usage::
+
+    python -m anm_torchrl.benchmarks.env [--batch-sizes 1,16,256,1024,4096,16384] [--gym-steps 200]
+                                         [--min-time 2.0] [--device cpu] [--threads 1] [--no-gym]
+
+Prints one markdown table. Every row separates the warm-up (construction, first reset and first step, where
+lazy initialisation happens) from the steady state (further steps, timed until ``--min-time`` seconds and at
+least ``--min-steps`` steps have passed).
+
+* ``gym-anm`` — gym-anm 2.0.1 ``ANM6Easy``, one env, ``action_space.sample()`` actions (seeded), reset on
+  termination; measured in the same run so the ratio is on the same machine and load.
+* ``ANM6Env`` — the TorchRL env: ``env.rand_action`` then ``env.step_and_maybe_reset`` (what a collector does:
+  terminated envs are reset in place).
+* ``GridSimulator.step`` — the raw batched physics (uniform actions over the box, no TorchRL, no resets;
+  terminated rows continue from their zero state).
+
+The ratio column is steady-state transitions/s divided by gym-anm's steps/s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+DEFAULT_BATCH_SIZES = (1, 16, 256, 1024, 4096, 16384)
+
+
+def _timed(first: Callable[[], None], step: Callable[[], None], min_time: float, min_steps: int
+           ) -> tuple[float, float, int]:
+    """Run ``first`` once (warm-up), then ``step`` until ``min_time`` s and ``min_steps`` calls have passed.
+
+    Returns (warm-up seconds, steady-state seconds, number of steady-state calls).
+    """
+    t0 = time.perf_counter()
+    first()
+    warm = time.perf_counter() - t0
+    n, t1 = 0, time.perf_counter()
+    while True:
+        step()
+        n += 1
+        elapsed = time.perf_counter() - t1
+        if n >= min_steps and elapsed >= min_time:
+            return warm, elapsed, n
+
+
+def bench_gym_anm(n_steps: int, seed: int = 0) -> dict:
+    """gym-anm single-env steps/s (``n_steps`` steady-state steps after reset + 1 warm-up step)."""
+    import warnings
+
+    from gym_anm.envs import ANM6Easy
+
+    warnings.filterwarnings("ignore", module="gym_anm")
+    box = {}
+
+    def first():
+        env = ANM6Easy()
+        env.reset(seed=seed)
+        env.action_space.seed(seed)
+        env.step(env.action_space.sample())
+        box["env"] = env
+
+    def run():
+        env = box["env"]
+        for _ in range(n_steps):
+            _, _, term, _, _ = env.step(env.action_space.sample())
+            if term:
+                env.reset()
+
+    warm, elapsed, _ = _timed(first, run, 0.0, 1)
+    return {"impl": "gym-anm 2.0.1 (`ANM6Easy.step`)", "batch": 1, "warm": warm, "rate": n_steps / elapsed}
+
+
+def bench_env(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0) -> dict:
+    from anm_torchrl.envs import ANM6Env
+
+    box = {}
+
+    def first():
+        env = ANM6Env(num_envs=batch, device=device, seed=seed)
+        torch.manual_seed(seed)
+        td = env.reset()
+        _, td = env.step_and_maybe_reset(env.rand_action(td))
+        box["env"], box["td"] = env, td
+
+    def step():
+        env = box["env"]
+        _, box["td"] = env.step_and_maybe_reset(env.rand_action(box["td"]))
+
+    warm, elapsed, n = _timed(first, step, min_time, min_steps)
+    return {"impl": "`ANM6Env` (`rand_action` + `step_and_maybe_reset`)", "batch": batch, "warm": warm,
+            "rate": batch * n / elapsed}
+
+
+def bench_grid(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0) -> dict:
+    from anm_torchrl.grid.simulator import anm6_easy_simulator
+
+    gen = torch.Generator(device=device).manual_seed(seed)
+    box = {}
+
+    def actions():
+        return box["low"] + torch.rand(batch, box["low"].numel(), generator=gen, dtype=torch.float64,
+                                       device=device) * (box["high"] - box["low"])
+
+    def first():
+        sim = anm6_easy_simulator(device)
+        box["low"], box["high"] = sim.action_bounds()
+        state = sim.reset(batch, gen)
+        state = state[0] if isinstance(state, tuple) else state
+        box["sim"], box["state"] = sim, sim.step(state, actions())[0]
+
+    def step():
+        box["state"] = box["sim"].step(box["state"], actions())[0]
+
+    warm, elapsed, n = _timed(first, step, min_time, min_steps)
+    return {"impl": "`GridSimulator.step` (raw physics)", "batch": batch, "warm": warm, "rate": batch * n / elapsed}
+
+
+def markdown_table(rows: list[dict], gym_rate: float | None) -> str:
+    lines = ["| implementation | batch size | warm-up (s) | steady-state transitions/s | ratio vs gym-anm |",
+             "|---|---:|---:|---:|---:|"]
+    for r in rows:
+        ratio = f"{r['rate'] / gym_rate:,.1f}×" if gym_rate else "–"
+        lines.append(f"| {r['impl']} | {r['batch']:,} | {r['warm']:.3f} | {r['rate']:,.0f} | {ratio} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> str:
+    parser = argparse.ArgumentParser(description="ANM6Env / GridSimulator throughput vs gym-anm")
+    parser.add_argument("--batch-sizes", default=",".join(map(str, DEFAULT_BATCH_SIZES)),
+                        help="comma-separated batch sizes")
+    parser.add_argument("--gym-steps", type=int, default=200, help="gym-anm steady-state steps (0: skip)")
+    parser.add_argument("--no-gym", action="store_true", help="skip gym-anm")
+    parser.add_argument("--min-time", type=float, default=2.0, help="seconds of steady state per measurement")
+    parser.add_argument("--min-steps", type=int, default=3, help="at least this many batched steps")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
+    parser.add_argument("--skip-grid", action="store_true", help="skip the raw GridSimulator rows")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    batches = [int(b) for b in args.batch_sizes.split(",") if b.strip()]
+
+    rows = []
+    gym_rate = None
+    if args.gym_steps > 0 and not args.no_gym:
+        try:
+            g = bench_gym_anm(args.gym_steps)
+            rows.append(g)
+            gym_rate = g["rate"]
+        except ImportError:
+            pass
+    for b in batches:
+        rows.append(bench_env(b, args.min_time, args.min_steps, args.device))
+    if not args.skip_grid:
+        for b in batches:
+            rows.append(bench_grid(b, args.min_time, args.min_steps, args.device))
+    table = markdown_table(rows, gym_rate)
+    print(table)
+    print(f"\n<!-- torch {torch.__version__}, {torch.get_num_threads()} thread(s), device {args.device}, "
+          f"numpy {np.__version__}; warm-up = construction + first reset + first step -->")
+    return table
+
+
+if __name__ == "__main__":
+    main()
