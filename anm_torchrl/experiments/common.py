@@ -1,0 +1,80 @@
+"""Shared helpers of the experiments: surrogate specs, availability checks, building envs on a given simulator.
+
+A *surrogate spec* is a dict ``{"name": "xgb", "dataset": "agent", "path": None}`` (the keys ``make_env`` takes);
+its label is ``name`` or ``name_dataset``. A surrogate whose code or trained artifact is missing is reported as
+"not available" with the error message, never raised, so every experiment finishes.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+
+log = logging.getLogger(__name__)
+
+TRUE_ENV = "none"
+
+
+def label(spec: dict[str, Any] | str) -> str:
+    """``"pinn"``, ``"xgb_agent"``… for a surrogate spec (or a bare name)."""
+    if isinstance(spec, str):
+        return spec
+    ds = spec.get("dataset")
+    return f"{spec['name']}_{ds}" if ds else str(spec["name"])
+
+
+def options(spec: dict[str, Any] | str) -> dict[str, Any]:
+    """The keyword arguments of ``make_env`` / the loader for a spec (``name`` removed, ``None`` values dropped)."""
+    if isinstance(spec, str):
+        return {}
+    return {k: v for k, v in spec.items() if k != "name" and v is not None}
+
+
+def make_env_or_reason(spec: dict[str, Any] | str, num_envs: int, seed: int = 0, sim=None, **kw):
+    """``(env, None)`` or ``(None, "reason")`` for a spec; with ``sim``, the env runs on that simulator.
+
+    With a custom ``sim`` the surrogate model is loaded through the registry and wrapped in a ``SurrogateEnv``
+    on that simulator (the loader gets ``sim=`` when it accepts it, so physics-based models see the changed
+    time series too; see :func:`load_model_on`).
+    """
+    name = spec if isinstance(spec, str) else spec["name"]
+    try:
+        if sim is None:
+            from anm_torchrl import make_env
+
+            return make_env(name, num_envs=num_envs, seed=seed, action_mode="clip", **options(spec), **kw), None
+        from anm_torchrl.envs import ANM6Env, SurrogateEnv
+
+        if name == TRUE_ENV:
+            return ANM6Env(num_envs, seed=seed, action_mode="clip", sim=sim, **kw), None
+        model, _ = load_model_on(spec, sim)
+        return SurrogateEnv(model, num_envs, seed=seed, action_mode="clip", sim=sim, **kw), None
+    except Exception as err:  # noqa: BLE001 - any failure means "not available" here
+        log.info("%s not available: %s", label(spec), err)
+        return None, f"{type(err).__name__}: {err}"
+
+
+def load_model_on(spec: dict[str, Any], sim) -> tuple[Any, bool]:
+    """Load a surrogate's transition model, passing ``sim`` if the loader accepts it.
+
+    Returns (model, whether the model received ``sim``).
+    """
+    from anm_torchrl.surrogates import load_surrogate
+
+    try:
+        return load_surrogate(spec["name"], sim=sim, **options(spec)), True
+    except TypeError:
+        return load_surrogate(spec["name"], **options(spec)), False
+
+
+def set_state_and_step(env, state: torch.Tensor, action: torch.Tensor) -> TensorDict:
+    """Put every env of the batch in ``state`` (N, 18) and take ``action`` (N, 6); returns the ``next`` TD."""
+    n = state.shape[0]
+    td = env.reset(TensorDict({"state": state.to(torch.float64)}, [n]), set_state=True)
+    td.set("action", action.to(torch.float32))
+    return env.step(td).get("next")
+
+

@@ -1,0 +1,144 @@
+"""Results files of the experiments: JSON (with machine info, versions, seeds, wall time) and CSV.
+
+Every experiment writes ``<out_dir>/<name>.json`` holding ``{"name", "status", "reason", "data", "meta"}``:
+
+* ``status``: ``"ok"``, ``"partial"`` (some pieces not available; see ``data["not_available"]``),
+  ``"not available"`` (a dependency — a surrogate, a recipe, a module written elsewhere — is missing) or
+  ``"error"`` (the experiment raised; ``reason`` holds the message, the traceback is in ``meta``);
+* ``meta``: machine, versions, seeds, configuration and wall time of that experiment.
+
+Tables that the plots and ``docs/RESULTS.md`` use are also written as CSV next to the JSON.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import platform
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import torch
+
+STATUSES = ("ok", "partial", "not available", "error")
+
+
+def machine_info() -> dict[str, Any]:
+    """CPU model, logical cores, torch threads, OS and Python of this machine."""
+    cpu = platform.processor() or ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem_gb = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                mem_gb = round(int(line.split()[1]) / 2**20, 1)
+    except OSError:
+        pass
+    try:
+        affinity = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        affinity = os.cpu_count()
+    return {"cpu": cpu, "logical_cores": os.cpu_count(), "usable_cores": affinity, "memory_gb": mem_gb,
+            "torch_threads": torch.get_num_threads(), "platform": platform.platform(),
+            "python": platform.python_version(), "hostname_hash": hash(platform.node()) % 10_000}
+
+
+def versions() -> dict[str, str | None]:
+    """Versions of the packages the results depend on, and the git commit of the checkout (None if unknown)."""
+    from importlib import metadata
+
+    out: dict[str, str | None] = {}
+    for pkg in ("anm_torchrl", "torch", "torchrl", "tensordict", "numpy", "gym-anm", "scikit-learn", "xgboost",
+                "hydra-core", "matplotlib", "osqp"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = None
+    try:
+        root = Path(__file__).resolve().parents[2]
+        out["git_commit"] = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True,
+                                           timeout=10).stdout.strip() or None
+        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True, text=True, timeout=10)
+        out["git_dirty"] = str(bool(dirty.stdout.strip()))
+    except (OSError, subprocess.SubprocessError):
+        out["git_commit"] = None
+    return out
+
+
+def _plain(x: Any) -> Any:
+    """JSON-able copy: tensors/arrays to lists, NaN/inf to None, paths to str."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, torch.Tensor):
+        return _plain(x.detach().cpu().tolist())
+    if hasattr(x, "tolist") and not isinstance(x, (str, bytes)):
+        return _plain(x.tolist())
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, Path):
+        return str(x)
+    if isinstance(x, (int, str, bool)) or x is None:
+        return x
+    return str(x)
+
+
+def write_json(path: str | Path, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON (atomically)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(_plain(obj), indent=2))
+    os.replace(tmp, path)
+    return path
+
+
+def read_json(path: str | Path) -> Any:
+    return json.loads(Path(path).read_text())
+
+
+def write_csv(path: str | Path, rows: list[dict[str, Any]]) -> Path | None:
+    """Write a list of flat dicts as CSV (columns: union of keys, in first-seen order); None if no rows."""
+    if not rows:
+        return None
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cols: list[str] = []
+    for r in rows:
+        cols += [k for k in r if k not in cols]
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=cols)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: _plain(v) for k, v in r.items()})
+    return path
+
+
+def result(name: str, status: str, data: dict | None = None, reason: str | None = None, **meta) -> dict:
+    """An experiment's result record (see module docstring)."""
+    if status not in STATUSES:
+        raise ValueError(f"status must be one of {STATUSES}, got {status!r}")
+    return {"name": name, "status": status, "reason": reason, "data": data or {}, "meta": meta}
+
+
+def load_results(out_dir: str | Path) -> dict[str, dict]:
+    """Every ``<name>.json`` result record under ``out_dir``, keyed by name (``run.json`` included)."""
+    out = {}
+    for p in sorted(Path(out_dir).glob("*.json")):
+        try:
+            rec = read_json(p)
+        except (OSError, json.JSONDecodeError):
+            continue
+        if isinstance(rec, dict) and "name" in rec:
+            out[rec["name"]] = rec
+    return out

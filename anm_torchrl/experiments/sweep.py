@@ -1,0 +1,77 @@
+"""Structural sweep of PPO on the PINN surrogate: number of envs × buffer size (paper Figs. 10–11).
+
+buffer = steps per env between updates, so ``collector.frames_per_batch = n_envs × buffer``. Every cell trains
+with the same frame budget and is evaluated on the true simulator; recorded: the mean evaluation return over
+the last ``last_k`` evaluations and the training wall time, then Pearson correlations between n_envs, buffer,
+mean return and training time, and the best cell. The same grid runs as a Hydra multirun::
+
+    python recipes/ppo.py -m surrogate=pinn env.num_envs=10,100 collector.frames_per_batch=300,3000
+
+(there frames_per_batch is the product; the experiment pairs them itself). If the PINN surrogate is not
+available the sweep runs on ``fallback`` (default the true simulator) and says so.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from anm_torchrl.experiments.common import label, make_env_or_reason
+from anm_torchrl.experiments.io import result
+from anm_torchrl.experiments.ppo_runs import last_mean, ppo_overrides, recipe_available, run_ppo
+
+VARS = ("n_envs", "buffer", "mean_return", "train_time_s")
+
+
+def pearson(x: list[float], y: list[float]) -> float | None:
+    """Pearson correlation (None with < 3 points or a constant series)."""
+    pts = [(a, b) for a, b in zip(x, y) if a is not None and b is not None]
+    if len(pts) < 3:
+        return None
+    mx = sum(a for a, _ in pts) / len(pts)
+    my = sum(b for _, b in pts) / len(pts)
+    sxy = sum((a - mx) * (b - my) for a, b in pts)
+    sx = math.sqrt(sum((a - mx) ** 2 for a, _ in pts))
+    sy = math.sqrt(sum((b - my) ** 2 for _, b in pts))
+    return sxy / (sx * sy) if sx > 0 and sy > 0 else None
+
+
+def run(cfg: dict[str, Any], out_dir: str | Path, seed: int = 0) -> dict:
+    """cfg keys: ``surrogate`` (spec), ``fallback`` (spec or null), ``n_envs`` (list), ``buffer`` (list),
+    ``base`` (overrides), ``last_k``, ``timeout_s``."""
+    reason = recipe_available()
+    if reason:
+        return result("sweep", "not available", reason=reason, config=cfg)
+    spec = dict(cfg.get("surrogate", {"name": "pinn"}))
+    note = None
+    env, why = make_env_or_reason(spec, 1)
+    if env is None:
+        fb = cfg.get("fallback")
+        if not fb:
+            return result("sweep", "not available", reason=f"{label(spec)}: {why}", config=cfg)
+        note = f"{label(spec)} not available ({why}); swept on {label(fb)} instead"
+        spec = dict(fb)
+    rows = []
+    for n in cfg.get("n_envs", [10, 100]):
+        for b in cfg.get("buffer", [30, 300]):
+            over = {**cfg.get("base", {}), "env.num_envs": int(n), "collector.frames_per_batch": int(n) * int(b)}
+            rec = run_ppo(ppo_overrides(spec, seed, over), Path(out_dir) / "runs" / "sweep" / f"n{n}_b{b}",
+                          timeout_s=cfg.get("timeout_s"))
+            rows.append({"n_envs": int(n), "buffer": int(b), "frames_per_batch": int(n) * int(b),
+                         "mean_return": last_mean(rec["curve"], "return", int(cfg.get("last_k", 10))),
+                         "mean_discounted_return": last_mean(rec["curve"], "discounted_return",
+                                                             int(cfg.get("last_k", 10))),
+                         "train_time_s": (rec["summary"] or {}).get("wall_time"),
+                         "train_time_no_eval_s": rec["curve"][-1]["train_s"] if rec["curve"] else None,
+                         "frames": rec["curve"][-1]["frames"] if rec["curve"] else None,
+                         "evaluations": len(rec["curve"]), "error": rec["error"], "run_dir": rec["run_dir"]})
+    corr = {a: {b: pearson([r[a] for r in rows], [r[b] for r in rows]) for b in VARS} for a in VARS}
+    valid = [r for r in rows if r["mean_return"] is not None]
+    best = max(valid, key=lambda r: r["mean_return"]) if valid else None
+    status = "ok" if valid and note is None and len(valid) == len(rows) else ("partial" if valid else "error")
+    return result("sweep", status, {"surrogate": label(spec), "note": note, "grid": rows, "correlation": corr,
+                                    "best": best, "command": "python recipes/ppo.py -m surrogate=" + spec["name"] +
+                                    " env.num_envs=" + ",".join(map(str, cfg.get("n_envs", []))) +
+                                    " collector.frames_per_batch=<n_envs x buffer>"},
+                  reason=None if valid else "no sweep run produced evaluations", config=cfg, seed=seed)
