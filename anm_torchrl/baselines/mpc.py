@@ -1,42 +1,49 @@
-"""gym-anm's MPC DC-OPF baseline (``gym_anm/agents/mpc*.py``, spec §7.1) as an OSQP linear program.
+"""gym-anm's MPC DC-OPF baseline (``gym_anm/agents/mpc*.py``, spec §7.1) as a linear program via qpsolvers.
 
 At a state with time index ``t`` the policy plans the N stages ``t+1 … t+N`` (indices modulo the series
-length) over, per stage ``k`` (all p.u.):
+length, as gym-anm's ``MPCAgentPerfect`` wraps around the day), per stage ``k`` (all p.u.):
 
-* variables: bus angles θ_k (n_bus), device injections P_k (n_dev), DES charge/discharge p_ch,k, p_dis,k ≥ 0
-  and, added here to linearise ``max(0, |P_ij| − β·rate_ij)``, one epigraph variable s_k ≥ 0 per branch
-  with s ≥ P_ij − β·rate and s ≥ −P_ij − β·rate;
-* DC power balance Σ_{d at i} P_d = Σ_{branches (i, j) ∋ i} B_ij (θ_i − θ_j) with B = Im(Y_bus);
-  branch flow P_ij = B_ij (θ_i − θ_j) for branch (i → j);
-* loads equal to the forecast; PMIN ≤ P_gen ≤ min(PMAX, forecast P_pot); PMIN ≤ P_DES ≤ PMAX;
-  P_DES = p_dis − p_ch; SoC_{k+1} = SoC_k + Δt·EFF·p_ch − Δt·p_dis/EFF ∈ [SOC_MIN, SOC_MAX];
+* variables: bus angles θ_k (n_bus), device injections P_k (n_dev), DES charge/discharge p_ch,k, p_dis,k ≥ 0,
+  and, per branch, the epigraph variables cvxpy creates for the objective: a_k ≥ |P_ij| (a ≥ P_ij, a ≥ −P_ij)
+  and o_k ≥ max(0, a_k − β·rate) (o ≥ 0, o ≥ a − β·rate);
+* DC power balance Σ_{d at i} P_d = Σ_{branches at i} B_ij (θ_i − θ_j) with B = Im(Y_bus); branch flow
+  P_ij = B_ij (θ_i − θ_j) for branch (i → j);
+* loads = forecast; PMIN ≤ P_gen ≤ PMAX and P_gen ≤ forecast P_pot; PMIN ≤ P_DES ≤ PMAX; P_DES = p_dis − p_ch;
+  SoC_{k+1} = SoC_k + Δt·EFF·p_ch − Δt·p_dis/EFF ∈ [SOC_MIN, SOC_MAX] (SoC_0 from the state);
 * θ ∈ [−π, π], θ_slack-bus = 0; the slack P is free;
-* objective Σ_k γ^k [P_slack,k + λ Σ_branches s_k].
+* objective Σ_k γ^k [P_slack,k + λ Σ_branches o_k].
 
-The action is the first-stage P of the renewable generators and the DES in MW, all Q = 0, clipped to the
+The action is the first-stage P of the renewable generators and of the DES in MW, all Q = 0, clipped to the
 action box. Forecasts: ``"constant"`` (the state's load P and P_pot held flat, as ``MPCAgentConstant``) or
 ``"perfect"`` (the raw series at t+1 … t+N, as ``MPCAgentPerfect``: the unclipped 36.75 MW PV values appear).
 
-The constraint matrix and the cost are built once; per solve only the bounds (loads, P_pot, initial SoC)
-change. Two back-ends solve the LP with OSQP:
+**Solver.** The matrices are built once; per solve only the right-hand sides (loads, P_pot, SoC_0) change.
+The LP goes through ``qpsolvers.solve_problem`` with ``solver`` (default ``"clarabel"``):
 
-* ``backend="osqp"`` (default): one persistent ``osqp.OSQP`` object, factorised once, updated with the new
-  bounds and warm-started per environment from that environment's previous solution (≈ 3–6 ms per solve
-  for N = 16 on one core);
-* ``backend="qpsolvers"``: ``qpsolvers.solve_problem(..., solver="osqp")`` on the cached matrices (a fresh
-  OSQP set-up per solve, ≈ 2× slower), kept as the literal "qpsolvers + OSQP" formulation.
+* ``"clarabel"`` is what gym-anm's ``dc_opf.solve()`` uses (cvxpy's default for an LP). With the constraint rows
+  above, one per gym-anm cvxpy row, Clarabel follows the same path and the actions agree with gym-anm's to
+  ≈ 1e-9 MW, *including* states where the LP optimum is not unique (around noon, several PV/wind/DES splits
+  reach the same cost; any other solver or formulation then picks another optimal action, up to ~3 MW away).
+* ``"highs"`` (simplex) gives the same optimal value but a vertex on those ties.
+* ``"osqp"`` (ADMM) is *not* usable here: even with eps 1e-9, polishing and 1e5 iterations it stops short on
+  about a third of the states along a day (objective off by up to 1.9, actions by up to 5 MW, ≈ 0.7 s per
+  solve). It is accepted for completeness only.
 
-Both use tight tolerances and OSQP's polishing, so they match gym-anm's cvxpy/Clarabel solution to
-≈ 1e-6 MW on the action when the LP optimum is unique (see ``tests/test_baselines.py``).
+Clarabel and HiGHS are installed with cvxpy (gym-anm's dependency), not by qpsolvers itself: a project that
+needs the MPC without gym-anm should depend on ``clarabel``. Without it :func:`default_solver` falls back.
 
-Defaults: N = 16 planning steps and β = 0.96. gym-anm-exp sweeps N ∈ {8, 16, 32, 64, 128} and
-β ∈ {0.92, …, 1.0}; its best MPC in ``MPC_returns_T2000.txt`` uses N = 32, β = 0.96. N = 16 keeps a solve
-at a few ms (the cost grows roughly linearly in N) — pass ``horizon=32`` for the paper's best setting.
+**Defaults**: N = 32 planning steps and β = 0.96, the best configuration of gym-anm-exp's sweep
+(N ∈ {8, 16, 32, 64, 128} × β ∈ {0.92, …, 1.0}, ``MPC_returns_T2000.txt``). Measured here from gym-anm's
+``reset(seed=0)`` state (t0 = 81, SoC 0.017 MWh), 3,000 steps, discounted (γ = 0.995) return of MPC-perfect:
+N = 8: −96.0, N = 16: −56.9, N = 32: −13.5, N = 64: −13.5 (same actions as N = 32, 3.5× slower);
+N = 32 with β = 0.92: −12.7, β = 1.0: −30.1. MPC-constant N = 16 or 32: −120.6; do-nothing: −883.8.
+The solve time grows about linearly in N: ≈ 4 / 8 / 14 / 47 ms for N = 8 / 16 / 32 / 64.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import scipy.sparse as sp
@@ -48,12 +55,26 @@ from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.network import SLACK
 from anm_torchrl.grid.simulator import GridSimulator
 
-DEFAULT_HORIZON = 16
+DEFAULT_HORIZON = 32
 DEFAULT_SAFETY_MARGIN = 0.96
 
-# OSQP settings: LPs need tight tolerances plus polishing to land on the exact vertex.
-OSQP_SETTINGS = dict(eps_abs=1e-9, eps_rel=1e-9, max_iter=200_000, polishing=True, polish_refine_iter=10,
-                     verbose=False)
+# Per-solver settings passed to qpsolvers. OSQP (ADMM) needs tight tolerances and polishing on an LP and still
+# often stops short of the optimum here (module docstring); the interior-point / simplex solvers use their defaults.
+SOLVER_SETTINGS = {
+    "clarabel": {},
+    "highs": {},
+    "osqp": dict(eps_abs=1e-9, eps_rel=1e-9, max_iter=100_000, polishing=True, polish_refine_iter=10),
+}
+
+
+def default_solver() -> str:
+    """``"clarabel"`` (gym-anm's cvxpy default for this LP) if qpsolvers has it, else ``"highs"``, else ``"osqp"``."""
+    import qpsolvers
+
+    for name in ("clarabel", "highs", "osqp"):
+        if name in qpsolvers.available_solvers:
+            return name
+    raise ImportError("qpsolvers has none of clarabel, highs, osqp")
 
 
 class MPCPolicy(TensorDictModuleBase):
@@ -65,42 +86,45 @@ class MPCPolicy(TensorDictModuleBase):
         forecast: ``"perfect"`` or ``"constant"``.
         safety_margin: β, the fraction of each branch rating above which flows are penalised.
         gamma: discount of the stage costs (gym-anm-exp uses 0.995).
-        backend: ``"osqp"`` (persistent solver, warm starts) or ``"qpsolvers"``.
+        solver: qpsolvers solver name; default :func:`default_solver` (``"clarabel"``).
         in_key: TensorDict key of the gym-anm state (..., state_dim) in MW/MVAr/MWh.
-        warm_start: warm-start each environment from its previous solution (``"osqp"`` only).
+        **solver_settings: overrides of :data:`SOLVER_SETTINGS` passed to the solver.
 
-    ``forward`` writes ``"action"`` (..., action_dim) float32 in MW/MVAr; :meth:`solve` returns the full plan.
+    ``forward`` writes ``"action"`` (..., action_dim) float32 in MW/MVAr; :meth:`solve` returns the full plan
+    of one state. A state whose LP is not solved gets the do-nothing action (a warning is issued and
+    ``last_info[i]["fallback"]`` is True).
     """
 
     def __init__(self, sim: GridSimulator, horizon: int = DEFAULT_HORIZON, forecast: str = "perfect",
-                 safety_margin: float = DEFAULT_SAFETY_MARGIN, gamma: float = 0.995, backend: str = "osqp",
-                 in_key: str = "state", warm_start: bool = True, **osqp_settings):
+                 safety_margin: float = DEFAULT_SAFETY_MARGIN, gamma: float = 0.995, solver: str | None = None,
+                 in_key: str = "state", **solver_settings):
         super().__init__()
         if forecast not in ("perfect", "constant"):
             raise ValueError(f"forecast must be 'perfect' or 'constant', got {forecast!r}")
-        if backend not in ("osqp", "qpsolvers"):
-            raise ValueError(f"backend must be 'osqp' or 'qpsolvers', got {backend!r}")
         if horizon < 1:
             raise ValueError("horizon must be >= 1")
         self.in_keys = [in_key]
         self.out_keys = ["action"]
         self.sim, self.horizon, self.forecast = sim, int(horizon), forecast
-        self.safety_margin, self.gamma, self.backend = float(safety_margin), float(gamma), backend
-        self.warm_start = warm_start
-        self.settings = {**OSQP_SETTINGS, **osqp_settings}
+        self.safety_margin, self.gamma = float(safety_margin), float(gamma)
+        self.solver = default_solver() if solver is None else solver
+        self.solver_settings = {**SOLVER_SETTINGS.get(self.solver, {}), **solver_settings}
+        self._load_series = sim.load_series.detach().cpu().numpy()
+        self._p_max_series = sim.p_max_series.detach().cpu().numpy()
+        self._sl = sim.state_slices()
         self._build()
-        self._solver = None
-        self._warm: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         lo, hi = sim.action_bounds()
         self._a_low, self._a_high = lo.cpu().numpy(), hi.cpu().numpy()
+        self._fallback = np.concatenate([self._a_high[:sim.n_gen], np.zeros(sim.action_dim - sim.n_gen)])
         self.last_info: list[dict] = []
 
     # ------------------------------------------------------------------------------------------ LP build
     def _build(self) -> None:
+        """Constant LP data: ``min c·x  s.t.  A_eq x = b_eq,  G x <= h`` (only b_eq's loads and h change)."""
         sim, net = self.sim, self.sim.net
         nb, nd, nbr = net.n_bus, net.n_dev, len(net.branches.rate)
         gen, des, load = sim.gen_ids, sim.des_ids, sim.load_ids
-        nes = len(des)
+        nes, nl = len(des), len(load)
         slack = [i for i, k in enumerate(net.dev_type.tolist()) if k == SLACK][0]
         dev = net.dev.cpu().numpy()
         b_bus = net.y_bus.imag.cpu().numpy()
@@ -109,154 +133,142 @@ class MPCPolicy(TensorDictModuleBase):
         dt, lamb, beta, n_stage = net.delta_t, sim.lamb, self.safety_margin, self.horizon
         eff = dev[des, dv.EFF]
 
-        # Per-stage variable layout.
+        # Per-stage variable layout x_k = [θ (nb), P (nd), p_ch (nes), p_dis (nes), a (nbr), o (nbr)] with the
+        # epigraph variables a ≥ |P_ij| and o ≥ max(0, a − β rate) that cvxpy creates for abs() and maximum().
         o_th, o_p = 0, nb
         o_ch = o_p + nd
         o_dis = o_ch + nes
-        o_s = o_dis + nes
-        nv = o_s + nbr
-        self._layout = dict(theta=o_th, p=o_p, p_ch=o_ch, p_dis=o_dis, s=o_s, n=nv)
+        o_a = o_dis + nes
+        o_o = o_a + nbr
+        nv = o_o + nbr
+        self._layout = dict(theta=o_th, p=o_p, p_ch=o_ch, p_dis=o_dis, abs=o_a, over=o_o, n=nv)
         self._nb, self._nd, self._nes, self._nbr, self._nv = nb, nd, nes, nbr, nv
         n_var = nv * n_stage
+        self._n_var = n_var
 
-        # Stage-local rows (same for every stage): balance, DES split, slack angle, two epigraph rows.
-        # Branch flow row coefficients: P_ij = B[f, t] (θ_f − θ_t).
-        flow = np.zeros((nbr, nv))
-        bal = np.zeros((nb, nv))
+        def unit(cols) -> np.ndarray:
+            cols = np.atleast_1d(np.asarray(cols, dtype=int))
+            m = np.zeros((cols.size, nv))
+            m[np.arange(cols.size), cols] = 1.0
+            return m
+
+        # Equalities per stage: DC balance, loads = forecast, DES split, slack angle.
+        flow = np.zeros((nbr, nv))  # P_ij = B[f, t] (θ_f − θ_t)
+        bal = np.zeros((nb, nv))  # Σ_{d at i} P_d − Σ_{branches at i} B (θ_i − θ_j) = 0, as gym-anm writes it
         for e, (f, t) in enumerate(zip(f_bus, t_bus)):
             flow[e, o_th + f], flow[e, o_th + t] = b_bus[f, t], -b_bus[f, t]
-            # gym-anm's balance: row f gets B[f,t](θ_f − θ_t), row t gets B[t,f](θ_t − θ_f).
             bal[f, o_th + f] -= b_bus[f, t]
             bal[f, o_th + t] += b_bus[f, t]
             bal[t, o_th + t] -= b_bus[t, f]
             bal[t, o_th + f] += b_bus[t, f]
         for d in range(nd):
-            bal[int(net.dev_bus[d]), o_p + d] += 1.0  # Σ P_dev at bus − Σ flows = 0
-        split = np.zeros((nes, nv))
-        for k, d in enumerate(des):
-            split[k, o_p + d], split[k, o_ch + k], split[k, o_dis + k] = 1.0, 1.0, -1.0  # P = p_dis − p_ch
-        ang = np.zeros((1, nv))
-        ang[0, o_th + 0] = 1.0  # gym-anm fixes θ at index dev_id_mapping[slack] = 0, the slack bus
-        finite = np.isfinite(rate)
-        ep_hi = flow.copy()
-        ep_hi[:, o_s:o_s + nbr] -= np.eye(nbr)  # P_ij − s ≤ β rate
-        ep_lo = -flow
-        ep_lo[:, o_s:o_s + nbr] -= np.eye(nbr)  # −P_ij − s ≤ β rate
-        ep_hi, ep_lo = ep_hi[finite], ep_lo[finite]
-        eq_local = np.vstack([bal, split, ang])
-        ineq_local = np.vstack([ep_hi, ep_lo])
-        blk = lambda m: sp.block_diag([sp.csc_matrix(m)] * n_stage, format="csc")  # noqa: E731
+            bal[int(net.dev_bus[d]), o_p + d] += 1.0
+        fix_load = unit(o_p + np.array(load, dtype=int))
+        split = unit(o_p + np.array(des, dtype=int))  # P_DES − p_dis + p_ch = 0
+        split[np.arange(nes), o_ch + np.arange(nes)] = 1.0
+        split[np.arange(nes), o_dis + np.arange(nes)] = -1.0
+        ang = unit(o_th + 0)  # gym-anm fixes θ at index dev_id_mapping[slack] = 0, the slack bus
+        eq = np.vstack([bal, fix_load, split, ang])
+        n_eq = eq.shape[0]
+        self._a_eq = sp.block_diag([sp.csc_matrix(eq)] * n_stage, format="csc")
+        self._b_eq0 = np.zeros(n_eq * n_stage)
+        self._load_rows = np.arange(n_stage)[:, None] * n_eq + nb + np.arange(nl)  # (N, n_load)
 
-        # SoC rows: SoC_{k+1} − SoC_0 = Σ_{j≤k} Δt (EFF p_ch,j − p_dis,j / EFF).
-        soc_rows = np.zeros((n_stage * nes, n_var))
+        # Inequalities per stage, the rows of gym-anm's cvxpy problem (kept separate, e.g. P_gen ≤ PMAX and
+        # P_gen ≤ forecast, so that an interior-point solver meets the same problem).
+        g_gen = unit(o_p + np.array(gen, dtype=int))
+        g_des = unit(o_p + np.array(des, dtype=int))
+        th = unit(o_th + np.arange(nb))
+        fin = np.isfinite(rate)
+        a_v, o_v = unit(o_a + np.arange(nbr)), unit(o_o + np.arange(nbr))
+        blocks = [
+            (-g_gen, -dev[gen, dv.PMIN]),  # PMIN ≤ P_gen
+            (g_gen, dev[gen, dv.PMAX]),  # P_gen ≤ PMAX
+            (-g_des, -dev[des, dv.PMIN]),  # PMIN ≤ P_DES
+            (g_des, dev[des, dv.PMAX]),  # P_DES ≤ PMAX
+            (g_gen, np.zeros(len(gen))),  # P_gen ≤ forecast P_pot (filled per solve)
+            (-th, np.full(nb, math.pi)),  # −π ≤ θ
+            (th, np.full(nb, math.pi)),  # θ ≤ π
+            (-unit(o_ch + np.arange(2 * nes)), np.zeros(2 * nes)),  # p_ch, p_dis ≥ 0
+            (flow - a_v, np.zeros(nbr)),  # P_ij ≤ a
+            (-flow - a_v, np.zeros(nbr)),  # −P_ij ≤ a
+            (-o_v, np.zeros(nbr)),  # o ≥ 0
+            ((a_v - o_v)[fin], beta * rate[fin]),  # o ≥ a − β rate (unrated branches: o = 0 at the optimum)
+        ]
+        g_loc = np.vstack([m for m, _ in blocks])
+        h_loc = np.concatenate([v for _, v in blocks])
+        n_loc = g_loc.shape[0]
+        fc_row0 = sum(m.shape[0] for m, _ in blocks[:4])
+        self._gen_rows = np.arange(n_stage)[:, None] * n_loc + fc_row0 + np.arange(len(gen))  # (N, n_gen)
+        # SoC rows: SoC_{k+1} = SoC_0 + Σ_{j≤k} Δt (EFF p_ch,j − p_dis,j / EFF) within [SOC_MIN, SOC_MAX].
+        soc = np.zeros((n_stage * nes, n_var))
         for k in range(n_stage):
             for j in range(k + 1):
                 for u in range(nes):
-                    soc_rows[k * nes + u, j * nv + o_ch + u] = dt * eff[u]
-                    soc_rows[k * nes + u, j * nv + o_dis + u] = -dt / eff[u]
-
-        self._a_eq = blk(eq_local)
-        self._b_eq = np.zeros(self._a_eq.shape[0])
-        eps = np.concatenate([beta * rate[finite], beta * rate[finite]])
-        self._g = sp.vstack([blk(ineq_local), sp.csc_matrix(soc_rows)], format="csc")
-        self._h_ep = np.tile(eps, n_stage)
-        self._n_ep = self._h_ep.size
+                    soc[k * nes + u, j * nv + o_ch + u] = dt * eff[u]
+                    soc[k * nes + u, j * nv + o_dis + u] = -dt / eff[u]
+        self._g = sp.vstack([sp.block_diag([sp.csc_matrix(g_loc)] * n_stage), -sp.csc_matrix(soc),
+                             sp.csc_matrix(soc)], format="csc")
+        self._h0 = np.concatenate([np.tile(h_loc, n_stage), np.zeros(2 * n_stage * nes)])
+        self._soc_lo_rows = n_loc * n_stage + np.arange(n_stage * nes)
+        self._soc_hi_rows = self._soc_lo_rows + n_stage * nes
         self._soc_min, self._soc_max = dev[des, dv.SOC_MIN], dev[des, dv.SOC_MAX]
 
-        # Cost.
-        c_local = np.zeros(nv)
-        c_local[o_p + slack] = 1.0
-        c_local[o_s:o_s + nbr] = lamb * finite  # s of an unrated branch stays 0 (cost 0, bounds [0, 0])
-        self._c = np.concatenate([self.gamma ** k * c_local for k in range(n_stage)])
+        # Cost Σ_k γ^k [P_slack + λ Σ o].
+        c_loc = np.zeros(nv)
+        c_loc[o_p + slack] = 1.0
+        c_loc[o_o + np.flatnonzero(fin)] = lamb
+        self._c = np.concatenate([self.gamma ** k * c_loc for k in range(n_stage)])
         self._p_zero = sp.csc_matrix((n_var, n_var))
-
-        # Variable bounds, stage-local; loads and generator upper bounds are filled per solve.
-        lb, ub = np.full(nv, -np.inf), np.full(nv, np.inf)
-        lb[o_th:o_th + nb], ub[o_th:o_th + nb] = -math.pi, math.pi
-        lb[o_p + np.array(gen)], ub[o_p + np.array(gen)] = dev[gen, dv.PMIN], dev[gen, dv.PMAX]
-        lb[o_p + np.array(des)], ub[o_p + np.array(des)] = dev[des, dv.PMIN], dev[des, dv.PMAX]
-        lb[o_ch:o_s + nbr] = 0.0
-        ub[o_s:o_s + nbr][~finite] = 0.0
-        self._lb0, self._ub0 = np.tile(lb, n_stage), np.tile(ub, n_stage)
-        self._gen_idx = np.array([[k * nv + o_p + g for g in gen] for k in range(n_stage)])  # (N, n_gen)
-        self._load_idx = np.array([[k * nv + o_p + d for d in load] for k in range(n_stage)])  # (N, n_load)
-        self._gen_pmax = dev[gen, dv.PMAX]
-        self._n_var = n_var
-
-        # OSQP form l ≤ A x ≤ u with A = [A_eq; G; I].
-        self._a_osqp = sp.vstack([self._a_eq, self._g, sp.eye(n_var, format="csc")], format="csc")
 
     # ------------------------------------------------------------------------------------------ forecasts
     def forecasts(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Load P (N, n_load) and generator potential (N, n_gen) forecasts in p.u. for one state (MW units)."""
-        sim, sl, b = self.sim, self.sim.state_slices(), self.sim.net.base_mva
+        sim, sl, b = self.sim, self._sl, self.sim.net.base_mva
         if self.forecast == "constant":
             p_load = state[sl["dev_p"]][self.sim.load_ids] / b
             p_pot = state[sl["gen_p_max"]] / b
             return np.tile(p_load, (self.horizon, 1)), np.tile(p_pot, (self.horizon, 1))
-        t = int(state[sl["aux"]][0])
+        t = int(round(float(state[sl["aux"]][0])))
         idx = (t + 1 + np.arange(self.horizon)) % sim.n_time
-        return (sim.load_series[:, idx].T.cpu().numpy().copy(), sim.p_max_series[:, idx].T.cpu().numpy().copy())
+        return self._load_series[:, idx].T.copy(), self._p_max_series[:, idx].T.copy()
 
-    def _bounds(self, state: np.ndarray):
+    def _rhs(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p_load, p_pot = self.forecasts(state)
-        soc0 = state[self.sim.state_slices()["des_soc"]] / self.sim.net.base_mva
-        lb, ub = self._lb0.copy(), self._ub0.copy()
-        lb[self._load_idx], ub[self._load_idx] = p_load, p_load
-        ub[self._gen_idx] = np.minimum(self._gen_pmax, p_pot)
-        h_soc_hi = np.tile(self._soc_max - soc0, self.horizon)
-        h_soc_lo = np.tile(self._soc_min - soc0, self.horizon)
-        return lb, ub, h_soc_lo, h_soc_hi
+        soc0 = state[self._sl["des_soc"]] / self.sim.net.base_mva
+        b_eq, h = self._b_eq0.copy(), self._h0.copy()
+        b_eq[self._load_rows] = p_load
+        h[self._gen_rows] = p_pot
+        h[self._soc_lo_rows] = np.tile(soc0 - self._soc_min, self.horizon)
+        h[self._soc_hi_rows] = np.tile(self._soc_max - soc0, self.horizon)
+        return b_eq, h
 
     # ------------------------------------------------------------------------------------------ solving
-    def _solve_x(self, state: np.ndarray, env_index: int = 0) -> tuple[np.ndarray, dict]:
-        lb, ub, h_soc_lo, h_soc_hi = self._bounds(state)
-        if self.backend == "qpsolvers":
-            import qpsolvers
+    def _solve_x(self, state: np.ndarray) -> tuple[np.ndarray | None, dict]:
+        import qpsolvers
 
-            # Two-sided SoC rows as G x ≤ h: [G_ep; G_soc; −G_soc].
-            g_soc = self._g[self._n_ep:]
-            g = sp.vstack([self._g, -g_soc], format="csc")
-            h = np.concatenate([self._h_ep, h_soc_hi, -h_soc_lo])
-            prob = qpsolvers.Problem(self._p_zero, self._c, g, h, self._a_eq, self._b_eq, lb, ub)
-            sol = qpsolvers.solve_problem(prob, solver="osqp", **self.settings)
-            info = sol.extras["info"]
-            return sol.x, {"status": info.status, "iter": info.iter, "obj": info.obj_val,
-                           "solve_time": info.solve_time + info.setup_time, "polished": info.status_polish}
-        import osqp
+        b_eq, h = self._rhs(state)
+        prob = qpsolvers.Problem(self._p_zero, self._c, self._g, h, self._a_eq, b_eq)
+        sol = qpsolvers.solve_problem(prob, solver=self.solver, **self.solver_settings)
+        x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else None
+        info = {"found": bool(sol.found), "solver": self.solver,
+                "objective": float(self._c @ x) if x is not None else float("nan")}
+        return x, info
 
-        l = np.concatenate([self._b_eq, np.full(self._n_ep, -np.inf), h_soc_lo, lb])
-        u = np.concatenate([self._b_eq, self._h_ep, h_soc_hi, ub])
-        if self._solver is None:
-            self._solver = osqp.OSQP()
-            self._solver.setup(P=self._p_zero, q=self._c, A=self._a_osqp, l=l, u=u, **self.settings)
-        else:
-            self._solver.update(l=l, u=u)
-        if self.warm_start and env_index in self._warm:
-            x0, y0 = self._warm[env_index]
-            self._solver.warm_start(x=x0, y=y0)
-        elif self.warm_start:
-            self._solver.warm_start(x=np.zeros(self._n_var), y=np.zeros(self._a_osqp.shape[0]))
-        res = self._solver.solve()
-        info = res.info
-        if info.status_val in (1, 2):  # solved / solved inaccurate
-            self._warm[env_index] = (res.x.copy(), res.y.copy())
-        return res.x, {"status": info.status, "iter": info.iter, "obj": info.obj_val,
-                       "solve_time": info.solve_time + info.setup_time + info.update_time,
-                       "polished": info.status_polish}
-
-    def solve(self, state, env_index: int = 0) -> dict:
+    def solve(self, state) -> dict:
         """Solve the N-stage DC-OPF at one gym-anm state (state_dim,) in MW/MVAr/MWh.
 
         Returns a dict of numpy arrays, all p.u.: ``theta`` (N, n_bus), ``p_dev`` (N, n_dev), ``p_ch``,
-        ``p_dis``, ``soc`` (N + 1, n_des) (row 0 the initial SoC), ``p_branch`` and ``overload`` (N, n_branch),
+        ``p_dis``, ``soc`` (N + 1, n_des) (row 0 the initial SoC), ``p_branch`` and ``overload`` (N, n_branch)
+        = max(0, |P_ij| − β rate), the raw LP solution ``x`` (N, n_var_per_stage) laid out as ``_layout``,
         the forecasts ``p_load_forecast`` (N, n_load) and ``p_pot_forecast`` (N, n_gen), the ``action`` (MW,
-        clipped) and the solver ``info``.
+        clipped) and the solver ``info`` (``objective`` is gym-anm's ``dc_opf.value``: Σ_k γ^k [P_slack + λ Σ o]).
+        Raises ``RuntimeError`` when the solver returns no solution.
         """
         state = np.asarray(torch.as_tensor(state).detach().cpu().double().numpy() if torch.is_tensor(state)
                            else state, dtype=np.float64).reshape(-1)
-        x, info = self._solve_x(state, env_index)
-        if x is None or not np.all(np.isfinite(x)):
+        x, info = self._solve_x(state)
+        if x is None:
             raise RuntimeError(f"MPC DC-OPF not solved: {info}")
         lay, n = self._layout, self.horizon
         xs = x.reshape(n, self._nv)
@@ -266,7 +278,7 @@ class MPCPolicy(TensorDictModuleBase):
         p_dis = xs[:, lay["p_dis"]:lay["p_dis"] + self._nes]
         net = self.sim.net
         eff = net.dev[self.sim.des_ids, dv.EFF].cpu().numpy()
-        soc0 = state[self.sim.state_slices()["des_soc"]] / net.base_mva
+        soc0 = state[self._sl["des_soc"]] / net.base_mva
         d_soc = net.delta_t * (eff * p_ch - p_dis / eff)
         soc = np.vstack([soc0, soc0 + np.cumsum(d_soc, 0)])
         b = net.y_bus.imag.cpu().numpy()
@@ -276,7 +288,7 @@ class MPCPolicy(TensorDictModuleBase):
         overload = np.maximum(0.0, np.abs(p_branch) - self.safety_margin * rate)
         p_load, p_pot = self.forecasts(state)
         return {"theta": theta, "p_dev": p_dev, "p_ch": p_ch, "p_dis": p_dis, "soc": soc, "p_branch": p_branch,
-                "overload": overload, "p_load_forecast": p_load, "p_pot_forecast": p_pot,
+                "overload": overload, "x": xs, "p_load_forecast": p_load, "p_pot_forecast": p_pot,
                 "action": self._action(p_dev[0]), "info": info}
 
     def _action(self, p_dev0: np.ndarray) -> np.ndarray:
@@ -290,15 +302,16 @@ class MPCPolicy(TensorDictModuleBase):
         flat = states.detach().reshape(-1, states.shape[-1]).cpu().double().numpy()
         out, self.last_info = np.empty((flat.shape[0], self.sim.action_dim)), []
         for i, s in enumerate(flat):
-            plan = self.solve(s, env_index=i)
-            out[i] = plan["action"]
-            self.last_info.append(plan["info"])
+            try:
+                plan = self.solve(s)
+                out[i] = plan["action"]
+                self.last_info.append({**plan["info"], "fallback": False})
+            except RuntimeError as err:
+                warnings.warn(f"MPC: {err}; using the do-nothing action", RuntimeWarning, stacklevel=2)
+                out[i] = self._fallback
+                self.last_info.append({"found": False, "solver": self.solver, "fallback": True})
         return torch.as_tensor(out, dtype=torch.float32, device=states.device).reshape(
             *states.shape[:-1], self.sim.action_dim)
-
-    def reset_warm_start(self) -> None:
-        """Forget the per-environment warm starts."""
-        self._warm.clear()
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         tensordict.set(self.out_keys[0], self.act(tensordict.get(self.in_keys[0])))
