@@ -1,0 +1,124 @@
+"""Transitions per second of every trained data-driven surrogate env against ``ANM6Env``, at several batch sizes.
+
+Usage::
+
+    python -m anm_torchrl.benchmarks.surrogates [--batch-sizes 1,4096] [--surrogates lr,dt,rf,xgb,dnn]
+                                                [--datasets generative,agent] [--min-time 2.0] [--rounds 3]
+                                                [--threads 1] [--device cpu]
+
+Each row is ``make_env(<surrogate>, dataset=..., num_envs=batch)`` stepped with ``env.rand_action`` then
+``env.step_and_maybe_reset`` (what a collector does: terminated envs are reset in place), after a warm-up
+(construction, model loading, first reset and first step). Rounds are interleaved — every env is measured once
+per round, in the same order — and the median over rounds is reported, so slow phases of a shared machine hit
+all rows alike. The ratio column divides by ``ANM6Env`` (the exact batched simulator) at the same batch size,
+measured in the same run. Surrogates that are not trained are listed with the command that trains them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from anm_torchrl.benchmarks.env import _timed
+
+KINDS = ("lr", "dt", "rf", "xgb", "dnn")
+DATASETS = ("generative", "agent")
+
+
+def _make(kind: str | None, dataset: str | None, batch: int, device: str, seed: int):
+    from anm_torchrl import make_env
+
+    if kind is None:
+        return make_env("none", num_envs=batch, device=device, seed=seed)
+    return make_env(kind, dataset=dataset, num_envs=batch, device=device, seed=seed)
+
+
+def bench(kind: str | None, dataset: str | None, batch: int, min_time: float, min_steps: int, device: str,
+          seed: int = 0) -> dict:
+    """Warm-up seconds and steady-state transitions/s of one env (``kind=None``: ``ANM6Env``)."""
+    box = {}
+
+    def first():
+        env = _make(kind, dataset, batch, device, seed)
+        torch.manual_seed(seed)
+        td = env.reset()
+        _, td = env.step_and_maybe_reset(env.rand_action(td))
+        box["env"], box["td"] = env, td
+
+    def step():
+        env = box["env"]
+        _, box["td"] = env.step_and_maybe_reset(env.rand_action(box["td"]))
+
+    warm, elapsed, n = _timed(first, step, min_time, min_steps)
+    return {"warm": warm, "rate": batch * n / elapsed}
+
+
+def available(kinds, datasets) -> tuple[list[tuple[str, str]], list[str]]:
+    """Trained ``(kind, dataset)`` pairs and notes for the missing ones."""
+    from anm_torchrl.paths import surrogate_dir
+    from anm_torchrl.surrogates.regressors import META_FILE, train_command
+
+    found, missing = [], []
+    for d in datasets:
+        for k in kinds:
+            if (surrogate_dir(k, d) / META_FILE).is_file():
+                found.append((k, d))
+            else:
+                missing.append(f"{k}/{d}: not trained ({train_command(k, d)})")
+    return found, missing
+
+
+def markdown_table(results: dict, batches: list[int]) -> str:
+    head = "| env | trained on | " + " | ".join(f"batch {b:,}: transitions/s (× ANM6Env)" for b in batches) + " |"
+    lines = [head, "|---|---|" + "---:|" * len(batches)]
+    ref = {b: results[("ANM6Env", "-")][b]["rate"] for b in batches}
+    for (name, dataset), per in results.items():
+        cells = []
+        for b in batches:
+            r = per[b]["rate"]
+            cells.append(f"{r:,.0f} ({r / ref[b]:.2f}×)")
+        lines.append(f"| {name} | {dataset} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> str:
+    parser = argparse.ArgumentParser(description="data-driven surrogate envs vs ANM6Env, transitions/s")
+    parser.add_argument("--batch-sizes", default="1,4096", help="comma-separated batch sizes")
+    parser.add_argument("--surrogates", default=",".join(KINDS), help="comma-separated surrogate names")
+    parser.add_argument("--datasets", default=",".join(DATASETS), help="comma-separated training datasets")
+    parser.add_argument("--min-time", type=float, default=2.0, help="seconds of steady state per measurement")
+    parser.add_argument("--min-steps", type=int, default=3, help="at least this many batched steps")
+    parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds (median reported)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    batches = [int(b) for b in args.batch_sizes.split(",") if b.strip()]
+    found, missing = available([k for k in args.surrogates.split(",") if k], [d for d in args.datasets.split(",") if d])
+    envs = [("ANM6Env", "-", None, None)] + [(k, d, k, d) for k, d in found]
+    samples: dict = {(name, ds): {b: [] for b in batches} for name, ds, _, _ in envs}
+    warm: dict = {(name, ds): {b: [] for b in batches} for name, ds, _, _ in envs}
+    start = time.perf_counter()
+    for _ in range(args.rounds):
+        for b in batches:
+            for name, ds, kind, dataset in envs:
+                r = bench(kind, dataset, b, args.min_time, args.min_steps, args.device)
+                samples[(name, ds)][b].append(r["rate"])
+                warm[(name, ds)][b].append(r["warm"])
+    results = {key: {b: {"rate": statistics.median(samples[key][b]), "warm": statistics.median(warm[key][b])}
+                     for b in batches} for key in samples}
+    table = markdown_table(results, batches)
+    print(table)
+    for note in missing:
+        print(f"- {note}")
+    print(f"\n<!-- torch {torch.__version__}, {torch.get_num_threads()} thread(s), device {args.device}, median of "
+          f"{args.rounds} interleaved rounds of >= {args.min_time} s, {time.perf_counter() - start:.0f} s in all; "
+          f"env step = rand_action + step_and_maybe_reset -->")
+    return table
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""Datasets of simulator transitions for the data-driven surrogates: Generative (Sobol) and Agent-based.
+
+``python recipes/make_dataset.py dataset=generative|agent size=100000 seed=0`` writes one to
+``anm_torchrl.paths.dataset_dir(kind, size, seed)``; :func:`load_dataset` opens and checks it.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from tensordict import TensorDict
+
+from anm_torchrl.data.agent import WaypointAgent, generate_agent
+from anm_torchrl.data.generative import generate_generative
+from anm_torchrl.data.storage import (KINDS, SPLITS, DatasetError, checksum, load_dataset, make_command, read_meta,
+                                      save_dataset, split)
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.paths import dataset_dir
+
+__all__ = ["KINDS", "SPLITS", "DatasetError", "WaypointAgent", "checksum", "ensure_dataset", "generate",
+           "generate_agent", "generate_generative", "load_dataset", "make_dataset", "read_meta", "save_dataset",
+           "split"]
+
+
+def generate(kind: str, size: int, seed: int = 0, sim: GridSimulator | None = None, progress: bool = False,
+             **options) -> tuple[TensorDict, dict]:
+    """Generate (in memory) a dataset of ``kind`` ``"generative"`` or ``"agent"``; ``options`` go to its generator."""
+    if kind == "generative":
+        return generate_generative(size, seed, sim=sim, progress=progress, **options)
+    if kind == "agent":
+        return generate_agent(size, seed, sim=sim, progress=progress, **options)
+    raise ValueError(f"dataset kind must be one of {KINDS}, got {kind!r}")
+
+
+def make_dataset(kind: str, size: int, seed: int = 0, path: str | os.PathLike | None = None,
+                 overwrite: bool = False, sim: GridSimulator | None = None, progress: bool = False,
+                 **options) -> Path:
+    """Generate a dataset and write it to ``path`` (default :func:`anm_torchrl.paths.dataset_dir`)."""
+    path = Path(path) if path is not None else dataset_dir(kind, size, seed)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=true to replace it")
+    td, meta = generate(kind, size, seed, sim=sim, progress=progress, **options)
+    return save_dataset(td, path, meta, overwrite=overwrite)
+
+
+def ensure_dataset(kind: str, size: int, seed: int = 0, path: str | os.PathLike | None = None,
+                   generate_missing: bool = True, sim: GridSimulator | None = None, progress: bool = False,
+                   verify: bool = True, **options) -> tuple[TensorDict, dict]:
+    """Load the dataset at ``path`` (default location), generating it first if it is missing.
+
+    Raises:
+        DatasetError: it is missing and ``generate_missing`` is False (the message gives the command), or it
+            exists but is corrupted or mismatched (it is never silently regenerated).
+    """
+    path = Path(path) if path is not None else dataset_dir(kind, size, seed)
+    if not path.exists():
+        if not generate_missing:
+            raise DatasetError(f"no {kind} dataset at {path}; generate it with: {make_command(kind, size, seed)}"
+                               f" out={path}")
+        make_dataset(kind, size, seed, path=path, sim=sim, progress=progress, **options)
+    return load_dataset(path, kind=kind, size=size, seed=seed, sim=sim, verify=verify)

@@ -1,0 +1,279 @@
+"""Datasets of simulator transitions on disk: a TensorDict memmap plus a metadata JSON, with fixed splits.
+
+Layout of a dataset folder (``anm_torchrl.paths.dataset_dir(kind, size, seed)`` by default)::
+
+    <dir>/dataset.json   metadata: layout marker and version, kind, size, seed, package version, simulator
+                         settings and fingerprint, generator options, split sizes, field shapes/dtypes, checksum
+    <dir>/data/          ``TensorDict.memmap_`` of the rows (batch size [size])
+
+Fields (one row per transition, N = size):
+
+==========================  ==========  =======  ===================================================================
+key                         shape       dtype    meaning
+==========================  ==========  =======  ===================================================================
+``state``                   (N, 18)     float64  gym-anm state before the step (MW, MVAr, MWh, time index)
+``action``                  (N, 6)      float64  action (MW / MVAr), inside the action box
+``next_state``              (N, 18)     float64  state after the step; zeros on terminal rows (as gym-anm)
+``reward``                  (N, 1)      float64  gym-anm reward; −100/(1−γ) on terminal rows
+``terminated``              (N, 1)      bool     the power flow of the step did not converge
+``("grid", k)``             (N, ·)      float64  e_loss, penalty, curtailment (MW), v_magn (p.u.), branch_s (MVA)
+``split``                   (N,)        int8     0 train, 1 validation, 2 test (fixed when generated)
+``episode``, ``step``       (N,)        int64    agent-based only: episode id and step within the episode
+==========================  ==========  =======  ===================================================================
+
+Loading checks everything it can and raises :class:`DatasetError` with the command that regenerates the data
+instead of returning a corrupted or mismatched dataset.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+import anm_torchrl
+from anm_torchrl.grid.simulator import GridSimulator
+
+LAYOUT = "anm_torchrl.transitions"
+LAYOUT_VERSION = 1
+META_FILE = "dataset.json"
+DATA_DIR = "data"
+KINDS = ("generative", "agent")
+SPLITS = {"train": 0, "val": 1, "test": 2}
+DEFAULT_FRACTIONS = (0.8, 0.1, 0.1)
+
+
+class DatasetError(RuntimeError):
+    """A dataset is missing, corrupted, or does not match what was asked for."""
+
+
+def make_command(kind: str | None, size: int | None, seed: int | None) -> str:
+    """The shell command that (re)generates a dataset."""
+    parts = ["python recipes/make_dataset.py"]
+    if kind is not None:
+        parts.append(f"dataset={kind}")
+    if size is not None:
+        parts.append(f"size={size}")
+    if seed is not None:
+        parts.append(f"seed={seed}")
+    return " ".join(parts)
+
+
+# ------------------------------------------------------------------------------------------------ simulator
+def simulator_fingerprint(sim: GridSimulator) -> str:
+    """SHA-256 (hex, 16 chars) of the network tables and time series that define ``sim``'s transitions."""
+    h = hashlib.sha256()
+    tensors = [sim.net.dev, sim.net.y_bus.real, sim.net.y_bus.imag, sim.load_series, sim.p_max_series,
+               sim.net.branches.rate]
+    for t in tensors:
+        h.update(np.ascontiguousarray(t.detach().cpu().numpy()).tobytes())
+    h.update(repr((sim.gamma, sim.lamb, tuple(sim.costs_clipping), float(sim.net.delta_t),
+                   float(sim.net.base_mva))).encode())
+    return h.hexdigest()[:16]
+
+
+def simulator_settings(sim: GridSimulator) -> dict[str, Any]:
+    """The simulator constants a dataset (or a surrogate) depends on, JSON-ready."""
+    return {
+        "state_dim": sim.state_dim, "action_dim": sim.action_dim, "n_time": sim.n_time,
+        "n_dev": sim.net.n_dev, "n_bus": sim.net.n_bus, "base_mva": float(sim.net.base_mva),
+        "delta_t": float(sim.net.delta_t), "gamma": float(sim.gamma), "lamb": float(sim.lamb),
+        "costs_clipping": [float(c) for c in sim.costs_clipping], "fingerprint": simulator_fingerprint(sim),
+    }
+
+
+# ------------------------------------------------------------------------------------------------- splits
+def split_codes(n_units: int, fractions=DEFAULT_FRACTIONS, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Assign ``n_units`` units (rows or trajectories) to train/val/test, (n_units,) int8, seeded permutation.
+
+    Each split gets at least one unit when ``n_units >= 3``.
+    """
+    f = torch.tensor([float(x) for x in fractions], dtype=torch.float64)
+    if f.numel() != 3 or (f < 0).any() or f.sum() <= 0:
+        raise ValueError(f"split fractions must be three non-negative numbers, got {list(fractions)}")
+    f = f / f.sum()
+    n_val, n_test = int(round(f[1].item() * n_units)), int(round(f[2].item() * n_units))
+    if n_units >= 3:
+        n_val, n_test = max(n_val, 1 if f[1] > 0 else 0), max(n_test, 1 if f[2] > 0 else 0)
+    n_train = n_units - n_val - n_test
+    codes = torch.cat([torch.full((n_train,), 0), torch.full((n_val,), 1), torch.full((n_test,), 2)]).to(torch.int8)
+    perm = torch.randperm(n_units, generator=generator)
+    out = torch.empty_like(codes)
+    out[perm] = codes
+    return out
+
+
+def split(td: TensorDictBase, name: str) -> TensorDict:
+    """Rows of ``td`` in split ``name`` (``"train"``, ``"val"`` or ``"test"``), materialised in memory."""
+    if name not in SPLITS:
+        raise ValueError(f"split must be one of {list(SPLITS)}, got {name!r}")
+    mask = torch.as_tensor(td.get("split")) == SPLITS[name]
+    return td[mask].to_tensordict()
+
+
+# ------------------------------------------------------------------------------------------------ checksum
+def _leaves(td: TensorDictBase) -> list[tuple[str, torch.Tensor]]:
+    keys = sorted(td.keys(include_nested=True, leaves_only=True), key=lambda k: k if isinstance(k, str) else ".".join(k))
+    return [(k if isinstance(k, str) else ".".join(k), td.get(k)) for k in keys]
+
+
+def field_layout(td: TensorDictBase) -> dict[str, dict[str, Any]]:
+    """``{field: {"shape": [...], "dtype": "torch.float64"}}`` for every leaf of ``td`` (nested keys joined by '.')."""
+    return {k: {"shape": list(v.shape), "dtype": str(v.dtype)} for k, v in _leaves(td)}
+
+
+def checksum(td: TensorDictBase) -> str:
+    """SHA-256 (hex) of every leaf's name, dtype, shape and bytes, in sorted key order."""
+    h = hashlib.sha256()
+    for k, v in _leaves(td):
+        h.update(f"{k}|{v.dtype}|{tuple(v.shape)}|".encode())
+        arr = np.ascontiguousarray(torch.as_tensor(v).detach().cpu().numpy())
+        h.update(arr.view(np.uint8).reshape(-1))
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------------------------------------ save/load
+def save_dataset(td: TensorDictBase, path: str | os.PathLike, meta: dict[str, Any], overwrite: bool = False) -> Path:
+    """Write ``td`` (batch size [N]) and ``meta`` to ``path`` atomically (temporary folder, then rename).
+
+    ``meta`` must hold ``kind``, ``size`` and ``seed``; the layout marker, package version, field layout and
+    checksum are added here.
+
+    Raises:
+        FileExistsError: ``path`` exists and ``overwrite`` is False.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=true to replace it")
+    for key in ("kind", "size", "seed"):
+        if key not in meta:
+            raise ValueError(f"dataset metadata needs {key!r}")
+    if td.batch_size != torch.Size([int(meta["size"])]):
+        raise ValueError(f"dataset has batch size {tuple(td.batch_size)}, metadata says size {meta['size']}")
+    full = {"layout": LAYOUT, "layout_version": LAYOUT_VERSION, "package_version": anm_torchrl.__version__,
+            **meta, "fields": field_layout(td), "checksum": checksum(td)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        td.to_tensordict().memmap_(prefix=str(tmp / DATA_DIR))
+        (tmp / META_FILE).write_text(json.dumps(full, indent=2, sort_keys=True))
+        if path.exists():
+            shutil.rmtree(path)
+        tmp.rename(path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+def read_meta(path: str | os.PathLike) -> dict[str, Any]:
+    """The metadata of the dataset at ``path`` (raises :class:`DatasetError` if missing or unreadable)."""
+    path = Path(path)
+    f = path / META_FILE
+    if not f.is_file():
+        raise DatasetError(f"{path} is not a dataset folder: {META_FILE} is missing")
+    try:
+        meta = json.loads(f.read_text())
+    except (OSError, ValueError) as err:
+        raise DatasetError(f"dataset metadata {f} is corrupted ({err})") from err
+    if not isinstance(meta, dict) or meta.get("layout") != LAYOUT:
+        raise DatasetError(f"{f} is not an anm_torchrl transition dataset (layout marker {LAYOUT!r} missing)")
+    if meta.get("layout_version") != LAYOUT_VERSION:
+        raise DatasetError(f"{f} has dataset layout version {meta.get('layout_version')}, this package reads "
+                           f"version {LAYOUT_VERSION}")
+    return meta
+
+
+def load_dataset(path: str | os.PathLike, kind: str | None = None, size: int | None = None, seed: int | None = None,
+                 sim: GridSimulator | None = None, verify: bool = True) -> tuple[TensorDict, dict[str, Any]]:
+    """Open the dataset at ``path`` (memory-mapped) and check it.
+
+    Args:
+        path: dataset folder.
+        kind, size, seed: when given, the metadata must match them.
+        sim: when given, the dataset must come from a simulator with the same settings and fingerprint.
+        verify: recompute the checksum (reads every byte once; ~0.1 s per 100,000 rows).
+
+    Returns:
+        ``(td, meta)``: the rows (memory-mapped TensorDict, batch size [size]) and the metadata.
+
+    Raises:
+        DatasetError: missing, corrupted or mismatched dataset; the message says how to regenerate it.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"no dataset at {path}; generate it with: {make_command(kind, size, seed)}"
+                           + ("" if kind is None else f" (or out={path})"))
+    meta = read_meta(path)
+    redo = (f"delete {path} and regenerate it: {make_command(meta.get('kind'), meta.get('size'), meta.get('seed'))}"
+            f" out={path} overwrite=true")
+    for key, want in (("kind", kind), ("size", size), ("seed", seed)):
+        if want is not None and meta.get(key) != want:
+            raise DatasetError(f"dataset {path} has {key}={meta.get(key)!r}, expected {want!r}")
+    if sim is not None:
+        have, want = meta.get("simulator", {}), simulator_settings(sim)
+        diff = sorted(k for k in want if have.get(k) != want[k])
+        if diff:
+            raise DatasetError(f"dataset {path} was generated by a different simulator ({', '.join(diff)} differ: "
+                               f"{ {k: have.get(k) for k in diff} } vs { {k: want[k] for k in diff} }); {redo}")
+    _check_files(path, meta, redo)  # before mapping: tensordict silently zero-extends a truncated file
+    try:
+        td = TensorDict.load_memmap(str(path / DATA_DIR))
+    except Exception as err:  # noqa: BLE001 - any failure here means unreadable data files
+        raise DatasetError(f"dataset {path} is corrupted: its data files cannot be read ({type(err).__name__}: "
+                           f"{err}); {redo}") from err
+    layout = field_layout(td)
+    if layout != meta.get("fields") or td.batch_size != torch.Size([int(meta["size"])]):
+        missing = sorted(set(meta.get("fields", {})) ^ set(layout))
+        wrong = sorted(k for k in layout if k in meta.get("fields", {}) and layout[k] != meta["fields"][k])
+        raise DatasetError(f"dataset {path} is corrupted: fields differ from its metadata (missing/extra "
+                           f"{missing}, wrong shape/dtype {wrong}); {redo}")
+    if verify:
+        got = checksum(td)
+        if got != meta.get("checksum"):
+            raise DatasetError(f"dataset {path} is corrupted: checksum {got[:12]}… does not match the recorded "
+                               f"{str(meta.get('checksum'))[:12]}…; {redo}")
+    return td, meta
+
+
+def _check_files(path: Path, meta: dict, redo: str) -> None:
+    """Every field's memmap file exists and has exactly the size its recorded shape and dtype imply."""
+    fields = meta.get("fields")
+    if not isinstance(fields, dict) or not fields:
+        raise DatasetError(f"dataset {path} is corrupted: its metadata lists no fields; {redo}")
+    for key, spec in fields.items():
+        f = path / DATA_DIR / Path(*key.split(".")).with_suffix(".memmap")
+        try:
+            dtype = getattr(torch, str(spec["dtype"]).removeprefix("torch."))
+            want = int(np.prod(spec["shape"])) * torch.empty((), dtype=dtype).element_size()
+        except (AttributeError, KeyError, TypeError, ValueError) as err:
+            raise DatasetError(f"dataset {path} is corrupted: bad field description for {key!r}; {redo}") from err
+        if not f.is_file():
+            raise DatasetError(f"dataset {path} is corrupted: data file {f} of field {key!r} is missing; {redo}")
+        have = f.stat().st_size
+        if have != want:
+            raise DatasetError(f"dataset {path} is corrupted: {f} has {have} bytes, field {key!r} "
+                               f"{spec['shape']} {spec['dtype']} needs {want}; {redo}")
+
+
+# ------------------------------------------------------------------------------------------------- rows
+def transition_rows(sim: GridSimulator, state: torch.Tensor, action: torch.Tensor, next_state: torch.Tensor,
+                    tr) -> TensorDict:
+    """The dataset fields (all but ``split``) of a batch of steps ``next_state, tr = sim.step(state, action)``."""
+    b = sim.net.base_mva
+    n = state.shape[0]
+    grid = {"e_loss": tr.e_loss.unsqueeze(-1), "penalty": tr.penalty.unsqueeze(-1),
+            "curtailment": (tr.curtailment * b).unsqueeze(-1), "v_magn": tr.v.abs(),
+            "branch_s": tr.s_apparent_max * b}
+    return TensorDict(
+        {"state": state, "action": action, "next_state": next_state, "reward": tr.reward.unsqueeze(-1),
+         "terminated": (~tr.converged).unsqueeze(-1), "grid": {k: v.to(torch.float64) for k, v in grid.items()}},
+        batch_size=[n])

@@ -1,0 +1,274 @@
+"""The PINN surrogate of ANM6-Easy as a chain of ``TensorDictModule``s (paper §4.2), and :func:`load_pinn`.
+
+``state`` (N, 18), ``action`` (N, 6) (gym-anm order and units, float64) flow through:
+
+=====================  =========================================  ===============================================
+module                 reads                                      writes (all p.u. unless noted, float64)
+=====================  =========================================  ===============================================
+``exogenous``          ``state``, ``action``                      ``("pinn", k)`` for k = ``gen_target`` (N, n_gen, 2),
+                                                                  ``p_pot`` (N, n_gen) at t+1, ``des_target``
+                                                                  (N, n_des, 2), ``soc`` (N, n_des) p.u.·h,
+                                                                  ``p_load``/``q_load`` (N, n_load) at t+1,
+                                                                  ``t_next`` (N,) long
+``generator`` KKT-NN   ``gen_target``, ``p_pot``                  ``gen_pq`` (N, n_gen, 2), ``gen_lambda`` (N, n_gen, 7)
+``storage`` KKT-NN     ``des_target``, ``soc``                    ``des_pq`` (N, n_des, 2), ``des_lambda`` (N, n_des, 10)
+``aggregation``        ``gen_pq``, ``des_pq``, ``p_load``,        ``p_dev``/``q_dev`` (N, n_dev) (slack 0),
+                       ``q_load``                                 ``p_bus``/``q_bus`` (N, n_bus)
+``power_balance`` PINN ``p_bus``, ``q_bus``                       ``v_magn`` (N, n_bus), ``v_ang`` (N, n_bus) rad
+``slack``              ``v_magn``, ``v_ang``, ``p_dev``, ``q_dev``,  ``p_dev_all``/``q_dev_all`` (slack from the bus-0
+                       ``p_bus``, ``q_bus``                       equations), ``branch_s`` (N, n_branch) signed,
+                                                                  ``pf_residual`` (N,) max |ΔP|, |ΔQ| at buses 1…
+``terminal``           ``pf_residual``, ``v_magn`` (physics) or   ``terminated`` (N, 1) bool
+                       ``state``, ``action`` (classifier)
+``next_state``         ``state`` and the above                    ``next_state`` (N, 18), ``reward`` (N, 1),
+                                                                  ``("grid", k)``: ``e_loss``, ``penalty``,
+                                                                  ``curtailment`` (MW), ``v_magn``, ``branch_s`` (MVA)
+=====================  =========================================  ===============================================
+
+The slack injection, branch flows, SoC update, ΔE, λΦ, curtailment and the clipped reward are the same
+``anm_torchrl.grid`` functions the simulator calls (``power_injection``, ``branch_flows``, ``soc_update``,
+``energy_loss``, ``penalty``, ``curtailment``, ``clipped_reward``); only the projections and the power flow are
+learned. Every piece is a ``TensorDictModule`` usable alone, e.g.
+``chain.select_subsequence(in_keys=[("pinn", "p_bus"), ("pinn", "q_bus")], out_keys=[("pinn", "v_magn")])``.
+
+Terminal states (``terminal="physics"``, the default, needs no simulator sample): a transition is terminal when
+the power-flow residual of the predicted voltages at the predicted injections exceeds ``residual_threshold``
+(p.u.) — the network cannot satisfy the equations where no power-flow solution exists (voltage collapse) —
+or a predicted |V| leaves ``[v_low, v_high]``. ``terminal="classifier"`` uses the gradient-boosting
+``TerminalClassifier`` of :mod:`anm_torchrl.surrogates.terminal` instead.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+
+from anm_torchrl.grid.network import branch_flows
+from anm_torchrl.grid.residuals import bus_voltage, power_injection
+from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, penalty
+from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT
+from anm_torchrl.surrogates.pinn.losses import power_balance_residuals
+from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
+
+log = logging.getLogger(__name__)
+
+P = "pinn"
+DEFAULT_RESIDUAL_THRESHOLD = 0.02  # p.u.; see recipes/README_pinn.md for its precision/recall
+DEFAULT_V_RANGE = (0.4, 1.4)  # p.u.; predicted |V| outside is treated as collapse
+TERMINALS = ("physics", "classifier")
+
+
+class ExogenousInputs(nn.Module):
+    """Split ``state`` and ``action`` into the modules' inputs (p.u.), with the loads and potentials of t+1
+    (perfect foresight, as the simulator: ``loads_at`` / ``p_pot_at`` at ``(aux + 1) mod T``)."""
+
+    def __init__(self, sim: GridSimulator):
+        super().__init__()
+        self.sim = sim
+
+    def forward(self, state: torch.Tensor, action: torch.Tensor):
+        sim, b = self.sim, self.sim.net.base_mva
+        sl = sim.state_slices()
+        state, action = state.to(torch.float64), action.to(torch.float64) / b
+        ng, nd = sim.n_gen, sim.n_des
+        t_next = (state[:, sl["aux"]].squeeze(1).round().long() + 1) % sim.n_time
+        p_load, q_load = sim.loads_at(t_next)
+        gen_target = torch.stack([action[:, :ng], action[:, ng:2 * ng]], -1)
+        des_target = torch.stack([action[:, 2 * ng:2 * ng + nd], action[:, 2 * ng + nd:]], -1)
+        return gen_target, sim.p_pot_at(t_next), des_target, state[:, sl["des_soc"]] / b, p_load, q_load, t_next
+
+
+class BusAggregation(nn.Module):
+    """Device injections (N, n_dev) p.u. (slack 0) and their sums per bus (N, n_bus) (paper §4.2, step 2)."""
+
+    def __init__(self, sim: GridSimulator):
+        super().__init__()
+        self.sim = sim
+
+    def forward(self, gen_pq, des_pq, p_load, q_load):
+        sim = self.sim
+        n = gen_pq.shape[0]
+        p_dev = gen_pq.new_zeros(n, sim.net.n_dev)
+        q_dev = gen_pq.new_zeros(n, sim.net.n_dev)
+        p_dev[:, sim.load_ids], q_dev[:, sim.load_ids] = p_load, q_load
+        p_dev[:, sim.gen_ids], q_dev[:, sim.gen_ids] = gen_pq[..., 0], gen_pq[..., 1]
+        p_dev[:, sim.des_ids], q_dev[:, sim.des_ids] = des_pq[..., 0], des_pq[..., 1]
+        return p_dev, q_dev, p_dev @ sim.net.incidence, q_dev @ sim.net.incidence
+
+
+class SlackAndFlows(nn.Module):
+    """Slack injection from the bus-0 power-flow equation (paper eqs. 33–34, standard polar form), branch
+    flows, and the largest power-flow residual at the other buses, from the predicted voltages."""
+
+    def __init__(self, sim: GridSimulator):
+        super().__init__()
+        self.sim = sim
+
+    def forward(self, v_magn, v_ang, p_dev, q_dev, p_bus, q_bus):
+        net = self.sim.net
+        v = bus_voltage(v_magn, v_ang)
+        s_slack = power_injection(v, net.y_bus)[:, 0]
+        p_all, q_all = p_dev.clone(), q_dev.clone()
+        slack = self.sim.slack_ids[0]
+        p_all[:, slack], q_all[:, slack] = s_slack.real, s_slack.imag
+        s_max = branch_flows(v, net.branches)["s_apparent_max"]
+        dp, dq = power_balance_residuals(v_magn, v_ang, p_bus, q_bus, net.y_bus)
+        residual = torch.cat([dp, dq], -1).abs().amax(-1)
+        return p_all, q_all, s_max, residual
+
+
+class PhysicsTerminal(nn.Module):
+    """``terminated`` (N, 1) = power-flow residual > ``residual_threshold`` (p.u.) or some |V| outside
+    ``[v_low, v_high]`` (p.u.) or a non-finite residual."""
+
+    def __init__(self, residual_threshold: float = DEFAULT_RESIDUAL_THRESHOLD,
+                 v_range: tuple[float, float] = DEFAULT_V_RANGE):
+        super().__init__()
+        self.residual_threshold = float(residual_threshold)
+        self.v_low, self.v_high = (float(v) for v in v_range)
+
+    def forward(self, residual, v_magn):
+        bad = ~(residual <= self.residual_threshold)  # NaN counts as terminal
+        bad |= ((v_magn < self.v_low) | (v_magn > self.v_high)).any(-1)
+        return bad.unsqueeze(-1)
+
+
+class ClassifierTerminal(nn.Module):
+    """``terminated`` (N, 1) from a trained ``TerminalClassifier`` (``predict_terminated(state, action)``)."""
+
+    def __init__(self, classifier: Any):
+        super().__init__()
+        self.classifier = classifier
+
+    def forward(self, state, action):
+        out = self.classifier.predict_terminated(state, action)
+        return torch.as_tensor(out, dtype=torch.bool, device=state.device).reshape(-1, 1)
+
+
+class NextStateReward(nn.Module):
+    """Next state (N, 18) and reward (N, 1) from the predicted grid, with the simulator's own functions; the
+    ``("grid", k)`` diagnostics in the env's units. Terminal rows get the terminal reward and a zero state."""
+
+    def __init__(self, sim: GridSimulator):
+        super().__init__()
+        self.sim = sim
+
+    def forward(self, p_dev, q_dev, des_pq, soc, p_pot, t_next, v_magn, branch_s, terminated):
+        sim, net = self.sim, self.sim.net
+        b = net.base_mva
+        soc_next = sim.soc_update(soc, des_pq[..., 0])
+        curt = curtailment(p_pot, p_dev[:, sim.gen_ids])
+        e_loss = energy_loss(p_dev, sim.counted, curt, net.delta_t)
+        pen = penalty(v_magn, branch_s, net, sim.lamb)
+        reward = clipped_reward(e_loss, pen, sim.costs_clipping)
+        term = terminated.reshape(-1)
+        reward = torch.where(term, torch.full_like(reward, sim.terminal_reward), reward)
+        state = torch.cat([p_dev * b, q_dev * b, soc_next * b, p_pot * b, t_next.unsqueeze(1).to(p_dev)], 1)
+        state = torch.where(term.unsqueeze(1), torch.zeros_like(state), state)
+        return (state, reward.unsqueeze(-1), e_loss.unsqueeze(-1), pen.unsqueeze(-1), (curt * b).unsqueeze(-1),
+                v_magn, branch_s * b)
+
+
+def build_chain(sim: GridSimulator, generator: GeneratorKKT, storage: StorageKKT, power_balance: PowerBalanceNet,
+                terminal: str = "physics", classifier: Any = None,
+                residual_threshold: float = DEFAULT_RESIDUAL_THRESHOLD,
+                v_range: tuple[float, float] = DEFAULT_V_RANGE) -> TensorDictSequential:
+    """Assemble the PINN surrogate chain (see the module docstring) from trained modules.
+
+    Args:
+        sim: the simulator whose grid functions, series and constants the chain uses.
+        generator, storage, power_balance: the networks.
+        terminal: ``"physics"`` (:class:`PhysicsTerminal`) or ``"classifier"`` (needs ``classifier``).
+        classifier: an object with ``predict_terminated(state, action) -> (N,) bool``.
+        residual_threshold, v_range: of the physics check.
+    """
+    if terminal not in TERMINALS:
+        raise ValueError(f"terminal must be one of {TERMINALS}, got {terminal!r}")
+    k = lambda *names: [(P, n) for n in names]  # noqa: E731
+    mods = [
+        TensorDictModule(ExogenousInputs(sim), in_keys=["state", "action"],
+                         out_keys=k("gen_target", "p_pot", "des_target", "soc", "p_load", "q_load", "t_next")),
+        TensorDictModule(generator, in_keys=k("gen_target", "p_pot"), out_keys=k("gen_pq", "gen_lambda")),
+        TensorDictModule(storage, in_keys=k("des_target", "soc"), out_keys=k("des_pq", "des_lambda")),
+        TensorDictModule(BusAggregation(sim), in_keys=k("gen_pq", "des_pq", "p_load", "q_load"),
+                         out_keys=k("p_dev", "q_dev", "p_bus", "q_bus")),
+        TensorDictModule(power_balance, in_keys=k("p_bus", "q_bus"), out_keys=k("v_magn", "v_ang")),
+        TensorDictModule(SlackAndFlows(sim), in_keys=k("v_magn", "v_ang", "p_dev", "q_dev", "p_bus", "q_bus"),
+                         out_keys=k("p_dev_all", "q_dev_all", "branch_s", "pf_residual")),
+    ]
+    if terminal == "physics":
+        mods.append(TensorDictModule(PhysicsTerminal(residual_threshold, v_range),
+                                     in_keys=k("pf_residual", "v_magn"), out_keys=["terminated"]))
+    else:
+        if classifier is None:
+            raise ValueError("terminal='classifier' needs a classifier (load_pinn: classifier_path=...)")
+        mods.append(TensorDictModule(ClassifierTerminal(classifier), in_keys=["state", "action"],
+                                     out_keys=["terminated"]))
+    mods.append(TensorDictModule(
+        NextStateReward(sim),
+        in_keys=[*k("p_dev_all", "q_dev_all", "des_pq", "soc", "p_pot", "t_next", "v_magn", "branch_s"), "terminated"],
+        out_keys=["next_state", "reward", ("grid", "e_loss"), ("grid", "penalty"), ("grid", "curtailment"),
+                  ("grid", "v_magn"), ("grid", "branch_s")]))
+    chain = TensorDictSequential(*mods)
+    return chain.eval()
+
+
+def load_pinn(device="cpu", path: str | Path | None = None, terminal: str = "physics",
+              classifier_path: str | Path | None = None, residual_threshold: float = DEFAULT_RESIDUAL_THRESHOLD,
+              v_range: tuple[float, float] = DEFAULT_V_RANGE, train_if_missing: bool = True,
+              preset: str = "default", progress: bool = True, log_dir: str | Path | None = None,
+              seed: int = 0) -> TensorDictSequential:
+    """The PINN surrogate chain, loaded from ``path`` or trained (and cached there) on first use.
+
+    Args:
+        device: torch device of the chain.
+        path: a saved file or a folder holding ``pinn.pt``; default ``anm_torchrl.paths.surrogate_dir("pinn")``.
+            If nothing is there and ``train_if_missing``, the ``preset`` is trained from physics alone (no
+            simulator samples; a few minutes on 2 CPU cores with ``default``) and saved there.
+        terminal: ``"physics"`` (default, needs no data) or ``"classifier"`` (needs ``classifier_path``).
+        classifier_path: folder of a ``TerminalClassifier`` (``anm_torchrl.surrogates.terminal``).
+        residual_threshold, v_range: of the physics terminal check.
+        train_if_missing: train when no file is found (else raise ``FileNotFoundError``).
+        preset: training preset used when training (``default``, ``paper``, ``smoke``).
+        progress: show a tqdm bar while training.
+        log_dir: TensorBoard folder for that training (default ``<folder>/tb``).
+        seed: training seed.
+
+    Raises:
+        ValueError: the file at ``path`` is not a PINN file (wrong kind marker), or bad ``terminal``.
+        FileNotFoundError: nothing at ``path`` and ``train_if_missing=False``.
+    """
+    from anm_torchrl.paths import surrogate_dir
+    from anm_torchrl.surrogates.pinn import train as tr
+
+    if terminal not in TERMINALS:
+        raise ValueError(f"terminal must be one of {TERMINALS}, got {terminal!r}")
+    classifier = None
+    if terminal == "classifier":
+        if classifier_path is None:
+            raise ValueError("terminal='classifier' needs classifier_path (a folder saved by TerminalClassifier)")
+        from anm_torchrl.surrogates.terminal import TerminalClassifier
+
+        classifier = TerminalClassifier.load(classifier_path)
+    sim = anm6_easy_simulator(device)
+    file = tr.resolve_path(path if path is not None else surrogate_dir("pinn"))
+    if file.is_file():
+        modules, _, _ = tr.load_modules(file, sim)
+    elif train_if_missing:
+        log.warning("no trained PINN at %s: training the %r preset from physics alone (a few minutes)", file, preset)
+        cfg = tr.preset(preset, seed=seed)
+        cpu_sim = sim if sim.net.dev.device.type == "cpu" else anm6_easy_simulator("cpu")
+        modules, report = tr.train_pinn(cfg, cpu_sim, log_dir=log_dir if log_dir is not None else file.parent / "tb",
+                                        progress=progress)
+        tr.save_pinn(file, modules, cfg, report)
+        modules, _, _ = tr.load_modules(file, sim)
+    else:
+        raise FileNotFoundError(f"no trained PINN at {file} (pass train_if_missing=True to train one)")
+    return build_chain(sim, modules["generator"], modules["storage"], modules["power_balance"], terminal=terminal,
+                       classifier=classifier, residual_threshold=residual_threshold, v_range=v_range)

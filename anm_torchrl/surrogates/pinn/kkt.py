@@ -1,0 +1,217 @@
+"""KKT-informed neural networks (KKT-NN, Delle Femine 2024) for the device projections of ANM6-Easy.
+
+gym-anm maps a set-point ``t = (a_P, a_Q)`` (p.u.) of a controllable device onto its feasible set by the
+projection ``x* = argmin ½‖x − t‖²  s.t.  G x ≤ h(θ)`` (spec §3.3), where ``G`` is fixed per device and only
+``h`` depends on a parameter θ: the potential ``P_pot`` for a renewable generator (7 rows) and the state of
+charge ``SoC`` for the storage unit (10 rows). A KKT-NN learns ``(t, θ) ↦ (x*, λ*)`` from the KKT conditions
+alone (losses in :mod:`anm_torchrl.surrogates.pinn.losses`), with no solved example.
+
+Design (both modules):
+
+* **Units.** Every device is worked on in units of its rating ``S = max(|PMIN|, PMAX, |QMIN|, QMAX)`` (p.u.):
+  a uniform scaling leaves the Euclidean projection unchanged (``x̃ = x/S``, ``h̃ = h/S``, ``λ̃ = λ/S``), so
+  every device's problem lives in [−1, 1]² and the losses have the same scale for all devices.
+* **Inputs** are normalised by their known boxes (Appendix A of the paper): a_P ∈ [PMIN, PMAX], a_Q ∈ [QMIN,
+  QMAX], P_pot ∈ [PMIN, PMAX], SoC ∈ [SOC_MIN, SOC_MAX], each mapped to [−1, 1].
+* **Primal head** with the paper's residual input→output connection: ``x̃ = t̃ + Δ(t, θ)``, so a feasible
+  set-point (Δ = 0) is the identity.
+* **Dual head**: ``λ̃ = softplus(z − 4)`` (or ``relu``), so dual feasibility λ ≥ 0 holds by construction; the
+  shift starts every multiplier near 0.
+* **Exact-feasibility safeguard** (on by default, ``safeguard=True``; the losses always see the raw output):
+  :func:`clamp_to_polygon` clamps P to the rows that involve P only (box, P_pot, SoC rows), then Q to the
+  interval the remaining rows allow at that P. For the generator and storage polygons of gym-anm this
+  interval is never empty, so the output is feasible to round-off; where the raw output was already
+  feasible the clamp is the identity, where it was not it moves the point onto the violated boundary.
+* Networks in float32, the device physics (``G``, ``h``, clamp) in float64.
+
+Generators: **one network shared by all renewable generators, conditioned on device parameters.** Both
+generators' sets belong to the same 7-row family (box ∩ P ≤ P_pot ∩ two capability lines) and, in rating
+units, differ only in their corner (P⁺, Q⁺, Q⁻): the network receives the device's normalised polygon (the
+finite rows of ``h̃`` and the slopes τ₁, τ₂) next to (a_P, a_Q, P_pot). One network runs the whole
+(N·n_gen) batch in one pass, has half the parameters of two, learns the part the devices share (clipping to
+the box and to P_pot) once, and extends to other generators of the family without a new class.
+The storage unit (10 rows, SoC-dependent) has its own network of the same design.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from anm_torchrl.grid import devices as dv
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.surrogates.pinn.nets import ResidualMLP, box_normalise
+
+DUAL_SHIFT = -4.0  # softplus(-4) ≈ 0.018: multipliers start near zero
+
+
+def clamp_to_polygon(x: torch.Tensor, g: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """Move ``x`` (..., 2) = (P, Q) into ``{G x ≤ h}`` by clamping P, then Q.
+
+    P is clamped to the interval allowed by the rows with no Q coefficient; Q to the interval the other rows
+    allow at that P (``g_Q Q ≤ h − g_P P``). Exact (to round-off) whenever that Q interval is non-empty for
+    every P of the P interval — true for the gym-anm generator and storage polygons, whose capability lines
+    stay above Q⁺ > 0 and below Q⁻ < 0 over [PMIN, PMAX]. The identity on feasible points.
+
+    Args:
+        x: (..., 2) points.
+        g: (..., m, 2) constraint normals; h: (..., m) right-hand sides (broadcast against ``x``).
+    """
+    gp, gq = g[..., 0], g[..., 1]
+    inf = torch.full_like(h, float("inf"))
+    pure = gq == 0
+    bound_p = h / torch.where(pure & (gp != 0), gp, torch.ones_like(gp))
+    p_hi = torch.where(pure & (gp > 0), bound_p, inf).amin(-1)
+    p_lo = torch.where(pure & (gp < 0), bound_p, -inf).amax(-1)
+    p = torch.minimum(torch.maximum(x[..., 0], p_lo), p_hi)
+    bound_q = (h - gp * p.unsqueeze(-1)) / torch.where(pure, torch.ones_like(gq), gq)
+    q_hi = torch.where(~pure & (gq > 0), bound_q, inf).amin(-1)
+    q_lo = torch.where(~pure & (gq < 0), bound_q, -inf).amax(-1)
+    q = torch.minimum(torch.maximum(x[..., 1], q_lo), q_hi)
+    return torch.stack([p, q], -1)
+
+
+def _device_features(g: torch.Tensor, h0: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Conditioning features (n, k) of each device's polygon in rating units: finite rows of h0/S, then the
+    slopes of the rows that involve both P and Q."""
+    finite = torch.isfinite(h0[0])
+    both = (g[0, :, 0] != 0) & (g[0, :, 1] != 0)
+    slopes = -g[:, both, 0] / g[:, both, 1]
+    return torch.cat([h0[:, finite] / scale.unsqueeze(1), slopes], 1)
+
+
+class _ProjectionKKT(nn.Module):
+    """Shared machinery of the generator and storage KKT-NNs (see the module docstring).
+
+    Subclasses set the buffers ``g`` (n, m, 2), ``h0`` (n, m), ``scale`` (n,), ``in_low``/``in_high`` (n, 3)
+    (boxes of a_P, a_Q, θ in p.u.) and ``cond`` (n, k), and implement :meth:`rhs`.
+    """
+
+    def _build_net(self, hidden: int, depth: int, activation: str, dual_activation: str) -> None:
+        if dual_activation not in ("softplus", "relu"):
+            raise ValueError(f"dual_activation must be 'softplus' or 'relu', got {dual_activation!r}")
+        self.dual_activation = dual_activation
+        m = self.g.shape[1]
+        self.net = ResidualMLP(3 + self.cond.shape[1], 2 + m, hidden=hidden, depth=depth, activation=activation,
+                               out_scale=0.1)
+
+    @property
+    def n_rows(self) -> int:
+        return self.g.shape[1]
+
+    def rhs(self, theta: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        """Right-hand sides h (N, n, m) p.u. for the parameter θ (N, n)."""
+        raise NotImplementedError
+
+    def predict_scaled(self, target: torch.Tensor, theta: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The raw network prediction in rating units, for the losses.
+
+        Args:
+            target: (N, n, 2) set-points (P, Q) p.u.; theta: (N, n) parameter (P_pot p.u. / SoC p.u.·h).
+
+        Returns:
+            ``x`` (N, n, 2) raw primal, ``lam`` (N, n, m) duals ≥ 0, ``target`` (N, n, 2), ``h`` (N, n, m) and
+            ``g`` (n, m, 2) — all float64, in rating units (divided by the device's ``scale``). With
+            ``hard_constraints`` the primal is already clamped into the polygon.
+        """
+        s = self.scale.unsqueeze(-1)
+        dtype = self.net.skip.weight.dtype
+        feats = torch.cat([box_normalise(target, self.in_low[:, :2], self.in_high[:, :2]),
+                           box_normalise(theta, self.in_low[:, 2], self.in_high[:, 2]).unsqueeze(-1),
+                           self.cond.expand(*theta.shape, -1)], -1)
+        out = self.net(feats.to(dtype)).to(torch.float64)
+        z = out[..., 2:] + DUAL_SHIFT
+        lam = F.softplus(z) if self.dual_activation == "softplus" else torch.relu(z)
+        t = target / s
+        h = self.rhs(theta) / s
+        x = t + out[..., :2]
+        if self.hard_constraints:
+            x = clamp_to_polygon(x, self.g, h)
+        return {"x": x, "lam": lam, "target": t, "h": h, "g": self.g}
+
+    def forward(self, target: torch.Tensor, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Projected (P, Q) (N, n, 2) p.u. (safeguarded if ``self.safeguard``) and duals λ (N, n, m) of
+        ``min ½‖x − t‖²`` in p.u."""
+        shape = target.shape
+        target = target.reshape(-1, *shape[-2:]).to(torch.float64)
+        theta = theta.reshape(-1, shape[-2]).to(torch.float64)
+        pred = self.predict_scaled(target, theta)
+        x = pred["x"]
+        if self.safeguard:
+            x = clamp_to_polygon(x, pred["g"], pred["h"])
+        s = self.scale.unsqueeze(-1)
+        return (x * s).reshape(shape), (pred["lam"] * s).reshape(*shape[:-1], self.n_rows)
+
+
+class GeneratorKKT(_ProjectionKKT):
+    """KKT-NN of the renewable generators' projections: (a_P, a_Q, P_pot) → (P, Q), λ ∈ R⁷₊ per generator.
+
+    One network shared by all generators, conditioned on each device's normalised polygon (module docstring).
+
+    Args:
+        sim: the simulator (network, generator polygons).
+        hidden, depth, activation: the :class:`ResidualMLP`.
+        dual_activation: ``"softplus"`` (default) or ``"relu"``.
+        safeguard: clamp the output into the polygon (:func:`clamp_to_polygon`) at inference.
+        hard_constraints: clamp inside the network too, so the losses see the clamped primal (feasibility by
+            construction; the primal-feasibility loss is then identically 0).
+
+    ``forward(target (N, n_gen, 2) p.u., p_pot (N, n_gen) p.u.) -> (pq (N, n_gen, 2) p.u., lam (N, n_gen, 7))``.
+    """
+
+    def __init__(self, sim: GridSimulator, hidden: int = 128, depth: int = 3, activation: str = "silu",
+                 dual_activation: str = "softplus", safeguard: bool = True, hard_constraints: bool = False):
+        super().__init__()
+        self.hard_constraints = hard_constraints
+        dev = sim.net.dev[sim.gen_ids]
+        g, h0 = sim.gen_g, sim.gen_h0
+        scale = torch.stack([dev[:, dv.PMAX].abs(), dev[:, dv.PMIN].abs(), dev[:, dv.QMAX].abs(),
+                             dev[:, dv.QMIN].abs()], 1).amax(1)
+        self.register_buffer("g", g.clone(), persistent=False)
+        self.register_buffer("h0", h0.clone(), persistent=False)
+        self.register_buffer("scale", scale, persistent=False)
+        self.register_buffer("in_low", torch.stack([dev[:, dv.PMIN], dev[:, dv.QMIN], dev[:, dv.PMIN]], 1),
+                             persistent=False)
+        self.register_buffer("in_high", torch.stack([dev[:, dv.PMAX], dev[:, dv.QMAX], dev[:, dv.PMAX]], 1),
+                             persistent=False)
+        self.register_buffer("cond", _device_features(g, h0, scale), persistent=False)
+        self.safeguard = safeguard
+        self._build_net(hidden, depth, activation, dual_activation)
+
+    def rhs(self, theta: torch.Tensor) -> torch.Tensor:
+        return dv.generator_h(self.h0, theta)
+
+
+class StorageKKT(_ProjectionKKT):
+    """KKT-NN of the storage projection: (a_P, a_Q, SoC) → (P, Q), λ ∈ R¹⁰₊ per storage unit.
+
+    Args:
+        sim: the simulator (network, storage polygon, Δt, efficiency).
+        hidden, depth, activation, dual_activation, safeguard, hard_constraints: as :class:`GeneratorKKT`.
+
+    ``forward(target (N, n_des, 2) p.u., soc (N, n_des) p.u.·h) -> (pq (N, n_des, 2) p.u., lam (N, n_des, 10))``.
+    """
+
+    def __init__(self, sim: GridSimulator, hidden: int = 128, depth: int = 3, activation: str = "silu",
+                 dual_activation: str = "softplus", safeguard: bool = True, hard_constraints: bool = False):
+        super().__init__()
+        self.hard_constraints = hard_constraints
+        self.sim = sim
+        dev = sim.net.dev[sim.des_ids]
+        g, h0 = sim.des_g, sim.des_h0
+        scale = torch.stack([dev[:, dv.PMAX].abs(), dev[:, dv.PMIN].abs(), dev[:, dv.QMAX].abs(),
+                             dev[:, dv.QMIN].abs()], 1).amax(1)
+        self.register_buffer("g", g.clone(), persistent=False)
+        self.register_buffer("h0", h0.clone(), persistent=False)
+        self.register_buffer("scale", scale, persistent=False)
+        self.register_buffer("in_low", torch.stack([dev[:, dv.PMIN], dev[:, dv.QMIN], dev[:, dv.SOC_MIN]], 1),
+                             persistent=False)
+        self.register_buffer("in_high", torch.stack([dev[:, dv.PMAX], dev[:, dv.QMAX], dev[:, dv.SOC_MAX]], 1),
+                             persistent=False)
+        self.register_buffer("cond", _device_features(g, h0, scale), persistent=False)
+        self.safeguard = safeguard
+        self._build_net(hidden, depth, activation, dual_activation)
+
+    def rhs(self, theta: torch.Tensor) -> torch.Tensor:
+        return self.sim.storage_h(theta)

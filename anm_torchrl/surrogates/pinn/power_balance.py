@@ -1,0 +1,83 @@
+"""Power-balance PINN (paper §4.2.3): non-slack bus injections (P_i, Q_i) → bus voltages (|V_i|, θ_i).
+
+The slack bus is fixed at 1∠0. The network is trained on the AC power-flow residual at the non-slack buses
+(:func:`anm_torchrl.surrogates.pinn.losses.power_balance_losses`), at Sobol points of the box of bus
+injections that ANM6-Easy's devices can produce (:func:`bus_injection_box`, spec §1.6). The slack injection
+and the branch flows then follow from the predicted voltages (:mod:`.chain`).
+
+Inputs are normalised to [−1, 1] by that box (buses without devices have a zero-width box and feed 0); the
+outputs are ``|V| = 1 + v_scale·y[:n−1]`` and ``θ = ang_scale·y[n−1:]`` (rad) of a :class:`ResidualMLP`, whose
+linear input→output connection starts the network as a linearised (DC-like) power flow.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from anm_torchrl.grid import devices as dv
+from anm_torchrl.grid.network import LOAD, SLACK
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.surrogates.pinn.nets import ResidualMLP, box_normalise
+
+
+def bus_injection_box(sim: GridSimulator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-bus box of the injections the devices can produce: sums of the device bounds (spec §1.6).
+
+    Loads: P ∈ [PMIN, PMAX], Q = (Q/P)·P; generators and storage: their P and Q ranges. The slack device is
+    left out (its injection is an output of the power flow).
+
+    Returns:
+        ``p_low, p_high, q_low, q_high``, each (n_bus,) p.u. For ANM6-Easy (MW/MVAr): bus 3 P [−10, 30],
+        Q [−32, 30]; bus 4 P [−30, 50], Q [−56, 50]; bus 5 P [−80, 50], Q [−56, 50]; buses 0–2: 0.
+    """
+    net = sim.net
+    dev = net.dev
+    kind = net.dev_type
+    p_lo, p_hi = dev[:, dv.PMIN].clone(), dev[:, dv.PMAX].clone()
+    qp = torch.nan_to_num(dev[:, 3])
+    is_load = kind == LOAD
+    q_a, q_b = qp * dev[:, dv.PMIN], qp * dev[:, dv.PMAX]
+    q_lo = torch.where(is_load, torch.minimum(q_a, q_b), dev[:, dv.QMIN])
+    q_hi = torch.where(is_load, torch.maximum(q_a, q_b), dev[:, dv.QMAX])
+    keep = (kind != SLACK).to(dev.dtype).unsqueeze(1) * net.incidence  # (n_dev, n_bus)
+    return p_lo @ keep, p_hi @ keep, q_lo @ keep, q_hi @ keep
+
+
+class PowerBalanceNet(nn.Module):
+    """(P_i, Q_i) at the non-slack buses → (|V_i|, θ_i), slack at 1∠0.
+
+    Args:
+        sim: the simulator (network, device bounds for the input box).
+        hidden, depth, activation: the :class:`ResidualMLP`.
+        v_scale: p.u. of |V| per unit network output; ang_scale: rad of θ per unit output.
+
+    ``forward(p_bus (N, n_bus) p.u., q_bus (N, n_bus) p.u.) -> (v_magn (N, n_bus) p.u., v_ang (N, n_bus) rad)``,
+    float64; entry 0 of the inputs (the slack bus) is ignored.
+    """
+
+    def __init__(self, sim: GridSimulator, hidden: int = 128, depth: int = 3, activation: str = "silu",
+                 v_scale: float = 0.1, ang_scale: float = 0.1):
+        super().__init__()
+        p_lo, p_hi, q_lo, q_hi = bus_injection_box(sim)
+        self.register_buffer("in_low", torch.cat([p_lo[1:], q_lo[1:]]), persistent=False)
+        self.register_buffer("in_high", torch.cat([p_hi[1:], q_hi[1:]]), persistent=False)
+        self.register_buffer("y_bus", sim.net.y_bus.clone(), persistent=False)
+        self.n_bus = sim.net.n_bus
+        self.v_scale, self.ang_scale = float(v_scale), float(ang_scale)
+        n = self.n_bus - 1
+        self.net = ResidualMLP(2 * n, 2 * n, hidden=hidden, depth=depth, activation=activation, out_scale=0.1)
+
+    def input_box(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Training box (2(n_bus − 1),) p.u. of ``[P_1..P_{n−1}, Q_1..Q_{n−1}]``."""
+        return self.in_low, self.in_high
+
+    def forward(self, p_bus: torch.Tensor, q_bus: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = torch.cat([p_bus[..., 1:], q_bus[..., 1:]], -1).to(torch.float64)
+        dtype = self.net.skip.weight.dtype
+        y = self.net(box_normalise(x, self.in_low, self.in_high).to(dtype)).to(torch.float64)
+        n = self.n_bus - 1
+        one = torch.ones_like(y[..., :1])
+        v_magn = torch.cat([one, 1 + self.v_scale * y[..., :n]], -1)
+        v_ang = torch.cat([torch.zeros_like(one), self.ang_scale * y[..., n:]], -1)
+        return v_magn, v_ang

@@ -1,0 +1,104 @@
+"""Evaluate a PPO checkpoint or a baseline on the true simulator or on the original gym-anm package.
+
+    python recipes/evaluate.py checkpoint=outputs/ppo/.../checkpoints/best.pt
+    python recipes/evaluate.py checkpoint=... env=gym_anm episodes=2 steps=3000
+    python recipes/evaluate.py policy=do_nothing
+    python recipes/evaluate.py policy=mpc_perfect policy_kwargs.horizon=32 episodes=4
+
+Options are ``key=value`` pairs checked against ``recipes/conf/evaluate.yaml`` (an unknown key fails). Both envs
+run the same episodes: ``episodes`` initial states drawn from gym-anm's reset distribution with ``seed``
+(:func:`anm_torchrl.training.evaluation.draw_initial_states`), set into ``ANM6Env`` with
+``reset(..., set_state=True)`` and into gym-anm through its ``init_state`` hook. The policy acts
+deterministically; an episode ends at ``steps`` or at its first termination.
+
+The LAST line of stdout is one JSON object: ``return``, ``discounted_return``, ``e_loss``, ``penalty``, ``steps``,
+``terminated`` (means over episodes; ``terminated`` is the fraction that terminated), plus ``episodes``, ``env``,
+``policy``, ``checkpoint``, ``seed``, ``max_steps``, ``gamma``, ``wall_time`` (s) and ``per_episode`` lists.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+from omegaconf.errors import ConfigKeyError
+
+CONFIG = Path(__file__).parent / "conf" / "evaluate.yaml"
+BASELINES = ("do_nothing", "random", "mpc_perfect", "mpc_constant")
+ENVS = ("anm6", "gym_anm")
+
+
+def parse_args(argv: list[str]):
+    """The config of ``evaluate.yaml`` overridden by ``key=value`` arguments; raises SystemExit with a message."""
+    cfg = OmegaConf.load(CONFIG)
+    OmegaConf.set_struct(cfg, True)
+    bad = [a for a in argv if "=" not in a]
+    if bad:
+        raise SystemExit(f"evaluate.py: arguments must be key=value, got {bad}; keys: {sorted(cfg.keys())}")
+    try:
+        OmegaConf.set_struct(cfg.policy_kwargs, False)
+        cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(argv))
+    except ConfigKeyError as err:
+        key = str(err).splitlines()[0]
+        raise SystemExit(f"evaluate.py: unknown option ({key}); valid keys: {sorted(cfg.keys())}") from None
+    if cfg.env not in ENVS:
+        raise SystemExit(f"evaluate.py: env must be one of {ENVS}, got {cfg.env!r}")
+    if cfg.policy is None and cfg.checkpoint is None:
+        raise SystemExit("evaluate.py: give checkpoint=<path> or policy=<baseline> "
+                         f"(baselines: {', '.join(BASELINES)})")
+    if cfg.policy is not None and cfg.checkpoint is not None:
+        raise SystemExit("evaluate.py: give either checkpoint=... or policy=..., not both")
+    if cfg.policy is not None and cfg.policy not in BASELINES:
+        raise SystemExit(f"evaluate.py: policy must be one of {BASELINES}, got {cfg.policy!r}")
+    return cfg
+
+
+def main(argv: list[str] | None = None) -> dict:
+    cfg = parse_args(sys.argv[1:] if argv is None else argv)
+    torch.set_num_threads(int(cfg.threads))
+
+    from anm_torchrl.baselines import make_baseline
+    from anm_torchrl.grid.simulator import anm6_easy_simulator
+    from anm_torchrl.training.checkpoint import load_actor
+    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy, evaluate_policy_gym_anm
+
+    episodes = int(cfg.episodes) if cfg.episodes is not None else (16 if cfg.env == "anm6" else 2)
+    sim = anm6_easy_simulator()
+    states = draw_initial_states(episodes, int(cfg.seed), sim)
+    if cfg.checkpoint is not None:
+        try:
+            policy = load_actor(cfg.checkpoint)
+        except (ValueError, FileNotFoundError) as err:
+            raise SystemExit(f"evaluate.py: {err}") from None
+        name = "ppo"
+    else:
+        kwargs = OmegaConf.to_container(cfg.policy_kwargs, resolve=True)
+        if cfg.policy == "random":
+            kwargs.setdefault("seed", int(cfg.seed))
+        policy, name = make_baseline(cfg.policy, sim, **kwargs), cfg.policy
+
+    t0 = time.perf_counter()
+    if cfg.env == "anm6":
+        result = evaluate_policy(policy, states, max_steps=int(cfg.steps), gamma=float(cfg.gamma))
+    else:
+        result = evaluate_policy_gym_anm(policy, states, max_steps=int(cfg.steps), gamma=float(cfg.gamma),
+                                         progress=bool(cfg.progress))
+    out = {**result.metrics(), "episodes": episodes, "env": cfg.env, "policy": name,
+           "checkpoint": None if cfg.checkpoint is None else str(cfg.checkpoint), "seed": int(cfg.seed),
+           "max_steps": int(cfg.steps), "gamma": float(cfg.gamma), "wall_time": time.perf_counter() - t0,
+           "per_episode": {"return": result.returns.tolist(), "discounted_return": result.discounted_returns.tolist(),
+                           "steps": result.steps.tolist(), "terminated": result.terminated.tolist()}}
+    line = json.dumps(out)
+    if cfg.output:
+        Path(cfg.output).write_text(line + "\n")
+    sys.stderr.flush()
+    print(line, flush=True)
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,185 @@
+"""Train a data-driven surrogate of ANM6-Easy (and its terminal classifier), then measure it.
+
+    python recipes/train_surrogate.py surrogate=xgb surrogate.dataset=agent
+    python recipes/train_surrogate.py surrogate=rf models.rf.n_estimators=32
+    python recipes/train_surrogate.py all=true          # lr, dt, rf, xgb, dnn on generative and agent (10 models)
+    python recipes/train_surrogate.py -m surrogate=lr,dt,rf,xgb,dnn surrogate.dataset=generative,agent
+
+Steps: load both datasets (``data.*``; a missing one is generated first unless ``data.generate_missing=false``),
+fit the terminal classifier on the surrogate's dataset (or reuse the cached one), fit the regressor on the
+training split (validation split for early stopping), then evaluate on the held-out test split of the same
+dataset *and* of the other dataset. The surrogate folder (``surrogate.path``, default
+``anm_torchrl.paths.surrogate_dir(name, dataset)``) receives the model, ``surrogate.json``, the classifier,
+``metrics.json``, ``config.yaml`` and, for the DNN, TensorBoard curves in ``tb/``. The trained surrogate is then
+available as ``anm_torchrl.make_env(name, dataset=dataset)`` and ``python recipes/ppo.py surrogate=<name>``.
+Options: ``recipes/conf/train_surrogate.yaml``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+
+log = logging.getLogger("train_surrogate")
+
+DATASETS = ("generative", "agent")
+
+
+def load_datasets(cfg: DictConfig, sim) -> dict:
+    """``{kind: (td, meta)}`` for both datasets (generated first when missing and allowed)."""
+    from anm_torchrl.data import ensure_dataset, load_dataset
+
+    make_cfg = OmegaConf.load(Path(__file__).parent / "conf" / "make_dataset.yaml")
+    out = {}
+    for kind in DATASETS:
+        options = dict(make_cfg[kind]) if kind in make_cfg else {}
+        start = time.perf_counter()
+        if cfg.data.get(kind):  # an explicit folder: used as it is (its own size and seed), never generated
+            out[kind] = load_dataset(cfg.data.get(kind), kind=kind, sim=sim, verify=bool(cfg.data.verify))
+        else:
+            out[kind] = ensure_dataset(kind, int(cfg.data.size), int(cfg.data.seed),
+                                       generate_missing=bool(cfg.data.generate_missing), sim=sim,
+                                       progress=bool(cfg.progress), verify=bool(cfg.data.verify),
+                                       fractions=tuple(make_cfg.fractions), **options)
+        log.info("%s dataset ready (%d rows, %d terminal) in %.1f s", kind, out[kind][0].shape[0],
+                 out[kind][1].get("n_terminal", -1), time.perf_counter() - start)
+    return out
+
+
+def fit_terminal(cfg: DictConfig, dataset: str, data: dict, sim):
+    """The terminal classifier for ``dataset``: cached one if ``terminal.reuse`` and the options match, else trained."""
+    from anm_torchrl.data import split
+    from anm_torchrl.paths import surrogate_dir
+    from anm_torchrl.surrogates.terminal import ModelFileError, TerminalClassifier
+
+    td, meta = data[dataset]
+    options = OmegaConf.to_container(cfg.terminal, resolve=True)
+    options.pop("reuse", None)
+    key = hashlib.sha256(json.dumps([meta["checksum"], options, bool(cfg.foresight), int(cfg.seed)],
+                                    sort_keys=True).encode()).hexdigest()[:16]
+    cache = surrogate_dir("terminal", dataset)
+    if cfg.terminal.reuse and (cache / "terminal.json").is_file():
+        try:
+            clf = TerminalClassifier.load(cache, sim=sim, n_jobs=int(cfg.n_jobs))
+            if clf.info.get("cache_key") == key:
+                log.info("terminal classifier for %s reused from %s", dataset, cache)
+                return clf
+        except ModelFileError as err:
+            log.warning("cached terminal classifier at %s is unusable (%s); retraining", cache, err)
+    tr, va = split(td, "train"), split(td, "val")
+    start = time.perf_counter()
+    clf = TerminalClassifier(sim=sim, foresight=bool(cfg.foresight), params=options["params"],
+                             num_boost_round=options["num_boost_round"],
+                             early_stopping_rounds=options["early_stopping_rounds"], threshold=options["threshold"],
+                             n_jobs=int(cfg.n_jobs), seed=int(cfg.seed))
+    clf.fit(tr.get("state"), tr.get("action"), tr.get("terminated"),
+            eval_set=(va.get("state"), va.get("action"), va.get("terminated")), progress=bool(cfg.progress))
+    clf.info.update(cache_key=key, train_seconds=time.perf_counter() - start, dataset=dataset)
+    log.info("terminal classifier for %s trained in %.1f s (threshold %.3f)", dataset, clf.info["train_seconds"],
+             clf.threshold)
+    if cfg.terminal.reuse:
+        clf.save(cache)
+    return clf
+
+
+def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: dict, sim) -> dict:
+    """Train, save and evaluate surrogate ``name`` on ``dataset``; returns its metrics."""
+    from anm_torchrl.data import split
+    from anm_torchrl.paths import surrogate_dir
+    from anm_torchrl.surrogates.regressors import KINDS, evaluate_surrogate, fit_regressor
+
+    if name not in KINDS:
+        raise ValueError(f"train_surrogate.py trains the data-driven surrogates {list(KINDS)}, got surrogate={name!r}"
+                         + (" (the PINN has its own trainer)" if name == "pinn" else ""))
+    if dataset not in DATASETS:
+        raise ValueError(f"surrogate.dataset must be one of {list(DATASETS)}, got {dataset!r}")
+    out = Path(path) if path else surrogate_dir(name, dataset)
+    out.mkdir(parents=True, exist_ok=True)
+    total = time.perf_counter()
+    clf = fit_terminal(cfg, dataset, data, sim)
+    td, meta = data[dataset]
+    params = OmegaConf.to_container(cfg.models[name], resolve=True) if name in cfg.models else {}
+    if name == "dnn" and (out / "tb").exists():
+        shutil.rmtree(out / "tb")
+    log.info("training %s on the %s dataset -> %s", name, dataset, out)
+    sur = fit_regressor(name, split(td, "train"), split(td, "val"), sim=sim, params=params,
+                        foresight=bool(cfg.foresight), clip=bool(cfg.clip), n_jobs=int(cfg.n_jobs),
+                        seed=int(cfg.seed), progress=bool(cfg.progress),
+                        log_dir=str(out / "tb") if name == "dnn" else None)
+    sur.classifier = clf
+    other = [d for d in DATASETS if d != dataset][0]
+    metrics = {"kind": name, "dataset": dataset,
+               "in_dataset": evaluate_surrogate(sur, split(td, "test")),
+               "cross_dataset": {"dataset": other, **evaluate_surrogate(sur, split(data[other][0], "test"))},
+               "val": evaluate_surrogate(sur, split(td, "val")),
+               "train_seconds": sur.meta["train_info"]["train_seconds"],
+               "terminal_train_seconds": clf.info.get("train_seconds")}
+    metrics["total_seconds"] = time.perf_counter() - total
+    sur.save(out, extra={"dataset": dataset, "dataset_meta": {k: meta[k] for k in ("kind", "size", "seed", "checksum")},
+                         "metrics": {"in_dataset_r2": metrics["in_dataset"]["r2"],
+                                     "cross_dataset_r2": metrics["cross_dataset"]["r2"]}})
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    job_cfg = OmegaConf.to_container(cfg, resolve=True)
+    job_cfg["surrogate"] = {"name": name, "dataset": dataset, "path": path}
+    (out / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(job_cfg)))
+    m, c = metrics["in_dataset"], metrics["cross_dataset"]
+    log.info("%s/%s: R² %.4f MAE %.4f (test, same dataset) | R² %.4f MAE %.4f (test, %s) | terminal acc %.4f "
+             "recall %.3f | %.1f s", name, dataset, m["r2"], m["mae"], c["r2"], c["mae"], other,
+             m["terminal"]["accuracy"], m["terminal"]["recall"], metrics["total_seconds"])
+    return metrics
+
+
+def summary_table(results: list[dict]) -> str:
+    """A Markdown table of R²/MAE in- and cross-dataset and the classifier's accuracy/recall."""
+    lines = ["| model | trained on | R² (same) | MAE (same) | R² (other) | MAE (other) | terminal acc. | terminal recall "
+             "| train s |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        m, c = r["in_dataset"], r["cross_dataset"]
+        lines.append(f"| {r['kind']} | {r['dataset']} | {m['r2']:.4f} | {m['mae']:.3f} | {c['r2']:.4f} | {c['mae']:.3f} "
+                     f"| {m['terminal']['accuracy']:.4f} | {m['terminal']['recall']:.3f} | {r['train_seconds']:.1f} |")
+    return "\n".join(lines)
+
+
+def run(cfg: DictConfig) -> list[dict]:
+    """Train what ``cfg`` asks for (one surrogate, or all ten with ``all=true``); returns the metrics."""
+    from anm_torchrl.grid.simulator import anm6_easy_simulator
+    from anm_torchrl.paths import artifact_home
+    from anm_torchrl.surrogates.regressors import KINDS
+
+    torch.set_num_threads(int(cfg.threads))
+    start = time.perf_counter()
+    sim = anm6_easy_simulator()
+    data = load_datasets(cfg, sim)
+    if cfg.all:
+        if cfg.surrogate.get("path"):
+            raise ValueError("all=true writes every model to its default folder; leave surrogate.path null")
+        jobs = [(k, d) for d in DATASETS for k in KINDS]
+        results = [train_one(cfg, k, d, None, data, sim)
+                   for k, d in tqdm(jobs, desc="surrogates", unit="model", disable=not cfg.progress)]
+        table = summary_table(results)
+        out = artifact_home() / "surrogates"
+        (out / "summary.json").write_text(json.dumps(results, indent=2))
+        (out / "summary.md").write_text(table + "\n")
+        log.info("all surrogates trained in %.1f s; summary in %s\n%s", time.perf_counter() - start,
+                 out / "summary.md", table)
+        return results
+    dataset = cfg.surrogate.get("dataset")
+    return [train_one(cfg, cfg.surrogate.name, dataset, cfg.surrogate.get("path"), data, sim)]
+
+
+@hydra.main(config_path="conf", config_name="train_surrogate", version_base="1.3")
+def main(cfg: DictConfig) -> list[dict]:
+    return run(cfg)
+
+
+if __name__ == "__main__":
+    main()
