@@ -60,5 +60,8 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
     if surrogate in (None, "none", "gym_anm") and surrogate_kwargs:
         raise ValueError(f"surrogate={surrogate!r} takes no surrogate options, got {sorted(surrogate_kwargs)}")
     if max_steps is not None:
-        env = TransformedEnv(env, StepCounter(int(max_steps)))
+        if isinstance(env, TransformedEnv):  # gym_anm: extend its transforms rather than nest envs
+            env.append_transform(StepCounter(int(max_steps)))
+        else:
+            env = TransformedEnv(env, StepCounter(int(max_steps)))
     return env
