@@ -205,7 +205,8 @@ def main(cfg: DictConfig) -> dict:  # noqa: C901 - a training loop, read top to 
     lr0 = float(cfg.optim.lr)
     reward_scale = float(cfg.loss.reward_scale)
     eval_interval, patience = cfg.eval.interval, cfg.eval.patience
-    stopped_early = False
+    max_minutes = cfg.collector.max_minutes
+    stopped_early = out_of_time = False
     pbar = tqdm(total=total_frames, initial=frames, unit="frames", dynamic_ncols=True,
                 disable=not cfg.logger.progress)
     t_collect0 = time.perf_counter()
@@ -277,10 +278,14 @@ def main(cfg: DictConfig) -> dict:  # noqa: C901 - a training loop, read top to 
             log_metrics({**train_metrics, **eval_metrics}, step=frames)
 
         stopped_early = patience is not None and evals_since_best >= int(patience)
-        if update % int(cfg.checkpoint.interval) == 0 or is_last or stopped_early:
+        out_of_time = max_minutes is not None and time.perf_counter() - t_start >= 60 * float(max_minutes)
+        if update % int(cfg.checkpoint.interval) == 0 or is_last or stopped_early or out_of_time:
             save_checkpoint(ckpt_dir / "last.pt", checkpoint_payload())
         if stopped_early:
             log.info("early stop: %d evaluations without improvement of eval/discounted_return", evals_since_best)
+            break
+        if out_of_time:
+            log.info("stop: collector.max_minutes=%s of wall time used", max_minutes)
             break
         t_collect0 = time.perf_counter()
 
@@ -289,7 +294,7 @@ def main(cfg: DictConfig) -> dict:  # noqa: C901 - a training loop, read top to 
         collector.shutdown()
     save_checkpoint(ckpt_dir / "last.pt", checkpoint_payload())
     summary = {"best_eval": best, "final_eval": last_eval, "frames": frames, "updates": update,
-               "stopped_early": stopped_early, "wall_time": wall_before + time.perf_counter() - t_start,
+               "stopped_early": stopped_early, "out_of_time": out_of_time, "wall_time": wall_before + time.perf_counter() - t_start,
                "run_dir": str(run_dir),
                "checkpoints": {name: str(ckpt_dir / f"{name}.pt") if (ckpt_dir / f"{name}.pt").is_file() else None
                                for name in ("best", "last")},

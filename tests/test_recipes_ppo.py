@@ -219,3 +219,12 @@ def test_multiprocess_collector(tmp_path):
     run(PPO, *TINY, "collector.num_workers=2", f"hydra.run.dir={run_dir}", cwd=tmp_path)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["frames"] == 64 and math.isfinite(summary["final_eval"]["discounted_return"])
+
+
+def test_wall_clock_budget_stops_the_run(tmp_path):
+    run_dir = tmp_path / "budget"
+    run(PPO, *TINY, "collector.total_frames=320", "collector.max_minutes=0.0001", "logger.backend=null",
+        f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["out_of_time"] and summary["updates"] == 1 and summary["frames"] == 32
+    assert (run_dir / "checkpoints" / "last.pt").is_file()
