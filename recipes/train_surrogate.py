@@ -91,17 +91,24 @@ def fit_terminal(cfg: DictConfig, dataset: str, data: dict, sim):
     return clf
 
 
+def check_request(name: str, dataset: str | None) -> None:
+    """Raise ``ValueError`` unless ``name`` is a data-driven surrogate and ``dataset`` a dataset kind."""
+    from anm_torchrl.surrogates.regressors import KINDS
+
+    if name not in KINDS:
+        raise ValueError(f"train_surrogate.py trains the data-driven surrogates {list(KINDS)}, got surrogate={name!r}"
+                         + (" (the PINN has its own trainer: recipes/train_pinn.py)" if name == "pinn" else ""))
+    if dataset not in DATASETS:
+        raise ValueError(f"surrogate.dataset must be one of {list(DATASETS)}, got {dataset!r}")
+
+
 def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: dict, sim) -> dict:
     """Train, save and evaluate surrogate ``name`` on ``dataset``; returns its metrics."""
     from anm_torchrl.data import split
     from anm_torchrl.paths import surrogate_dir
-    from anm_torchrl.surrogates.regressors import KINDS, evaluate_surrogate, fit_regressor
+    from anm_torchrl.surrogates.regressors import evaluate_surrogate, fit_regressor
 
-    if name not in KINDS:
-        raise ValueError(f"train_surrogate.py trains the data-driven surrogates {list(KINDS)}, got surrogate={name!r}"
-                         + (" (the PINN has its own trainer)" if name == "pinn" else ""))
-    if dataset not in DATASETS:
-        raise ValueError(f"surrogate.dataset must be one of {list(DATASETS)}, got {dataset!r}")
+    check_request(name, dataset)
     out = Path(path) if path else surrogate_dir(name, dataset)
     out.mkdir(parents=True, exist_ok=True)
     total = time.perf_counter()
@@ -140,12 +147,13 @@ def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: 
 
 def summary_table(results: list[dict]) -> str:
     """A Markdown table of R²/MAE in- and cross-dataset and the classifier's accuracy/recall."""
-    lines = ["| model | trained on | R² (same) | MAE (same) | R² (other) | MAE (other) | terminal acc. | terminal recall "
-             "| train s |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| model | trained on | R² (same) | MAE (same) | R² (other) | MAE (other) | terminal acc. "
+             "| terminal recall | train s |", "|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         m, c = r["in_dataset"], r["cross_dataset"]
-        lines.append(f"| {r['kind']} | {r['dataset']} | {m['r2']:.4f} | {m['mae']:.3f} | {c['r2']:.4f} | {c['mae']:.3f} "
-                     f"| {m['terminal']['accuracy']:.4f} | {m['terminal']['recall']:.3f} | {r['train_seconds']:.1f} |")
+        lines.append(f"| {r['kind']} | {r['dataset']} | {m['r2']:.4f} | {m['mae']:.3f} | {c['r2']:.4f} "
+                     f"| {c['mae']:.3f} | {m['terminal']['accuracy']:.4f} | {m['terminal']['recall']:.3f} "
+                     f"| {r['train_seconds']:.1f} |")
     return "\n".join(lines)
 
 
@@ -156,6 +164,8 @@ def run(cfg: DictConfig) -> list[dict]:
     from anm_torchrl.surrogates.regressors import KINDS
 
     torch.set_num_threads(int(cfg.threads))
+    if not cfg.all:  # fail before loading or generating data
+        check_request(cfg.surrogate.name, cfg.surrogate.get("dataset"))
     start = time.perf_counter()
     sim = anm6_easy_simulator()
     data = load_datasets(cfg, sim)

@@ -6,9 +6,10 @@ steps (segment lengths drawn at random), joined by cosine (ease-in/ease-out) int
 actions are close and the trajectory drifts through the state space like a slowly varying controller would —
 the paper's random agent "with interpolated action sequences" (higher-level actions). Waypoint coordinates
 follow the arcsine law (Beta(1/2, 1/2)) so that decisive moves to the box edges — and the rare terminal
-steps they cause — are as frequent as under i.i.d. uniform actions (see :class:`WaypointAgent`). An env is reset (new initial state, new waypoints) when its
-step is terminal or after ``max_episode_steps`` steps. Rows are stored env-major (each env's steps are
-contiguous) and the train/validation/test split is by env, so no trajectory straddles two splits.
+steps they cause — are as frequent as under i.i.d. uniform actions (see :class:`WaypointAgent`). An env is
+reset (new initial state, new waypoints) when its step is terminal or after ``max_episode_steps`` steps. Rows
+are stored env-major (each env's steps are contiguous) and the train/validation/test split is by env, so no
+trajectory straddles two splits.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import torch
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
-from anm_torchrl.data.storage import DEFAULT_FRACTIONS, simulator_settings, split_codes, transition_rows
+from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 
 log = logging.getLogger(__name__)
@@ -34,7 +35,7 @@ class WaypointAgent:
     Args:
         low, high: (A,) action box (MW / MVAr).
         num_envs: batch size.
-        every: steps between waypoints (k); the action equals a waypoint every k steps.
+        every: steps between waypoints (k); the action equals a waypoint at the end of each segment.
         generator: torch random generator.
         random_every: draw each segment's length uniformly from 1…``every`` instead (a mix of quick and slow
             moves).
@@ -165,7 +166,7 @@ def generate_agent(size: int, seed: int = 0, sim: GridSimulator | None = None, n
                       "num_envs": num_envs, "steps_per_env": n_steps, "waypoint_every": int(waypoint_every),
                       "random_every": bool(random_every), "waypoints": waypoints,
                       "max_episode_steps": int(max_episode_steps), "episodes": next_episode},
-        "splits": {name: int((td.get("split") == code).sum()) for name, code in (("train", 0), ("val", 1), ("test", 2))},
+        "splits": {name: int((td.get("split") == code).sum()) for name, code in SPLITS.items()},
         "split_fractions": [float(f) for f in fractions], "split_unit": "env",
         "n_terminal": n_term,
     }

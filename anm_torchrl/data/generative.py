@@ -28,7 +28,7 @@ import torch
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
-from anm_torchrl.data.storage import DEFAULT_FRACTIONS, simulator_settings, split_codes, transition_rows
+from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 
@@ -92,7 +92,7 @@ def generate_generative(size: int, seed: int = 0, sim: GridSimulator | None = No
         "kind": "generative", "size": int(size), "seed": int(seed), "simulator": simulator_settings(sim),
         "generator": {"method": "scrambled Sobol (torch.quasirandom.SobolEngine)", "dims": list(SOBOL_DIMS),
                       "sobol_dim": dim, "chunk": int(chunk), "points_drawn": drawn, "invalid_states_skipped": skipped},
-        "splits": {name: int((td.get("split") == code).sum()) for name, code in (("train", 0), ("val", 1), ("test", 2))},
+        "splits": {name: int((td.get("split") == code).sum()) for name, code in SPLITS.items()},
         "split_fractions": [float(f) for f in fractions], "split_unit": "row",
         "n_terminal": n_term,
     }

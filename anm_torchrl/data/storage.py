@@ -121,8 +121,11 @@ def split(td: TensorDictBase, name: str) -> TensorDict:
 
 # ------------------------------------------------------------------------------------------------ checksum
 def _leaves(td: TensorDictBase) -> list[tuple[str, torch.Tensor]]:
-    keys = sorted(td.keys(include_nested=True, leaves_only=True), key=lambda k: k if isinstance(k, str) else ".".join(k))
-    return [(k if isinstance(k, str) else ".".join(k), td.get(k)) for k in keys]
+    def name(k) -> str:
+        return k if isinstance(k, str) else ".".join(k)
+
+    keys = sorted(td.keys(include_nested=True, leaves_only=True), key=name)
+    return [(name(k), td.get(k)) for k in keys]
 
 
 def field_layout(td: TensorDictBase) -> dict[str, dict[str, Any]]:

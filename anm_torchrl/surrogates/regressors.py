@@ -143,7 +143,8 @@ class _SklearnBackend(_Backend):
         if kind == "dt":
             info = {"n_leaves": [int(e.get_n_leaves()) for e in est.estimators_]}
         else:
-            info = {"n_leaves_mean": [float(np.mean([t.get_n_leaves() for t in e.estimators_])) for e in est.estimators_]}
+            info = {"n_leaves_mean": [float(np.mean([t.get_n_leaves() for t in e.estimators_]))
+                                      for e in est.estimators_]}
         return cls(kind, est), info
 
     def predict(self, x: torch.Tensor) -> torch.Tensor:
@@ -208,7 +209,8 @@ class _XGBBackend(_Backend):
         return cls(booster), info
 
     def predict(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.booster.inplace_predict(x.detach().cpu().numpy(), validate_features=False)
+        # xgboost compares features in float32: casting here gives the same trees, and is faster
+        y = self.booster.inplace_predict(x.detach().cpu().to(torch.float32).numpy(), validate_features=False)
         return torch.as_tensor(np.asarray(y, dtype=np.float64).reshape(x.shape[0], -1), device=x.device)
 
     def save(self, path: Path) -> None:
@@ -406,8 +408,9 @@ class RegressorSurrogate(TensorDictModuleBase):
         if stored not in KINDS:
             raise ModelFileError(f"{path / META_FILE} names an unknown surrogate kind {stored!r}")
         if kind is not None and stored != kind:
+            retrain = train_command(kind, meta.get("dataset", "generative"))
             raise ModelFileError(f"{path} holds a {stored!r} surrogate, not {kind!r}: load it with "
-                                 f"surrogate={stored} or train a {kind!r} one ({train_command(kind, meta.get('dataset', 'generative'))})")
+                                 f"surrogate={stored} or train a {kind!r} one ({retrain})")
         sim = sim if sim is not None else anm6_easy_simulator()
         featurizer = Featurizer(sim, foresight=meta.get("foresight", True))
         idx, names = target_layout(sim)
@@ -447,7 +450,7 @@ def regression_rows(td: TensorDictBase) -> TensorDictBase:
 def targets_of(td: TensorDictBase, sim: GridSimulator) -> torch.Tensor:
     """Ground-truth targets (N, T) float64 of dataset rows: next-state physics entries, then the reward."""
     idx, _ = target_layout(sim)
-    return torch.cat([td.get("next_state")[:, idx].to(torch.float64), td.get("reward").reshape(-1, 1).to(torch.float64)], 1)
+    return torch.cat([td.get("next_state")[:, idx], td.get("reward").reshape(-1, 1)], 1).to(torch.float64)
 
 
 def fit_regressor(kind: str, train: TensorDictBase, val: TensorDictBase, sim: GridSimulator | None = None,
