@@ -1,1 +1,13 @@
-"""Physics-informed surrogate of ANM6-Easy (paper §4.2): KKT-NNs → aggregation → power balance → next state."""
+"""Physics-informed surrogate of ANM6-Easy (paper §4.2): KKT-NNs → aggregation → power balance → next state.
+
+* :mod:`.kkt` — generator and storage KKT-NNs; :mod:`.power_balance` — the power-balance PINN;
+* :mod:`.losses` — KKT and power-flow losses from :mod:`anm_torchrl.grid.residuals`;
+* :mod:`.train` — Sobol training from physics alone, presets, saved files;
+* :mod:`.chain` — the ``TensorDictSequential`` surrogate and :func:`load_pinn` (registry name ``"pinn"``);
+* :mod:`.evaluate` — accuracy against the exact simulator (``python -m anm_torchrl.surrogates.pinn.evaluate``).
+"""
+
+from anm_torchrl.surrogates.pinn.chain import build_chain, load_pinn
+from anm_torchrl.surrogates.pinn.train import PINNTrainConfig, preset, save_pinn, train_pinn
+
+__all__ = ["PINNTrainConfig", "build_chain", "load_pinn", "preset", "save_pinn", "train_pinn"]

@@ -25,7 +25,8 @@ Metrics (``evaluate_pinn``), per set; errors are over the rows where the simulat
 ``reward_mae``             reward MAE (non-terminal rows of both)
 ``terminal_precision``,    the chain's ``terminated`` vs the simulator's non-convergence
 ``terminal_recall``
-``time_us``                chain inference time per transition (batched), µs; ``sim_time_us`` the simulator's
+``time_us``                chain inference time per transition (one batched call), µs; ``sim_time_us`` the
+                           simulator's (noisy: one call each)
 =========================  ==========================================================================
 
 Command: ``python -m anm_torchrl.surrogates.pinn.evaluate --path <file or folder>`` (prints a table and JSON).
@@ -100,6 +101,7 @@ def evaluate_pinn(chain: TensorDictSequential, sim: GridSimulator, state: torch.
     """Metrics of the module docstring for one batch of transitions (``state`` (N, 18), ``action`` (N, 6))."""
     n = state.shape[0]
     td = TensorDict({"state": state, "action": action}, [n])
+    chain(td[: min(n, 64)].clone())  # warm-up
     t0 = time.perf_counter()
     out = chain(td.clone())
     t_chain = time.perf_counter() - t0

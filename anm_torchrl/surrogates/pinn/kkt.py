@@ -13,16 +13,30 @@ Design (both modules):
   every device's problem lives in [−1, 1]² and the losses have the same scale for all devices.
 * **Inputs** are normalised by their known boxes (Appendix A of the paper): a_P ∈ [PMIN, PMAX], a_Q ∈ [QMIN,
   QMAX], P_pot ∈ [PMIN, PMAX], SoC ∈ [SOC_MIN, SOC_MAX], each mapped to [−1, 1].
-* **Primal head** with the paper's residual input→output connection: ``x̃ = t̃ + Δ(t, θ)``, so a feasible
-  set-point (Δ = 0) is the identity.
+* **Primal head** with the paper's residual input→output connection: ``x̃ = t̃ + Δ(t, θ)``. Two optional
+  structural facts of the projection (both on in the ``default`` preset, off in ``paper``):
+
+  - ``gated``: ``x̃ = t̃ + v(t̃)·Δ`` with ``v`` the set-point's largest constraint violation
+    ``max_j (G t̃ − h̃)_j⁺`` (a residual, not a solve): a feasible set-point maps to itself exactly (it is its
+    own projection), and ``‖x* − t‖`` is at most proportional to ``v`` (Hoffman), so Δ stays bounded. This
+    removes the smooth network's error at the kinks of the projection, where expert policies sit (e.g. P
+    set-point = P_pot).
+  - ``hard_constraints``: the losses see ``clamp_to_polygon(x̃)`` (below), so the primal is feasible by
+    construction (the KKT-NN authors bound P and Q by construction with sigmoid/tanh; this is the polygon
+    version) and primal feasibility is identically 0.
 * **Dual head**: ``λ̃ = softplus(z − 4)`` (or ``relu``), so dual feasibility λ ≥ 0 holds by construction; the
-  shift starts every multiplier near 0.
-* **Exact-feasibility safeguard** (on by default, ``safeguard=True``; the losses always see the raw output):
+  shift starts every multiplier near 0. ``separate_dual`` uses a second network for λ; ``dual_gate = δ``
+  multiplies λ_j by ``exp(min(s_j, 0)/δ)`` with ``s_j = (G x̃ − h̃)_j`` (x̃ detached), i.e. complementary
+  slackness by construction. Without the gate, a KKT-NN can sit in a spurious near-stationary point where the
+  multiplier of an *inactive* row (e.g. P ≤ P_pot) explains a wrong, horizontal move onto a capability line
+  (complementarity residual only ~1e-2); with it the generator MAE fell from 5e-4 to 2e-6 p.u. (train.py).
+* **Exact-feasibility safeguard** at inference (``safeguard=True``, a no-op with ``hard_constraints``):
   :func:`clamp_to_polygon` clamps P to the rows that involve P only (box, P_pot, SoC rows), then Q to the
   interval the remaining rows allow at that P. For the generator and storage polygons of gym-anm this
   interval is never empty, so the output is feasible to round-off; where the raw output was already
   feasible the clamp is the identity, where it was not it moves the point onto the violated boundary.
-* Networks in float32, the device physics (``G``, ``h``, clamp) in float64.
+  It is not the projection: where a capability line binds, the projection moves diagonally.
+* Networks in float32, the device physics (``G``, ``h``, clamp, gates) in float64.
 
 Generators: **one network shared by all renewable generators, conditioned on device parameters.** Both
 generators' sets belong to the same 7-row family (box ∩ P ≤ P_pot ∩ two capability lines) and, in rating
@@ -40,6 +54,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from anm_torchrl.grid import devices as dv
+from anm_torchrl.grid.residuals import constraint_slack
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.surrogates.pinn.nets import ResidualMLP, box_normalise
 
@@ -88,13 +103,19 @@ class _ProjectionKKT(nn.Module):
     (boxes of a_P, a_Q, θ in p.u.) and ``cond`` (n, k), and implement :meth:`rhs`.
     """
 
-    def _build_net(self, hidden: int, depth: int, activation: str, dual_activation: str) -> None:
+    def _build_net(self, hidden: int, depth: int, activation: str, dual_activation: str,
+                   separate_dual: bool = False) -> None:
         if dual_activation not in ("softplus", "relu"):
             raise ValueError(f"dual_activation must be 'softplus' or 'relu', got {dual_activation!r}")
         self.dual_activation = dual_activation
-        m = self.g.shape[1]
-        self.net = ResidualMLP(3 + self.cond.shape[1], 2 + m, hidden=hidden, depth=depth, activation=activation,
-                               out_scale=0.1)
+        m, n_in = self.g.shape[1], 3 + self.cond.shape[1]
+        kw = dict(hidden=hidden, depth=depth, activation=activation, out_scale=0.1)
+        if separate_dual:  # a primal network and a dual network
+            self.net = ResidualMLP(n_in, 2, **kw)
+            self.dual_net = ResidualMLP(n_in, m, **kw)
+        else:  # one network with a primal and a dual head (the KKT-NN paper)
+            self.net = ResidualMLP(n_in, 2 + m, **kw)
+            self.dual_net = None
 
     @property
     def n_rows(self) -> int:
@@ -120,14 +141,23 @@ class _ProjectionKKT(nn.Module):
         feats = torch.cat([box_normalise(target, self.in_low[:, :2], self.in_high[:, :2]),
                            box_normalise(theta, self.in_low[:, 2], self.in_high[:, 2]).unsqueeze(-1),
                            self.cond.expand(*theta.shape, -1)], -1)
-        out = self.net(feats.to(dtype)).to(torch.float64)
-        z = out[..., 2:] + DUAL_SHIFT
-        lam = F.softplus(z) if self.dual_activation == "softplus" else torch.relu(z)
+        feats = feats.to(dtype)
+        out = self.net(feats).to(torch.float64)
+        z = (out[..., 2:] if self.dual_net is None else self.dual_net(feats).to(torch.float64)) + DUAL_SHIFT
+        # the floor keeps collapsed multipliers (~1e-13) out of the float64 denormal range, which is very slow on CPU
+        lam = F.softplus(z.clamp(min=-30.0)) if self.dual_activation == "softplus" else torch.relu(z)
         t = target / s
         h = self.rhs(theta) / s
-        x = t + out[..., :2]
+        if self.gated:  # correction per unit of the target's largest violation: x = t exactly on the set
+            viol = torch.relu(constraint_slack(t, self.g, h)).amax(-1, keepdim=True)
+            x = t + viol * out[..., :2]
+        else:
+            x = t + out[..., :2]
         if self.hard_constraints:
             x = clamp_to_polygon(x, self.g, h)
+        if self.dual_gate > 0:  # complementary slackness by construction: λ_j → 0 off the boundary of row j
+            slack = constraint_slack(x.detach(), self.g, h).clamp(max=0.0)
+            lam = lam * torch.exp((slack / self.dual_gate).clamp(min=-20.0))  # floor: no denormals in backward
         return {"x": x, "lam": lam, "target": t, "h": h, "g": self.g}
 
     def forward(self, target: torch.Tensor, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -156,14 +186,20 @@ class GeneratorKKT(_ProjectionKKT):
         safeguard: clamp the output into the polygon (:func:`clamp_to_polygon`) at inference.
         hard_constraints: clamp inside the network too, so the losses see the clamped primal (feasibility by
             construction; the primal-feasibility loss is then identically 0).
+        gated: scale the primal correction by the target's largest constraint violation (the projection is the
+            identity on the feasible set, and ‖x* − t‖ is at most proportional to the violation).
+        separate_dual: a separate network for the duals (else one network with two heads).
+        dual_gate: δ > 0 multiplies each λ_j by exp(min(s_j, 0)/δ), s_j = (G x − h)_j in rating units (x
+            detached): a multiplier fades off its constraint's boundary (complementary slackness by construction).
 
     ``forward(target (N, n_gen, 2) p.u., p_pot (N, n_gen) p.u.) -> (pq (N, n_gen, 2) p.u., lam (N, n_gen, 7))``.
     """
 
     def __init__(self, sim: GridSimulator, hidden: int = 128, depth: int = 3, activation: str = "silu",
-                 dual_activation: str = "softplus", safeguard: bool = True, hard_constraints: bool = False):
+                 dual_activation: str = "softplus", safeguard: bool = True, hard_constraints: bool = False,
+                 gated: bool = False, separate_dual: bool = False, dual_gate: float = 0.0):
         super().__init__()
-        self.hard_constraints = hard_constraints
+        self.hard_constraints, self.gated, self.dual_gate = hard_constraints, gated, float(dual_gate)
         dev = sim.net.dev[sim.gen_ids]
         g, h0 = sim.gen_g, sim.gen_h0
         scale = torch.stack([dev[:, dv.PMAX].abs(), dev[:, dv.PMIN].abs(), dev[:, dv.QMAX].abs(),
@@ -177,7 +213,7 @@ class GeneratorKKT(_ProjectionKKT):
                              persistent=False)
         self.register_buffer("cond", _device_features(g, h0, scale), persistent=False)
         self.safeguard = safeguard
-        self._build_net(hidden, depth, activation, dual_activation)
+        self._build_net(hidden, depth, activation, dual_activation, separate_dual)
 
     def rhs(self, theta: torch.Tensor) -> torch.Tensor:
         return dv.generator_h(self.h0, theta)
@@ -188,15 +224,17 @@ class StorageKKT(_ProjectionKKT):
 
     Args:
         sim: the simulator (network, storage polygon, Δt, efficiency).
-        hidden, depth, activation, dual_activation, safeguard, hard_constraints: as :class:`GeneratorKKT`.
+        hidden, depth, activation, dual_activation, safeguard, hard_constraints, gated, separate_dual,
+            dual_gate: as :class:`GeneratorKKT`.
 
     ``forward(target (N, n_des, 2) p.u., soc (N, n_des) p.u.·h) -> (pq (N, n_des, 2) p.u., lam (N, n_des, 10))``.
     """
 
     def __init__(self, sim: GridSimulator, hidden: int = 128, depth: int = 3, activation: str = "silu",
-                 dual_activation: str = "softplus", safeguard: bool = True, hard_constraints: bool = False):
+                 dual_activation: str = "softplus", safeguard: bool = True, hard_constraints: bool = False,
+                 gated: bool = False, separate_dual: bool = False, dual_gate: float = 0.0):
         super().__init__()
-        self.hard_constraints = hard_constraints
+        self.hard_constraints, self.gated, self.dual_gate = hard_constraints, gated, float(dual_gate)
         self.sim = sim
         dev = sim.net.dev[sim.des_ids]
         g, h0 = sim.des_g, sim.des_h0
@@ -211,7 +249,7 @@ class StorageKKT(_ProjectionKKT):
                              persistent=False)
         self.register_buffer("cond", _device_features(g, h0, scale), persistent=False)
         self.safeguard = safeguard
-        self._build_net(hidden, depth, activation, dual_activation)
+        self._build_net(hidden, depth, activation, dual_activation, separate_dual)
 
     def rhs(self, theta: torch.Tensor) -> torch.Tensor:
         return self.sim.storage_h(theta)

@@ -63,7 +63,7 @@ def pseudo_huber(r: torch.Tensor, scale: float) -> torch.Tensor:
 
 
 def cauchy(r: torch.Tensor, scale: float) -> torch.Tensor:
-    """``c² log(1 + (r/c)²)``: ≈ r² for |r| ≪ c; grows only logarithmically (its gradient fades) for |r| ≫ c."""
+    """``c² log(1 + (r/c)²)``: ≈ r² for |r| ≪ c; grows logarithmically (its gradient fades) for |r| ≫ c."""
     return scale ** 2 * torch.log1p((r / scale) ** 2)
 
 
@@ -78,7 +78,8 @@ def power_balance_residuals(v_magn: torch.Tensor, v_ang: torch.Tensor, p_bus: to
 
 
 def power_balance_losses(v_magn: torch.Tensor, v_ang: torch.Tensor, p_bus: torch.Tensor, q_bus: torch.Tensor,
-                         y_bus: torch.Tensor, robust: str = "squared", robust_scale: float = 0.01) -> dict[str, torch.Tensor]:
+                         y_bus: torch.Tensor, robust: str = "squared",
+                         robust_scale: float = 0.01) -> dict[str, torch.Tensor]:
     """Mean penalised AC power-flow residual at the non-slack buses (paper eqs. 31, 32).
 
     Args:

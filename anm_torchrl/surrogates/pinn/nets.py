@@ -44,16 +44,21 @@ class ResidualMLP(nn.Module):
         for _ in range(depth):
             layers += [nn.Linear(d, hidden), make_activation(activation)]
             d = hidden
-        last = nn.Linear(d, out_dim)
-        with torch.no_grad():
-            last.weight.mul_(out_scale)
-            last.bias.zero_()
-        layers.append(last)
+        layers.append(nn.Linear(d, out_dim))
         self.body = nn.Sequential(*layers)
         self.skip = nn.Linear(in_dim, out_dim)
+        self.out_scale = out_scale
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """PyTorch's default initialisation, then the output layer and the skip scaled by ``out_scale``, biases 0."""
+        for layer in self.modules():
+            if isinstance(layer, nn.Linear):
+                layer.reset_parameters()
         with torch.no_grad():
-            self.skip.weight.mul_(out_scale)
-            self.skip.bias.zero_()
+            for last in (self.body[-1], self.skip):
+                last.weight.mul_(self.out_scale)
+                last.bias.zero_()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.skip(x) + self.body(x)

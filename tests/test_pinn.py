@@ -1,0 +1,327 @@
+"""The PINN surrogate (``anm_torchrl.surrogates.pinn``): loss code, feasibility, chain pieces, files, env specs.
+
+Tiny networks and a few dozen steps only (the ``smoke`` preset); accuracy of the real model is measured by
+``python -m anm_torchrl.surrogates.pinn.evaluate`` / ``recipes/train_pinn.py`` (see the report in train.py).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from anm_torchrl.envs import ANM6Env, SurrogateEnv
+from anm_torchrl.grid import devices as dv
+from anm_torchrl.grid.powerflow import newton_raphson
+from anm_torchrl.grid.residuals import constraint_slack
+from anm_torchrl.grid.simulator import anm6_easy_simulator
+from anm_torchrl.surrogates.pinn import train as tr
+from anm_torchrl.surrogates.pinn.chain import build_chain, load_pinn
+from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn, random_transitions
+from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT, clamp_to_polygon
+from anm_torchrl.surrogates.pinn.losses import kkt_losses, power_balance_losses
+from anm_torchrl.surrogates.pinn.power_balance import bus_injection_box
+
+torch.set_num_threads(1)
+ROOT = Path(__file__).resolve().parents[1]
+P = "pinn"
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return anm6_easy_simulator()
+
+
+@pytest.fixture(scope="module")
+def smoke_file(tmp_path_factory, sim):
+    """A smoke-preset PINN trained once for the module and saved."""
+    cfg = tr.preset("smoke")
+    modules, report = tr.train_pinn(cfg, sim)
+    return tr.save_pinn(tmp_path_factory.mktemp("pinn") / "pinn.pt", modules, cfg, report)
+
+
+@pytest.fixture(scope="module")
+def chain(smoke_file):
+    return load_pinn(path=smoke_file, train_if_missing=False)
+
+
+def _batch(sim, n=64, seed=0):
+    state, action = random_transitions(sim, n, seed)
+    return TensorDict({"state": state, "action": action}, [n])
+
+
+# ------------------------------------------------------------------------------------------- loss code
+def _random_targets(sim, n, gen):
+    lo, hi = sim.action_bounds()
+    a = (lo + torch.rand(n, sim.action_dim, generator=gen, dtype=torch.float64) * (hi - lo)) / sim.net.base_mva
+    ng = sim.n_gen
+    return torch.stack([a[:, :ng], a[:, ng:2 * ng]], -1), a[:, 2 * ng:].reshape(n, 1, 2)
+
+
+def test_kkt_losses_vanish_at_exact_projection(sim):
+    """Cross-check of the loss code: the exact projection with its multipliers has zero KKT losses."""
+    gen = torch.Generator().manual_seed(0)
+    n = 2000
+    gen_t, des_t = _random_targets(sim, n, gen)
+    p_pot = torch.rand(n, sim.n_gen, generator=gen, dtype=torch.float64) * sim.net.dev[sim.gen_ids, dv.PMAX]
+    soc = torch.rand(n, 1, generator=gen, dtype=torch.float64) * sim.net.dev[sim.des_ids, dv.SOC_MAX]
+    for target, g, h in ((gen_t, sim.gen_g, sim.generator_h(p_pot)), (des_t, sim.des_g, sim.storage_h(soc))):
+        x = dv.project(target, g, h)
+        lam = dv.projection_duals(x, target, g, h)
+        assert (lam >= -1e-12).all()
+        for norm in ("squared", "l2"):
+            losses = kkt_losses(x, target, lam, g, h, norm=norm)
+            for k, v in losses.items():
+                assert float(v) < 1e-9, (k, norm, float(v))
+        # and a wrong point does not
+        assert float(kkt_losses(target, target, torch.zeros_like(lam), g, h)["primal"]) > 1e-4
+
+
+def test_power_balance_losses_vanish_at_power_flow_solution(sim):
+    gen = torch.Generator().manual_seed(1)
+    state, tr_ = sim.random_state(500, gen)
+    p_bus = tr_.p_dev @ sim.net.incidence
+    q_bus = tr_.q_dev @ sim.net.incidence
+    pf = newton_raphson(sim.net.y_bus, torch.complex(p_bus, q_bus), tol=1e-12)
+    assert pf.converged.all()
+    losses = power_balance_losses(pf.v.abs(), pf.v.angle(), p_bus, q_bus, sim.net.y_bus)
+    assert all(float(v) < 1e-20 for v in losses.values())
+    flat = power_balance_losses(torch.ones_like(p_bus), torch.zeros_like(p_bus), p_bus, q_bus, sim.net.y_bus)
+    assert float(flat["residual_p"]) > 1e-4
+
+
+def test_bus_injection_box_matches_spec(sim):
+    p_lo, p_hi, q_lo, q_hi = (x * 100 for x in bus_injection_box(sim))
+    torch.testing.assert_close(p_lo, torch.tensor([0, 0, 0, -10, -30, -80.], dtype=torch.float64))
+    torch.testing.assert_close(p_hi, torch.tensor([0, 0, 0, 30, 50, 50.], dtype=torch.float64))
+    torch.testing.assert_close(q_lo, torch.tensor([0, 0, 0, -32, -56, -56.], dtype=torch.float64))
+    torch.testing.assert_close(q_hi, torch.tensor([0, 0, 0, 30, 50, 50.], dtype=torch.float64))
+
+
+def test_clamp_to_polygon_is_feasible_and_identity_inside(sim):
+    gen = torch.Generator().manual_seed(2)
+    n = 5000
+    pts = (torch.rand(n, sim.n_gen, 2, generator=gen, dtype=torch.float64) * 2 - 1) * 0.7
+    p_pot = torch.rand(n, sim.n_gen, generator=gen, dtype=torch.float64) * sim.net.dev[sim.gen_ids, dv.PMAX]
+    p_pot[: n // 10] = 0.0  # PV at night: the polygon degenerates to a segment
+    h = sim.generator_h(p_pot)
+    x = clamp_to_polygon(pts, sim.gen_g, h)
+    assert (constraint_slack(x, sim.gen_g, h) <= 1e-12).all()
+    inside = (constraint_slack(pts, sim.gen_g, h) <= 0).all(-1)
+    assert inside.any() and torch.equal(x[inside], pts[inside])
+    soc = torch.rand(n, 1, generator=gen, dtype=torch.float64)
+    soc[:100] = 0.0
+    soc[100:200] = 1.0
+    hd = sim.storage_h(soc)
+    xd = clamp_to_polygon(pts[:, :1] / 0.7 * 0.9, sim.des_g, hd)
+    assert (constraint_slack(xd, sim.des_g, hd) <= 1e-12).all()
+
+
+# --------------------------------------------------------------------------------------------- training
+@pytest.mark.parametrize("name", tr.MODULES)
+def test_short_training_lowers_each_loss(sim, name):
+    cfg = tr.ModuleTrainConfig(hidden=32, depth=2, activation="silu", lr=3e-3, batch_size=256, max_steps=150,
+                               eval_every=50, val_size=512, schedule="constant")
+    torch.manual_seed(0)
+    module = tr.build_modules(tr.PINNTrainConfig(**{name: cfg}), sim)[name]
+    task = tr.TASKS[name](module, sim)
+    inputs = task.sample(torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=99).draw(1024).double())
+    with torch.no_grad():
+        before = task.losses(inputs, cfg)
+    tr.train_module(name, module, sim, cfg, seed=0)
+    with torch.no_grad():
+        after = task.losses(inputs, cfg)
+    for k in task.terms:
+        assert float(after[k]) < float(before[k]), (name, k, float(before[k]), float(after[k]))
+
+
+def test_outputs_respect_device_limits(sim, chain):
+    """With the clamp safeguard every projected output lies in its polygon (even for a barely trained net)."""
+    td = chain(_batch(sim, 4000, seed=3))
+    gen_pq, des_pq = td.get((P, "gen_pq")), td.get((P, "des_pq"))
+    hg = sim.generator_h(td.get((P, "p_pot")))
+    hd = sim.storage_h(td.get((P, "soc")))
+    assert (constraint_slack(gen_pq, sim.gen_g, hg) <= 1e-9).all()
+    assert (constraint_slack(des_pq, sim.des_g, hd) <= 1e-9).all()
+    assert (td.get((P, "gen_lambda")) >= 0).all() and (td.get((P, "des_lambda")) >= 0).all()
+
+
+def test_hard_constraints_train_feasible_points(sim):
+    g = GeneratorKKT(sim, hidden=8, depth=1, hard_constraints=True, safeguard=False)
+    target = torch.tensor([[[0.3, 0.3], [0.5, -0.5]]], dtype=torch.float64)
+    with torch.no_grad():
+        pred = g.predict_scaled(target, torch.tensor([[0.1, 0.2]], dtype=torch.float64))
+    assert float(kkt_losses(pred["x"], pred["target"], pred["lam"], pred["g"], pred["h"])["primal"]) == 0.0
+    s = StorageKKT(sim, hidden=8, depth=1, hard_constraints=True, safeguard=False)
+    with torch.no_grad():
+        pq, lam = s(torch.tensor([[[0.5, 0.5]]], dtype=torch.float64), torch.tensor([[0.0]], dtype=torch.float64))
+    assert float(pq[0, 0, 0]) <= 1e-12  # empty storage cannot discharge
+    assert lam.shape == (1, 1, 10)
+
+
+# ------------------------------------------------------------------------------------------------ chain
+def test_chain_contract(sim, chain):
+    td = chain(_batch(sim, 32))
+    assert td.get("next_state").shape == (32, 18) and td.get("next_state").dtype == torch.float64
+    assert td.get("reward").shape == (32, 1)
+    assert td.get("terminated").shape == (32, 1) and td.get("terminated").dtype == torch.bool
+    for k, n in {"e_loss": 1, "penalty": 1, "curtailment": 1, "v_magn": 6, "branch_s": 5}.items():
+        assert td.get(("grid", k)).shape == (32, n)
+    v = td.get((P, "v_magn"))
+    assert torch.all(v[:, 0] == 1) and torch.all(td.get((P, "v_ang"))[:, 0] == 0)
+
+
+def test_chain_pieces_run_alone(sim, chain):
+    full = chain(_batch(sim, 16))
+    gen_only = chain.select_subsequence(in_keys=[(P, "gen_target"), (P, "p_pot")], out_keys=[(P, "gen_pq")])
+    assert len(gen_only.module) == 1
+    td = gen_only(full.select((P, "gen_target"), (P, "p_pot")).clone())
+    torch.testing.assert_close(td.get((P, "gen_pq")), full.get((P, "gen_pq")), rtol=0, atol=0)
+    pb_only = chain.select_subsequence(in_keys=[(P, "p_bus"), (P, "q_bus")], out_keys=[(P, "v_magn"), (P, "v_ang")])
+    assert len(pb_only.module) == 1
+    td = pb_only(full.select((P, "p_bus"), (P, "q_bus")).clone())
+    torch.testing.assert_close(td.get((P, "v_magn")), full.get((P, "v_magn")), rtol=0, atol=0)
+    des_part = chain.select_subsequence(out_keys=[(P, "des_pq")])  # exogenous split + storage KKT-NN
+    td = des_part(_batch(sim, 16))
+    torch.testing.assert_close(td.get((P, "des_pq")), full.get((P, "des_pq")), rtol=0, atol=0)
+    # the plain modules work on tensors, too
+    pq, lam = chain[1].module(full.get((P, "gen_target")), full.get((P, "p_pot")))
+    torch.testing.assert_close(pq, full.get((P, "gen_pq")), rtol=0, atol=0)
+
+
+def test_save_load_round_trip_and_wrong_kind(sim, smoke_file, tmp_path):
+    a = load_pinn(path=smoke_file, train_if_missing=False)
+    b = load_pinn(path=smoke_file.parent, train_if_missing=False)  # a folder holding pinn.pt
+    td = _batch(sim, 64, seed=5)
+    oa, ob = a(td.clone()), b(td.clone())
+    for k in ("next_state", "reward", "terminated", (P, "v_magn")):
+        assert torch.equal(oa.get(k), ob.get(k)), k
+    payload = tr.read_pinn_file(smoke_file)
+    assert payload["kind"] == "anm_torchrl.pinn" and payload["config"]["preset"] == "smoke"
+    bad = tmp_path / "other.pt"
+    torch.save({"kind": "something.else", "state_dict": {}}, bad)
+    with pytest.raises(ValueError, match="anm_torchrl.pinn"):
+        load_pinn(path=bad)
+    junk = tmp_path / "junk.pt"
+    junk.write_text("not a torch file")
+    with pytest.raises(ValueError, match="not a readable"):
+        load_pinn(path=junk)
+    with pytest.raises(FileNotFoundError):
+        load_pinn(path=tmp_path / "missing", train_if_missing=False)
+    with pytest.raises(ValueError, match="classifier_path"):
+        load_pinn(path=smoke_file, terminal="classifier")
+    with pytest.raises(ValueError, match="terminal"):
+        load_pinn(path=smoke_file, terminal="oracle")
+
+
+def test_load_pinn_trains_and_caches_when_missing(tmp_path, monkeypatch):
+    from anm_torchrl.surrogates.pinn import chain as chain_mod
+
+    calls = []
+    real = tr.train_pinn
+
+    def spy(cfg, sim, **kw):
+        calls.append(cfg.preset)
+        return real(cfg, sim, **kw)
+
+    monkeypatch.setattr(tr, "train_pinn", spy)
+    c1 = chain_mod.load_pinn(path=tmp_path, preset="smoke", progress=False)
+    assert (tmp_path / "pinn.pt").is_file() and calls == ["smoke"]
+    c2 = chain_mod.load_pinn(path=tmp_path, preset="smoke")
+    assert calls == ["smoke"]  # second call loads
+    td = _batch(anm6_easy_simulator(), 8)
+    assert torch.equal(c1(td.clone()).get("next_state"), c2(td.clone()).get("next_state"))
+
+
+def test_classifier_terminal_wiring(sim, smoke_file):
+    class Always:
+        def predict_terminated(self, state, action):
+            return torch.ones(state.shape[0], dtype=torch.bool)
+
+    mods, _, _ = tr.load_modules(smoke_file, sim)
+    chain = build_chain(sim, mods["generator"], mods["storage"], mods["power_balance"], terminal="classifier",
+                        classifier=Always())
+    td = chain(_batch(sim, 8))
+    assert td.get("terminated").all()
+    assert torch.all(td.get("next_state") == 0)
+    assert torch.allclose(td.get("reward"), torch.full((8, 1), sim.terminal_reward, dtype=torch.float64))
+
+
+# -------------------------------------------------------------------------------------------------- env
+def test_surrogate_env_specs(chain):
+    env = SurrogateEnv(chain, num_envs=4, seed=0)
+    check_env_specs(env)
+    ref = ANM6Env(4)
+    assert env.output_spec == ref.output_spec
+    assert env.input_spec == ref.input_spec
+    roll = env.rollout(5, break_when_any_done=False)
+    assert roll.shape == (4, 5)
+
+
+def test_make_env_pinn(smoke_file):
+    from anm_torchrl import make_env
+
+    env = make_env("pinn", num_envs=3, seed=0, path=str(smoke_file), max_steps=10)
+    td = env.rollout(4, break_when_any_done=False)
+    assert td.get(("next", "reward")).shape == (3, 4, 1)
+
+
+def test_evaluate_runs(sim, chain):
+    m = evaluate_pinn(chain, sim, *random_transitions(sim, 300, seed=1))
+    assert m["feasible"] == 1.0
+    for k in ("gen_proj_mae_pu", "des_proj_mae_pu", "vmag_mae_pu", "pf_residual_mean", "next_pq_mae_mw",
+              "terminal_precision", "terminal_recall"):
+        assert k in m
+
+
+# ---------------------------------------------------------------------------------------------- configs
+@pytest.mark.parametrize("name", sorted(tr.PRESETS))
+def test_yaml_presets_match_dataclasses(name):
+    data = yaml.safe_load((ROOT / "recipes" / "conf" / "pinn_preset" / f"{name}.yaml").read_text())
+    assert data.pop("name") == name
+    cfg = tr.PINNTrainConfig.from_dict({**data, "preset": name})
+    assert cfg.to_dict() == tr.PRESETS[name]().to_dict()
+
+
+def test_unknown_option_is_rejected():
+    with pytest.raises(ValueError, match="hiden"):
+        tr.preset("default", generator={"hiden": 3})
+
+
+def test_recipe_smoke(tmp_path):
+    out = tmp_path / "pinn.pt"
+    cmd = [sys.executable, str(ROOT / "recipes" / "train_pinn.py"), "pinn_preset=smoke", f"path={out}",
+           "eval.n_random=500", "eval.expert_envs=0", "progress=false", f"hydra.run.dir={tmp_path / 'run'}"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert out.is_file() and (tmp_path / "run" / "pinn_eval.json").is_file()
+    assert any((tmp_path / "run" / "tb").iterdir())
+
+
+def test_training_is_deterministic(sim):
+    cfg = tr.preset("smoke", generator={"max_steps": 20}, storage={"max_steps": 20}, power_balance={"max_steps": 20})
+    a, _ = tr.train_pinn(cfg, sim)
+    b, _ = tr.train_pinn(cfg, sim)
+    for name in tr.MODULES:
+        for (k, va), vb in zip(a[name].state_dict().items(), b[name].state_dict().values()):
+            assert torch.equal(va, vb), (name, k)
+
+
+def test_default_structure_options(sim):
+    """The default preset's KKT-NN options: a feasible set-point is returned unchanged, duals are gated."""
+    cfg = tr.preset("default")
+    mods = tr.build_modules(cfg, sim)
+    gen = mods["generator"]
+    assert gen.gated and gen.hard_constraints and gen.dual_net is not None and gen.dual_gate > 0
+    target = torch.tensor([[[0.1, 0.05], [0.2, -0.1]]], dtype=torch.float64)  # inside both polygons
+    p_pot = torch.tensor([[0.25, 0.4]], dtype=torch.float64)
+    with torch.no_grad():
+        pq, lam = gen(target, p_pot)
+    assert torch.equal(pq, target)
+    assert float(lam.max()) < 1e-6  # every row inactive: multipliers gated to ~0
