@@ -76,13 +76,14 @@ def bench_gym_anm(n_steps: int, seed: int = 0) -> dict:
     return {"impl": "gym-anm 2.0.1 (`ANM6Easy.step`)", "batch": 1, "warm": warm, "rate": n_steps / elapsed}
 
 
-def bench_env(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0) -> dict:
-    from anm_torchrl.envs import ANM6Env
-
+def time_env_steps(make: Callable[[], object], min_time: float, min_steps: int, seed: int = 0
+                   ) -> tuple[float, float]:
+    """Warm-up seconds (construction + reset + first step) and steady-state steps/s of the env ``make()`` builds,
+    stepped with random actions through ``step_and_maybe_reset`` (auto-resets included)."""
     box = {}
 
     def first():
-        env = ANM6Env(num_envs=batch, device=device, seed=seed)
+        env = make()
         torch.manual_seed(seed)
         td = env.reset()
         _, td = env.step_and_maybe_reset(env.rand_action(td))
@@ -93,8 +94,17 @@ def bench_env(batch: int, min_time: float, min_steps: int, device: str, seed: in
         _, box["td"] = env.step_and_maybe_reset(env.rand_action(box["td"]))
 
     warm, elapsed, n = _timed(first, step, min_time, min_steps)
+    return warm, n / elapsed
+
+
+def bench_env(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0) -> dict:
+    """``ANM6Env`` at batch ``batch``: warm-up and transitions/s."""
+    from anm_torchrl.envs import ANM6Env
+
+    warm, steps_per_s = time_env_steps(lambda: ANM6Env(num_envs=batch, device=device, seed=seed), min_time,
+                                       min_steps, seed)
     return {"impl": "`ANM6Env` (`rand_action` + `step_and_maybe_reset`)", "batch": batch, "warm": warm,
-            "rate": batch * n / elapsed}
+            "rate": batch * steps_per_s}
 
 
 def bench_grid(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0) -> dict:

@@ -22,7 +22,7 @@ import time
 
 import torch
 
-from anm_torchrl.benchmarks.env import _timed
+from anm_torchrl.benchmarks.env import time_env_steps
 
 KINDS = ("lr", "dt", "rf", "xgb", "dnn")
 DATASETS = ("generative", "agent")
@@ -39,21 +39,8 @@ def _make(kind: str | None, dataset: str | None, batch: int, device: str, seed: 
 def bench(kind: str | None, dataset: str | None, batch: int, min_time: float, min_steps: int, device: str,
           seed: int = 0) -> dict:
     """Warm-up seconds and steady-state transitions/s of one env (``kind=None``: ``ANM6Env``)."""
-    box = {}
-
-    def first():
-        env = _make(kind, dataset, batch, device, seed)
-        torch.manual_seed(seed)
-        td = env.reset()
-        _, td = env.step_and_maybe_reset(env.rand_action(td))
-        box["env"], box["td"] = env, td
-
-    def step():
-        env = box["env"]
-        _, box["td"] = env.step_and_maybe_reset(env.rand_action(box["td"]))
-
-    warm, elapsed, n = _timed(first, step, min_time, min_steps)
-    return {"warm": warm, "rate": batch * n / elapsed}
+    warm, steps_per_s = time_env_steps(lambda: _make(kind, dataset, batch, device, seed), min_time, min_steps, seed)
+    return {"warm": warm, "rate": batch * steps_per_s}
 
 
 def available(kinds, datasets) -> tuple[list[tuple[str, str]], list[str]]:

@@ -56,7 +56,7 @@ import anm_torchrl
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 from anm_torchrl.paths import surrogate_dir
 from anm_torchrl.surrogates.features import Featurizer, target_layout
-from anm_torchrl.surrogates.terminal import ModelFileError, TerminalClassifier, _read_json, check_layout
+from anm_torchrl.surrogates.terminal import ModelFileError, TerminalClassifier, check_layout, read_meta
 
 log = logging.getLogger(__name__)
 
@@ -397,13 +397,7 @@ class RegressorSurrogate(TensorDictModuleBase):
         from anm_torchrl.data.storage import simulator_fingerprint
 
         path = Path(path)
-        meta = _read_json(path / META_FILE, "data-driven surrogate")
-        if meta.get("format") != FORMAT:
-            raise ModelFileError(f"{path / META_FILE} is not a data-driven surrogate (format "
-                                 f"{meta.get('format')!r}, expected {FORMAT!r})")
-        if meta.get("format_version") != FORMAT_VERSION:
-            raise ModelFileError(f"{path / META_FILE} has format version {meta.get('format_version')}, this "
-                                 f"package reads {FORMAT_VERSION}; retrain it")
+        meta = read_meta(path / META_FILE, "data-driven surrogate", FORMAT, FORMAT_VERSION, "retrain it")
         stored = meta.get("kind")
         if stored not in KINDS:
             raise ModelFileError(f"{path / META_FILE} names an unknown surrogate kind {stored!r}")

@@ -189,13 +189,7 @@ class TerminalClassifier:
         import xgboost as xgb
 
         path = Path(path)
-        meta = _read_json(path / META_FILE, "terminal classifier")
-        if meta.get("format") != FORMAT:
-            raise ModelFileError(f"{path / META_FILE} is not a terminal classifier (format {meta.get('format')!r}, "
-                                 f"expected {FORMAT!r})")
-        if meta.get("format_version") != FORMAT_VERSION:
-            raise ModelFileError(f"{path / META_FILE} has format version {meta.get('format_version')}, this "
-                                 f"package reads {FORMAT_VERSION}; retrain the classifier")
+        meta = read_meta(path / META_FILE, "terminal classifier", FORMAT, FORMAT_VERSION, "retrain the classifier")
         clf = cls(sim=sim, foresight=meta["foresight"], params=meta["params"],
                   num_boost_round=meta["num_boost_round"], early_stopping_rounds=meta["early_stopping_rounds"],
                   threshold=meta["threshold_rule"], n_jobs=meta["n_jobs"] if n_jobs is None else n_jobs,
@@ -228,7 +222,13 @@ def check_layout(have: dict | None, want: dict, where) -> None:
         raise ModelFileError(f"{where} was made for another state layout ({detail}); retrain it")
 
 
-def _read_json(f: Path, what: str) -> dict:
+def read_meta(f: Path, what: str, fmt: str, version: int, retrain: str) -> dict:
+    """The JSON description ``f`` of a saved model, checked to be of format ``fmt`` and version ``version``.
+
+    Raises:
+        ModelFileError: missing or unreadable file, another kind of file, or another format version (the
+            message ends with ``retrain``, what to do about it).
+    """
     if not f.is_file():
         raise ModelFileError(f"no {what} at {f.parent}: {f.name} is missing")
     try:
@@ -237,6 +237,11 @@ def _read_json(f: Path, what: str) -> dict:
         raise ModelFileError(f"{f} is not a readable {what} description ({err})") from err
     if not isinstance(meta, dict):
         raise ModelFileError(f"{f} is not a {what} description")
+    if meta.get("format") != fmt:
+        raise ModelFileError(f"{f} is not a {what} (format {meta.get('format')!r}, expected {fmt!r})")
+    if meta.get("format_version") != version:
+        raise ModelFileError(f"{f} has format version {meta.get('format_version')}, this package reads "
+                             f"{version}; {retrain}")
     return meta
 
 
