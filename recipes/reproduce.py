@@ -47,7 +47,7 @@ def prepare_pinn(pcfg: dict, out_dir: Path) -> tuple[dict, list[Path]]:
     spec = {"name": "pinn", **({"path": pcfg["path"]} if pcfg.get("path") else {})}
     base = Path(pcfg["path"]).expanduser() if pcfg.get("path") else surrogate_dir("pinn")
     logs = [_abs(pcfg.get("log_dir")), out_dir / "artifacts" / "pinn_tb", base, base.parent]
-    env, why = make_env_or_reason(spec, 1)
+    env, why = make_env_or_reason({**spec, "train_if_missing": False}, 1)  # probe: never train the default here
     if env is not None or not pcfg.get("train_if_missing"):
         return spec, logs
     art = out_dir / "artifacts" / "pinn"
