@@ -62,6 +62,18 @@ def _fig(figs: dict, name: str, rel_to: Path) -> str:
 
 
 # ----------------------------------------------------------------------------------------------- claims
+# PPO-based verdicts need real training budgets: below this many frames per run (the tiny and quick presets)
+# a verdict is reported as indicative only — an untrained policy already beats do-nothing on ANM6-Easy.
+MIN_VERDICT_FRAMES = 200_000
+
+
+def _budget_note(rows: list[dict]) -> str | None:
+    frames = [r.get("frames") or 0 for r in rows]
+    if frames and max(frames) < MIN_VERDICT_FRAMES:
+        return f"indicative only: ≤ {max(frames):,.0f} frames per run (< {MIN_VERDICT_FRAMES:,}); run preset=full"
+    return None
+
+
 def claim_speed(res: dict) -> tuple[str, str]:
     rec = res.get("speed")
     if not rec or rec["status"] not in ("ok", "partial"):
@@ -104,7 +116,9 @@ def claim_training_time(res: dict) -> tuple[str, str]:
                   and p["last_mean_return"] >= r["last_mean_return"] - 0.1 * abs(r["last_mean_return"]))
     what = f"{'time to threshold' if key.startswith('threshold') else 'run wall time'}: PINN {p[key]:.0f} s vs " \
            f"{ref_name} {r[key]:.0f} s ({100 * saving:.0f} % less); {score}"
-    return what, "holds" if saving >= 0.4 and comparable else "does not hold"
+    verdict = "holds" if saving >= 0.4 and comparable else "does not hold"
+    note = _budget_note([p, r])
+    return what, f"{note} ({verdict})" if note else verdict
 
 
 def claim_only_pinn(res: dict) -> tuple[str, str]:
@@ -117,11 +131,14 @@ def claim_only_pinn(res: dict) -> tuple[str, str]:
     if "pinn" not in t or len(surrogate_labels) < 2 or thr is None:
         return (f"surrogates trained: {surrogate_labels or 'none'}; threshold {_fmt(thr)}",
                 "not measured (needs the PINN and at least one data-driven surrogate)")
-    usable = {k: t[k]["last_mean_return"] is not None and t[k]["last_mean_return"] >= thr for k in surrogate_labels}
-    what = f"usable = last eval return ≥ {thr:.3g} (do-nothing): " + ", ".join(
+    # usable = at least 2x better than do-nothing (half its loss) on the true simulator, the issues' bar
+    usable = {k: t[k]["last_mean_return"] is not None and t[k]["last_mean_return"] >= thr / 2 for k in surrogate_labels}
+    what = f"usable = last eval return ≥ {thr / 2:.3g} (half do-nothing's {thr:.3g}): " + ", ".join(
         f"{k} {'yes' if v else 'no'} ({_fmt(t[k]['last_mean_return'])})" for k, v in usable.items())
     holds = usable["pinn"] and not any(v for k, v in usable.items() if k != "pinn")
-    return what, "holds" if holds else "does not hold"
+    verdict = "holds" if holds else "does not hold"
+    note = _budget_note([t[k] for k in surrogate_labels])
+    return what, f"{note} ({verdict})" if note else verdict
 
 
 def claim_structure(res: dict) -> tuple[str, str]:
@@ -140,7 +157,8 @@ def claim_structure(res: dict) -> tuple[str, str]:
     verdict = "holds" if (b["n_envs"], b["buffer"]) == (100, 30) else "does not hold"
     if rec["data"]["surrogate"] != "pinn":
         verdict += " (on a fallback env, not the PINN)"
-    return what, verdict
+    note = _budget_note(grid)
+    return what, f"{note} ({verdict})" if note else verdict
 
 
 CLAIMS = [
