@@ -93,7 +93,9 @@ def claim_speed(res: dict) -> tuple[str, str]:
     parts.insert(0, f"PINN batch 1: {ratio:.1f}× faster than gym-anm ({pinn * 1e3:.2f} vs {gym * 1e3:.2f} ms)")
     if env1:
         parts.append(f"PINN vs ANM6Env at batch 1: {env1 / pinn:.2f}×")
-    return "; ".join(parts), "holds" if ratio >= 5 else "does not hold"
+    # "≈10×": within 20 % of the paper's ratio holds; a smaller but real speed-up is reported as such
+    verdict = "holds" if ratio >= 8 else (f"partly: {ratio:.1f}× rather than ≈10×" if ratio > 1 else "does not hold")
+    return "; ".join(parts), verdict
 
 
 def claim_training_time(res: dict) -> tuple[str, str]:
