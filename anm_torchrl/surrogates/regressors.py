@@ -56,7 +56,7 @@ import anm_torchrl
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 from anm_torchrl.paths import surrogate_dir
 from anm_torchrl.surrogates.features import Featurizer, target_layout
-from anm_torchrl.surrogates.terminal import ModelFileError, TerminalClassifier, check_layout, read_meta
+from anm_torchrl.surrogates.terminal import ModelFileError, TerminalClassifier, check_layout, load_booster, read_meta
 
 log = logging.getLogger(__name__)
 
@@ -218,15 +218,8 @@ class _XGBBackend(_Backend):
 
     @classmethod
     def load(cls, path: Path, n_features: int, n_targets: int, n_jobs: int) -> "_XGBBackend":
-        import xgboost as xgb
-
         f = path / MODEL_FILES["xgb"]
-        if not f.is_file():
-            raise ModelFileError(f"xgb model file {f} is missing")
-        try:
-            booster = xgb.Booster(model_file=str(f))
-        except xgb.core.XGBoostError as err:
-            raise ModelFileError(f"{f} is not an xgboost model ({str(err).splitlines()[0]})") from err
+        booster = load_booster(f, "xgb model file")
         booster.set_param({"nthread": int(n_jobs)})
         n_out = np.asarray(booster.inplace_predict(np.zeros((1, booster.num_features())))).reshape(1, -1).shape[1]
         if booster.num_features() != n_features or n_out != n_targets:

@@ -186,8 +186,6 @@ class TerminalClassifier:
         Raises:
             ModelFileError: missing files, another kind of file, or a model made for another state layout.
         """
-        import xgboost as xgb
-
         path = Path(path)
         meta = read_meta(path / META_FILE, "terminal classifier", FORMAT, FORMAT_VERSION, "retrain the classifier")
         clf = cls(sim=sim, foresight=meta["foresight"], params=meta["params"],
@@ -198,12 +196,7 @@ class TerminalClassifier:
         clf.threshold, clf.constant, clf.info = float(meta["threshold"]), meta["constant"], meta.get("info", {})
         if clf.constant is None:
             f = path / MODEL_FILE
-            if not f.is_file():
-                raise ModelFileError(f"terminal classifier model {f} is missing")
-            try:
-                booster = xgb.Booster(model_file=str(f))
-            except xgb.core.XGBoostError as err:
-                raise ModelFileError(f"{f} is not an xgboost model ({str(err).splitlines()[0]})") from err
+            booster = load_booster(f, "terminal classifier model")
             if booster.num_features() != clf.featurizer.n_features:
                 raise ModelFileError(f"{f} expects {booster.num_features()} inputs, the layout has "
                                      f"{clf.featurizer.n_features}; it was made for another state layout")
@@ -220,6 +213,18 @@ def check_layout(have: dict | None, want: dict, where) -> None:
     if diff:
         detail = "; ".join(f"{k}: file {have.get(k)!r} vs now {want[k]!r}" for k in diff)
         raise ModelFileError(f"{where} was made for another state layout ({detail}); retrain it")
+
+
+def load_booster(f: Path, what: str):
+    """An ``xgboost.Booster`` from ``f``; :class:`ModelFileError` if the file is missing or not an xgboost model."""
+    import xgboost as xgb
+
+    if not f.is_file():
+        raise ModelFileError(f"{what} {f} is missing")
+    try:
+        return xgb.Booster(model_file=str(f))
+    except xgb.core.XGBoostError as err:
+        raise ModelFileError(f"{f} is not an xgboost model ({str(err).splitlines()[0]})") from err
 
 
 def read_meta(f: Path, what: str, fmt: str, version: int, retrain: str) -> dict:

@@ -99,9 +99,25 @@ def _device_features(g: torch.Tensor, h0: torch.Tensor, scale: torch.Tensor) -> 
 class _ProjectionKKT(nn.Module):
     """Shared machinery of the generator and storage KKT-NNs (see the module docstring).
 
-    Subclasses set the buffers ``g`` (n, m, 2), ``h0`` (n, m), ``scale`` (n,), ``in_low``/``in_high`` (n, 3)
-    (boxes of a_P, a_Q, θ in p.u.) and ``cond`` (n, k), and implement :meth:`rhs`.
+    Subclasses call :meth:`_setup` (buffers ``g`` (n, m, 2), ``h0`` (n, m), ``scale`` (n,), ``in_low``/``in_high``
+    (n, 3): boxes of a_P, a_Q, θ in p.u., ``cond`` (n, k)) and :meth:`_build_net`, and implement :meth:`rhs`.
     """
+
+    def _setup(self, dev: torch.Tensor, g: torch.Tensor, h0: torch.Tensor, theta_low: torch.Tensor,
+               theta_high: torch.Tensor, safeguard: bool, hard_constraints: bool, gated: bool, dual_gate: float) -> None:
+        """Buffers of the devices ``dev`` (n, 15) p.u. with polygons ``g``/``h0`` and parameter box θ ∈ [low, high]."""
+        self.hard_constraints, self.gated, self.dual_gate = hard_constraints, gated, float(dual_gate)
+        self.safeguard = safeguard
+        scale = torch.stack([dev[:, dv.PMAX].abs(), dev[:, dv.PMIN].abs(), dev[:, dv.QMAX].abs(),
+                             dev[:, dv.QMIN].abs()], 1).amax(1)
+        self.register_buffer("g", g.clone(), persistent=False)
+        self.register_buffer("h0", h0.clone(), persistent=False)
+        self.register_buffer("scale", scale, persistent=False)
+        self.register_buffer("in_low", torch.stack([dev[:, dv.PMIN], dev[:, dv.QMIN], theta_low], 1),
+                             persistent=False)
+        self.register_buffer("in_high", torch.stack([dev[:, dv.PMAX], dev[:, dv.QMAX], theta_high], 1),
+                             persistent=False)
+        self.register_buffer("cond", _device_features(g, h0, scale), persistent=False)
 
     def _build_net(self, hidden: int, depth: int, activation: str, dual_activation: str,
                    separate_dual: bool = False) -> None:
@@ -199,20 +215,9 @@ class GeneratorKKT(_ProjectionKKT):
                  dual_activation: str = "softplus", safeguard: bool = True, hard_constraints: bool = False,
                  gated: bool = False, separate_dual: bool = False, dual_gate: float = 0.0):
         super().__init__()
-        self.hard_constraints, self.gated, self.dual_gate = hard_constraints, gated, float(dual_gate)
         dev = sim.net.dev[sim.gen_ids]
-        g, h0 = sim.gen_g, sim.gen_h0
-        scale = torch.stack([dev[:, dv.PMAX].abs(), dev[:, dv.PMIN].abs(), dev[:, dv.QMAX].abs(),
-                             dev[:, dv.QMIN].abs()], 1).amax(1)
-        self.register_buffer("g", g.clone(), persistent=False)
-        self.register_buffer("h0", h0.clone(), persistent=False)
-        self.register_buffer("scale", scale, persistent=False)
-        self.register_buffer("in_low", torch.stack([dev[:, dv.PMIN], dev[:, dv.QMIN], dev[:, dv.PMIN]], 1),
-                             persistent=False)
-        self.register_buffer("in_high", torch.stack([dev[:, dv.PMAX], dev[:, dv.QMAX], dev[:, dv.PMAX]], 1),
-                             persistent=False)
-        self.register_buffer("cond", _device_features(g, h0, scale), persistent=False)
-        self.safeguard = safeguard
+        self._setup(dev, sim.gen_g, sim.gen_h0, dev[:, dv.PMIN], dev[:, dv.PMAX], safeguard, hard_constraints, gated,
+                    dual_gate)
         self._build_net(hidden, depth, activation, dual_activation, separate_dual)
 
     def rhs(self, theta: torch.Tensor) -> torch.Tensor:
@@ -234,21 +239,10 @@ class StorageKKT(_ProjectionKKT):
                  dual_activation: str = "softplus", safeguard: bool = True, hard_constraints: bool = False,
                  gated: bool = False, separate_dual: bool = False, dual_gate: float = 0.0):
         super().__init__()
-        self.hard_constraints, self.gated, self.dual_gate = hard_constraints, gated, float(dual_gate)
         self.sim = sim
         dev = sim.net.dev[sim.des_ids]
-        g, h0 = sim.des_g, sim.des_h0
-        scale = torch.stack([dev[:, dv.PMAX].abs(), dev[:, dv.PMIN].abs(), dev[:, dv.QMAX].abs(),
-                             dev[:, dv.QMIN].abs()], 1).amax(1)
-        self.register_buffer("g", g.clone(), persistent=False)
-        self.register_buffer("h0", h0.clone(), persistent=False)
-        self.register_buffer("scale", scale, persistent=False)
-        self.register_buffer("in_low", torch.stack([dev[:, dv.PMIN], dev[:, dv.QMIN], dev[:, dv.SOC_MIN]], 1),
-                             persistent=False)
-        self.register_buffer("in_high", torch.stack([dev[:, dv.PMAX], dev[:, dv.QMAX], dev[:, dv.SOC_MAX]], 1),
-                             persistent=False)
-        self.register_buffer("cond", _device_features(g, h0, scale), persistent=False)
-        self.safeguard = safeguard
+        self._setup(dev, sim.des_g, sim.des_h0, dev[:, dv.SOC_MIN], dev[:, dv.SOC_MAX], safeguard, hard_constraints,
+                    gated, dual_gate)
         self._build_net(hidden, depth, activation, dual_activation, separate_dual)
 
     def rhs(self, theta: torch.Tensor) -> torch.Tensor:
