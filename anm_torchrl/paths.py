@@ -6,7 +6,9 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
+from typing import Any
 
 
 def artifact_home() -> Path:
@@ -22,3 +24,24 @@ def surrogate_dir(name: str, dataset: str | None = None) -> Path:
 def dataset_dir(kind: str, size: int, seed: int) -> Path:
     """Default folder of a dataset, e.g. ``<home>/datasets/generative_100000_s0``."""
     return artifact_home() / "datasets" / f"{kind}_{size}_s{seed}"
+
+
+def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
+    """``torch.save`` to ``path`` through a synced temporary file and ``os.replace``: an interrupted write leaves
+    the previous file intact and no temporary file behind. Creates the parent folder. Returns the path."""
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path

@@ -81,7 +81,6 @@ import copy
 import dataclasses
 import logging
 import math
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -91,6 +90,7 @@ from torch import nn
 
 from anm_torchrl.grid.powerflow import newton_raphson
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.paths import atomic_torch_save
 from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT, clamp_to_polygon
 from anm_torchrl.surrogates.pinn.losses import KKT_TERMS, PB_TERMS, kkt_losses, power_balance_losses
 from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
@@ -542,7 +542,6 @@ def save_pinn(path: str | Path, modules: dict[str, nn.Module], cfg: PINNTrainCon
     ``path`` is a file or a folder (then ``<folder>/pinn.pt``); written atomically. Returns the file path.
     """
     file = resolve_path(path)
-    file.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "kind": KIND,
         "format_version": FORMAT_VERSION,
@@ -551,10 +550,7 @@ def save_pinn(path: str | Path, modules: dict[str, nn.Module], cfg: PINNTrainCon
         "report": _plain(report or {}),
         "torch_version": str(torch.__version__),
     }
-    tmp = file.with_name(f".{file.name}.{os.getpid()}.tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, file)
-    return file
+    return atomic_torch_save(payload, file)
 
 
 def _plain(x: Any) -> Any:
