@@ -504,3 +504,34 @@ def test_do_nothing_daily_reward_profile():
     assert r.sum() == pytest.approx(-413.84, abs=6e-3)
     assert sum(p > 0 for p in pen) == 92
     assert 0.0002 <= min(e) and max(e) <= 0.0021  # spec: "0.0004-0.002"; measured min 2.8e-4
+
+
+def test_numba_backend_equals_torch_backend():
+    """The compiled loop and the batched torch ops give the same Transition, field by field, terminal rows and
+    SoC at both bounds included; the series are read at call time (experiments rescale them in place)."""
+    from anm_torchrl.grid.simulator import anm6_easy_simulator
+
+    pytest.importorskip("numba")
+    st, sn = anm6_easy_simulator(backend="torch"), anm6_easy_simulator(backend="numba")
+    gen = torch.Generator().manual_seed(3)
+    state, _ = st.random_state(3000, gen)
+    lo, hi = st.action_bounds()
+    action = lo + torch.rand(3000, 6, generator=gen, dtype=torch.float64) * (hi - lo)
+    action[:500] = torch.where(torch.rand(500, 6, generator=gen) < 0.5, lo, hi)  # box corners: many terminal
+    state[500:700, 14], action[500:700, 4] = 100.0, -50.0  # full, asked to charge
+    state[700:900, 14], action[700:900, 4] = 0.0, 50.0  # empty, asked to discharge
+    for scale in (1.0, 1.3):
+        st.load_series, sn.load_series = st.load_series * scale, sn.load_series * scale
+        n0, t0 = st.step(state, action)
+        n1, t1 = sn.step(state, action)
+        assert 20 < int((~t0.converged).sum()) < 3000 and torch.equal(t0.converged, t1.converged)
+        assert torch.equal(t0.n_iter, t1.n_iter)
+        torch.testing.assert_close(n1, n0, rtol=0, atol=1e-9)
+        ok = t0.converged
+        for f in ("p_dev", "q_dev", "soc", "p_pot", "v", "s_apparent_max", "e_loss", "penalty", "curtailment", "reward"):
+            a, b = getattr(t1, f), getattr(t0, f)
+            assert a.shape == b.shape and a.dtype == b.dtype, f
+            torch.testing.assert_close(a[ok], b[ok], rtol=1e-9, atol=1e-9, msg=f)
+        assert torch.equal(t1.reward[~ok], t0.reward[~ok])
+    with pytest.raises(ValueError, match="backend"):
+        anm6_easy_simulator(backend="cuda-magic")

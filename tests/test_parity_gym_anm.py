@@ -76,8 +76,14 @@ def initial_states(sim, draws) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 # ------------------------------------------------------------------------------------------ (a) golden values
-def test_golden_trajectory_grid():
-    sim = anm6_easy_simulator()
+# every parity test of the physics runs on both backends: batched torch ops and the compiled numba loop
+BACKENDS = pytest.mark.parametrize("backend", ["torch", "numba"])
+
+
+@BACKENDS
+def test_golden_trajectory_grid(backend):
+    sim = anm6_easy_simulator(backend=backend)
+    assert sim.backend == backend
     draws = replay_reset_draws(0)
     assert draws[0][0] == 81
     state, ok = initial_states(sim, draws)
@@ -106,14 +112,15 @@ def test_golden_trajectory_grid():
     assert torch.count_nonzero(nxt) == 0
 
 
-def test_golden_trajectory_env():
+@BACKENDS
+def test_golden_trajectory_env(backend):
     """The same golden steps through ``ANM6Env`` (float32 actions and rewards), from ``set_state``."""
     from tensordict import TensorDict
 
     anm6 = pytest.importorskip("anm_torchrl.envs.anm6")
     sim = anm6_easy_simulator()
     s0, _ = initial_states(sim, replay_reset_draws(0))
-    env = anm6.ANM6Env(num_envs=1, seed=0)
+    env = anm6.ANM6Env(num_envs=1, seed=0, backend=backend)
     td = env.reset(TensorDict({"state": s0}, [1]), set_state=True)
     np.testing.assert_allclose(td["observation"][0].numpy(), np.float32(GOLDEN_RESET_OBS), rtol=1e-6, atol=1e-6)
     for k, (action, r, e_loss, pen, entries) in enumerate(GOLDEN_STEPS, start=1):
@@ -171,20 +178,22 @@ def _compare(name, next_state, reward, terminated, d) -> dict:
     return stats
 
 
-def test_differential_grid(fixture_data):
+@BACKENDS
+def test_differential_grid(fixture_data, backend):
     d = fixture_data
-    sim = anm6_easy_simulator()
+    sim = anm6_easy_simulator(backend=backend)
     nxt, tr = sim.step(torch.as_tensor(d["state"]), torch.as_tensor(d["action"]))
-    _compare("GridSimulator.step", nxt.numpy(), tr.reward.numpy(), (~tr.converged).numpy(), d)
+    _compare(f"GridSimulator.step ({backend})", nxt.numpy(), tr.reward.numpy(), (~tr.converged).numpy(), d)
 
 
-def test_differential_env(fixture_data):
+@BACKENDS
+def test_differential_env(fixture_data, backend):
     from tensordict import TensorDict
 
     anm6 = pytest.importorskip("anm_torchrl.envs.anm6")
     d = fixture_data
     n = len(d["reward"])
-    env = anm6.ANM6Env(num_envs=n, device="cpu", seed=0)
+    env = anm6.ANM6Env(num_envs=n, device="cpu", seed=0, backend=backend)
     td = env.reset(TensorDict({"state": torch.as_tensor(d["state"])}, [n]), set_state=True)
     torch.testing.assert_close(td["state"], torch.as_tensor(d["state"]), rtol=0, atol=0)
     td["action"] = torch.as_tensor(d["action"], dtype=torch.float32)
@@ -192,7 +201,7 @@ def test_differential_env(fixture_data):
     assert out["state"].dtype == torch.float64 and out["observation"].dtype == torch.float32
     assert out["reward"].shape == (n, 1) and out["reward"].dtype == torch.float32
     assert out["terminated"].shape == (n, 1) and out["terminated"].dtype == torch.bool
-    stats = _compare("ANM6Env.step", out["state"].numpy(), out["reward"].squeeze(1).double().numpy(),
+    stats = _compare(f"ANM6Env.step ({backend})", out["state"].numpy(), out["reward"].squeeze(1).double().numpy(),
                      out["terminated"].squeeze(1).numpy(), d)
     assert torch.equal(out["done"], out["terminated"])
     # Observation = clip(state) to gym-anm's bounds, in float32.
@@ -251,10 +260,11 @@ def test_live_reset_replay():
     np.testing.assert_allclose(ref_obs[0], GOLDEN_RESET_OBS, rtol=0, atol=6e-9)
 
 
-def test_live_lockstep_200_steps():
+@BACKENDS
+def test_live_lockstep_200_steps(backend):
     """~200 steps of gym-anm with mixed actions; each transition is re-simulated from gym-anm's own state."""
     env = _gym_env()
-    sim = anm6_easy_simulator()
+    sim = anm6_easy_simulator(backend=backend)
     rng = np.random.default_rng(99)
     low = np.array([0, 0, -30, -50, -50, -50], dtype=np.float64)
     high = np.array([30, 50, 30, 50, 50, 50], dtype=np.float64)

@@ -36,6 +36,8 @@ class ANM6Env(EnvBase):
             ±30/±50 MVAr range; ``"uniform"`` spreads states over the whole reachable state space
             (:meth:`GridSimulator.random_state`; the surrogates' default, as in the paper).
         sim: a custom :class:`GridSimulator` (default: ANM6-Easy).
+        backend: physics backend of the default simulator: ``"auto"`` (the compiled numba loop on the CPU,
+            batched torch ops elsewhere), ``"numba"`` or ``"torch"``; same transitions to round-off.
 
     Reset: ``env.reset()`` samples; ``env.reset(TensorDict({"state": s}, [N]), set_state=True)`` puts each env
     in the exact state ``s``; partial resets follow ``"_reset"``.
@@ -45,7 +47,7 @@ class ANM6Env(EnvBase):
 
     def __init__(self, num_envs: int = 1, device: str | torch.device = "cpu", seed: int | None = None,
                  action_mode: Literal["raise", "clip"] = "raise", init: Literal["gym_anm", "intended", "uniform"] = "gym_anm",
-                 sim: GridSimulator | None = None):
+                 sim: GridSimulator | None = None, backend: str = "auto"):
         if action_mode not in ("raise", "clip"):
             raise ValueError(f"action_mode must be 'raise' or 'clip', got {action_mode!r}")
         if init not in INITS:
@@ -53,7 +55,7 @@ class ANM6Env(EnvBase):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         super().__init__(batch_size=torch.Size([int(num_envs)]), device=device)
-        self.sim = sim if sim is not None else anm6_easy_simulator(self.device)
+        self.sim = sim if sim is not None else anm6_easy_simulator(self.device, backend=backend)
         self.action_mode, self.init = action_mode, init
         for name, spec in make_specs(self.sim, self.batch_size, self.device).items():
             setattr(self, name, spec)

@@ -60,7 +60,8 @@ def _agg(xs: list[float | None]) -> dict[str, float | None]:
 def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seeds: list[int]) -> dict:
     """cfg keys: ``envs`` (extra env specs before the surrogates, default none + gym_anm), ``base`` (Hydra
     overrides for every run), ``per_env`` (label -> extra overrides, e.g. a smaller budget for gym_anm),
-    ``baselines``, ``baseline_budget_s``, ``threshold``, ``last_k``, ``timeout_s``, ``only`` (surrogate labels)."""
+    ``baselines``, ``baseline_budget_s``, ``threshold`` (null = ``threshold_scale`` × the do-nothing return; scale 0.1
+    = a tenth of do-nothing's loss), ``last_k``, ``timeout_s``, ``only`` (surrogate labels)."""
     reason = recipe_available()
     if reason:
         return result("ppo_curves", "not available", reason=reason, config=cfg)
@@ -71,7 +72,7 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seeds:
                                    max_steps, int(base.get("eval.seed", 0)), cfg.get("baseline_budget_s"))
     threshold = cfg.get("threshold")
     if threshold is None and baselines.get("do_nothing", {}).get("available"):
-        threshold = baselines["do_nothing"]["return"]
+        threshold = float(cfg.get("threshold_scale", 1.0)) * baselines["do_nothing"]["return"]
     specs = [{"name": n} if isinstance(n, str) else dict(n) for n in cfg.get("envs", ["none", "gym_anm"])]
     only = cfg.get("only")  # optional list of surrogate labels to train on (others are skipped, not "missing")
     specs += [s for s in surrogates if not only or label(s) in only]

@@ -39,7 +39,8 @@ def pearson(x: list[float], y: list[float]) -> float | None:
 
 def run(cfg: dict[str, Any], out_dir: str | Path, seed: int = 0) -> dict:
     """cfg keys: ``surrogate`` (spec), ``fallback`` (spec or null), ``n_envs`` (list), ``buffer`` (list),
-    ``base`` (overrides), ``last_k``, ``timeout_s``."""
+    ``base`` (overrides), ``last_k``, ``timeout_s``, ``eval_every_frames`` (optional: evaluate every this many
+    frames in every cell, so cells with small batches are not dominated by evaluation; default every update)."""
     reason = recipe_available()
     if reason:
         return result("sweep", "not available", reason=reason, config=cfg)
@@ -56,6 +57,8 @@ def run(cfg: dict[str, Any], out_dir: str | Path, seed: int = 0) -> dict:
     for n in cfg.get("n_envs", [10, 100]):
         for b in cfg.get("buffer", [30, 300]):
             over = {**cfg.get("base", {}), "env.num_envs": int(n), "collector.frames_per_batch": int(n) * int(b)}
+            if cfg.get("eval_every_frames"):
+                over["eval.interval"] = max(1, round(int(cfg["eval_every_frames"]) / (int(n) * int(b))))
             rec = run_ppo(ppo_overrides(spec, seed, over), Path(out_dir) / "runs" / "sweep" / f"n{n}_b{b}",
                           timeout_s=cfg.get("timeout_s"))
             rows.append({"n_envs": int(n), "buffer": int(b), "frames_per_batch": int(n) * int(b),

@@ -20,6 +20,8 @@ PMAX, PMIN, QMAX, QMIN, P_PLUS, P_MINUS, Q_PLUS, Q_MINUS, SOC_MAX, SOC_MIN, EFF 
 
 GEN_ROWS = 7
 DES_ROWS = 10
+GEN_PPOT_ROW = 2  # the row P <= P_pot of the generator set
+DES_SOC_ROWS = (8, 9)  # the SoC rows of the storage set (charge, discharge)
 _FEAS_TOL = 1e-10  # p.u. (|h| ≲ 500); candidates on a line carry ~1e-16 round-off
 
 
@@ -68,7 +70,7 @@ def generator_polygon(net: Network, dev_ids: list[int]) -> tuple[torch.Tensor, t
 def generator_h(h0: torch.Tensor, p_pot: torch.Tensor) -> torch.Tensor:
     """Right-hand side (N, n_gen, 7) for potentials ``p_pot`` (N, n_gen) p.u. (already clipped)."""
     h = h0.expand(*p_pot.shape, GEN_ROWS).clone()
-    h[..., 2] = p_pot
+    h[..., GEN_PPOT_ROW] = p_pot
     return h
 
 
@@ -92,8 +94,8 @@ def storage_h(net: Network, dev_id: int, h0: torch.Tensor, soc: torch.Tensor) ->
     row = net.dev[dev_id]
     dt, eff = net.delta_t, row[EFF]
     h = h0.expand(*soc.shape, DES_ROWS).clone()
-    h[..., 8] = -(soc - row[SOC_MAX]) / (dt * eff)
-    h[..., 9] = eff * (soc - row[SOC_MIN]) / dt
+    h[..., DES_SOC_ROWS[0]] = -(soc - row[SOC_MAX]) / (dt * eff)
+    h[..., DES_SOC_ROWS[1]] = eff * (soc - row[SOC_MIN]) / dt
     return h
 
 

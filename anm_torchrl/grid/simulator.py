@@ -13,7 +13,7 @@ import torch
 from anm_torchrl.grid import anm6_easy as data
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.network import LOAD, RENEWABLE, SLACK, STORAGE, Network, anm6_easy_network, branch_flows
-from anm_torchrl.grid.powerflow import newton_raphson
+from anm_torchrl.grid.powerflow import MAX_ITER, TOL, newton_raphson
 from anm_torchrl.grid.residuals import power_injection
 from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, penalty, terminal_reward
 
@@ -52,11 +52,13 @@ class GridSimulator:
         load_series: (n_load, T) load P (MW) per time index, loads in ascending device id.
         p_max_series: (n_gen, T) raw renewable potentials (MW); clipped to [PMIN, PMAX] when used.
         gamma, lamb, costs_clipping: reward constants.
-        aux_bound: largest time index (T - 1).
+        backend: ``"torch"`` (batched tensor ops, any device), ``"numba"`` (one compiled loop over the batch,
+            float64 CPU only, several times faster; :mod:`anm_torchrl.grid.kernel`) or ``"auto"`` (numba when
+            it is installed and the network is on the CPU). Both give the same transitions to round-off.
     """
 
     def __init__(self, net: Network, load_series: torch.Tensor, p_max_series: torch.Tensor, gamma: float,
-                 lamb: float, costs_clipping: tuple[float, float]):
+                 lamb: float, costs_clipping: tuple[float, float], backend: str = "auto"):
         self.net = net
         kind = net.dev_type.tolist()
         self.slack_ids = [i for i, k in enumerate(kind) if k == SLACK]
@@ -80,6 +82,21 @@ class GridSimulator:
         self._gid, self._did, self._lid = gid, did, lid
         self.counted = (net.dev_type != STORAGE).to(net.dev.dtype)  # ΔE counts gens, slack and loads
         self.terminal_reward = terminal_reward(gamma, costs_clipping)
+        self.backend = self._pick_backend(backend)
+        self._kernel = None
+
+    def _pick_backend(self, backend: str) -> str:
+        from anm_torchrl.grid import kernel
+
+        if backend not in ("auto", "torch", "numba"):
+            raise ValueError(f"backend must be 'auto', 'torch' or 'numba', got {backend!r}")
+        cpu64 = self.net.dev.device.type == "cpu" and self.net.dev.dtype == torch.float64
+        if backend == "numba" and not (kernel.available() and cpu64):
+            raise ValueError("backend='numba' needs numba installed and a float64 network on the CPU "
+                             f"(numba {'found' if kernel.available() else 'missing'}, network on {self.net.dev.device})")
+        if backend == "auto":
+            return "numba" if kernel.available() and cpu64 else "torch"
+        return backend
 
     # ----------------------------------------------------------------------------------------------- layout
     @property
@@ -173,6 +190,12 @@ class GridSimulator:
             t_index: (N,) long, time index whose loads and potentials apply.
             setpoints: (N, action_dim) p.u., action order (P gen, Q gen, P DES, Q DES).
         """
+        if self.backend == "numba" and setpoints.device.type == "cpu":
+            if self._kernel is None:
+                from anm_torchrl.grid.kernel import CompiledTransition
+
+                self._kernel = CompiledTransition(self, dv.GEN_PPOT_ROW, dv.DES_SOC_ROWS)
+            return Transition(**self._kernel(soc, t_index, setpoints, TOL, MAX_ITER))
         net, ng, nd = self.net, self.n_gen, self.n_des
         n_env = setpoints.shape[0]
         p_dev = setpoints.new_zeros(n_env, net.n_dev)
@@ -336,8 +359,8 @@ class GridSimulator:
         return state, tr
 
 
-def anm6_easy_simulator(device=None) -> GridSimulator:
-    """The ANM6-Easy simulator of gym-anm 2.0.1 on ``device``."""
+def anm6_easy_simulator(device=None, backend: str = "auto") -> GridSimulator:
+    """The ANM6-Easy simulator of gym-anm 2.0.1 on ``device`` (``backend``: see :class:`GridSimulator`)."""
     series = torch.as_tensor(data.TIME_SERIES_MW, device=device)
     return GridSimulator(anm6_easy_network(device), load_series=series[:3], p_max_series=series[3:],
-                         gamma=data.GAMMA, lamb=data.LAMB, costs_clipping=data.COSTS_CLIPPING)
+                         gamma=data.GAMMA, lamb=data.LAMB, costs_clipping=data.COSTS_CLIPPING, backend=backend)
