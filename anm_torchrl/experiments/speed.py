@@ -3,6 +3,9 @@
 For every implementation — gym-anm 2.0.1 itself, the batched true simulator ``ANM6Env``, the raw
 ``GridSimulator.step`` and every available surrogate env — on the same machine, in the same run:
 
+``anm6env`` runs on the simulator's default backend (the compiled numba loop on the CPU), ``anm6env_torch`` on
+its batched-torch backend.
+
 * ``batch 1``: ``n_transitions`` single-env steps, each timed; the median (and quartiles) per transition;
 * ``batched``: ``n_transitions`` grids stepped in one call, ``repeats`` times; median time / batch size;
 * ``scaling``: per-transition time against the batch size (``batch_sizes``).
@@ -114,9 +117,13 @@ def run(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0) -> dict:
     if 1 in batch_sizes:
         scaling.append({"impl": "grid_sim", "batch": 1, "s_per_transition": next(r["median"] for r in rows if r["impl"] == "grid_sim" and r["batch"] == 1)})
 
-    for spec in [{"name": "none"}] + list(surrogates):
-        name = "anm6env" if spec["name"] == "none" else label(spec)
-        env, reason = make_env_or_reason(spec, 1, seed)
+    from anm_torchrl.grid.simulator import anm6_easy_simulator
+
+    # ANM6Env on its default backend (numba on the CPU) and on the batched-torch backend, then every surrogate
+    envs = [("anm6env", {"name": "none"}, None), ("anm6env_torch", {"name": "none"}, "torch")]
+    for name, spec, backend in envs + [(label(s), s, None) for s in surrogates]:
+        sim = anm6_easy_simulator(backend=backend) if backend else None
+        env, reason = make_env_or_reason(spec, 1, seed, sim=sim)
         if env is None:
             missing[name] = reason
             continue
@@ -124,7 +131,7 @@ def run(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0) -> dict:
         rows.append({"impl": name, "mode": "batch 1", "batch": 1, **q, "s_per_transition": q["median"]})
         scaling.append({"impl": name, "batch": 1, "s_per_transition": q["median"]})
         for b in sorted(set(b for b in batch_sizes if b > 1) | {n}):
-            env, reason = make_env_or_reason(spec, b, seed)
+            env, reason = make_env_or_reason(spec, b, seed, sim=sim)
             q = _quantiles([t / b for t in time_env(env, repeats, seed)])
             if b == n:
                 rows.append({"impl": name, "mode": "batched", "batch": b, **q, "s_per_transition": q["median"]})
