@@ -3,7 +3,8 @@
 The torch implementation spends its time in dispatch and in memory traffic: at batch 16,384 every one of
 its ~400 small ops streams (N, 10, 10) tensors through memory. Here each env runs the same maths start to end
 in registers and L1 — edge-clamp projections, SoC update, Newton–Raphson with a 10×10 LU, slack, branch flows,
-reward — and ``prange`` spreads envs over ``torch.get_num_threads()`` threads. Same algorithms, same stopping
+reward — and, with ``torch.get_num_threads() > 1`` and a large batch, ``prange`` spreads envs over that many
+threads (numba's own ``workqueue`` pool, so torch's OpenMP settings are left alone). Same algorithms, same stopping
 rule and order of operations as the torch code, so results agree to float64 round-off (tested against both
 the torch backend and gym-anm).
 
@@ -13,14 +14,22 @@ Compiled on first use (cached on disk by numba); ``available()`` says whether nu
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import torch
 
 try:
     import numba
+
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        # numba's own thread pool: the OpenMP layer would share (and reset) torch's OpenMP thread count
+        numba.config.THREADING_LAYER = "workqueue"
 except ImportError:  # pragma: no cover - numba is a dependency; the torch backend is the fallback
     numba = None
+
+PARALLEL_MIN_BATCH = 1024  # below this, spreading envs over threads costs more than it saves
+CHUNK = 256  # envs per parallel work item
 
 from anm_torchrl.grid.devices import _FEAS_TOL, EFF, PMAX, PMIN, SOC_MAX, SOC_MIN
 
@@ -46,57 +55,59 @@ def _clamp(x, lo, hi):
 
 
 # ------------------------------------------------------------------------------------------ projection
-@_njit()
-def _project(tx, ty, h_raw, m, group, g, gn2, d, coup, kind, inv_a, out):
-    """Edge-clamp projection of (tx, ty) onto {x : g x <= h}; ``kind`` 1 upper, -1 lower, 0 parallel.
+@_njit(inline="always")
+def _project(tx, ty, h_raw, c, poly, h):
+    """Edge-clamp projection of (tx, ty) onto polygon ``c`` of ``poly`` = (m, group, g, gn2, d, coup, kind,
+    inv_a) (see :func:`_polygon_arrays`; ``kind`` 1 upper, -1 lower, 0 parallel) with right-hand sides
+    ``h_raw``. Mirrors :meth:`anm_torchrl.grid.devices.Polygon.project` for one point; ``h`` is scratch.
 
-    Mirrors :meth:`anm_torchrl.grid.devices.Polygon.project` for one point (writes ``out[0:2]``).
+    Returns (x, y). Arrays are indexed in place, never sliced: views cost reference counting per call.
     """
-    h = np.empty(m)
+    n_lines, group, g, gn2, d, coup, kind, inv_a = poly
+    m = n_lines[c]
     inside = True
     for j in range(m):
         hj = np.inf
-        for r in group[j]:
+        for w in range(group.shape[2]):
+            r = group[c, j, w]
             if r >= 0 and h_raw[r] < hj:
                 hj = h_raw[r]
         h[j] = hj
-        if not (tx * g[j, 0] + ty * g[j, 1] <= hj + _FEAS_TOL):
+        if not (tx * g[c, j, 0] + ty * g[c, j, 1] <= hj + _FEAS_TOL):
             inside = False
     if inside:
-        out[0], out[1] = tx, ty
-        return
+        return tx, ty
     best, bx, by = np.inf, 0.0, 0.0
     for j in range(m):
         t_hi, t_lo, ok = np.inf, -np.inf, True
         for i in range(m):
-            b = h[i] - coup[i, j] * h[j]
-            k = kind[i, j]
+            b = h[i] - coup[c, i, j] * h[j]
+            k = kind[c, i, j]
             if k == 0:
                 if not (b >= -_FEAS_TOL):
                     ok = False
             else:
-                ratio = b * inv_a[i, j]
+                ratio = b * inv_a[c, i, j]
                 if k > 0:
                     t_hi = min(t_hi, ratio)
                 else:
                     t_lo = max(t_lo, ratio)
         if not ok or not (t_lo <= t_hi + _FEAS_TOL):
             continue
-        t = min(max((tx * d[j, 0] + ty * d[j, 1]) / gn2[j], t_lo), t_hi)
-        cx = h[j] / gn2[j] * g[j, 0] + t * d[j, 0]
-        cy = h[j] / gn2[j] * g[j, 1] + t * d[j, 1]
+        t = min(max((tx * d[c, j, 0] + ty * d[c, j, 1]) / gn2[c, j], t_lo), t_hi)
+        cx = h[j] / gn2[c, j] * g[c, j, 0] + t * d[c, j, 0]
+        cy = h[j] / gn2[c, j] * g[c, j, 1] + t * d[c, j, 1]
         dist = (cx - tx) * (cx - tx) + (cy - ty) * (cy - ty)
         if dist < best:
             best, bx, by = dist, cx, cy
-    out[0], out[1] = bx, by
+    return bx, by
 
 
 # ---------------------------------------------------------------------------------------- power flow
-@_njit()
-def _injection(vm, va, y, s):
-    """S = V ⊙ conj(Y V) into ``s`` (n,) for magnitudes/angles (n,)."""
+@_njit(inline="always")
+def _injection(vm, va, y, s, v):
+    """V (into ``v``) and S = V ⊙ conj(Y V) (into ``s``), both (n,), for magnitudes/angles (n,)."""
     n = vm.shape[0]
-    v = np.empty(n, dtype=np.complex128)
     for i in range(n):
         v[i] = complex(vm[i] * math.cos(va[i]), vm[i] * math.sin(va[i]))
     for i in range(n):
@@ -104,10 +115,9 @@ def _injection(vm, va, y, s):
         for k in range(n):
             acc += y[i, k] * v[k]
         s[i] = v[i] * acc.conjugate()
-    return v
 
 
-@_njit()
+@_njit(inline="always")
 def _mismatch_inf(s, s_bus, f):
     n = s.shape[0]
     k = n - 1
@@ -124,29 +134,42 @@ def _mismatch_inf(s, s_bus, f):
     return worst
 
 
-@_njit()
-def _solve_in_place(a, b):
-    """Gaussian elimination with partial pivoting: b <- a⁻¹ b; NaN when a pivot is exactly 0 (singular)."""
-    n = b.shape[0]
+@_njit(inline="always")
+def _lu_factor(a, piv):
+    """In-place LU with partial pivoting, LAPACK ``getrf`` layout (row swaps in ``piv``); False when a pivot
+    is exactly 0 (singular)."""
+    n = a.shape[0]
     for c in range(n):
         p, pv = c, abs(a[c, c])
         for r in range(c + 1, n):
             if abs(a[r, c]) > pv:
                 p, pv = r, abs(a[r, c])
+        piv[c] = p
         if pv == 0.0:
-            for r in range(n):
-                b[r] = np.nan
-            return
+            return False
         if p != c:
             for q in range(n):
                 a[c, q], a[p, q] = a[p, q], a[c, q]
-            b[c], b[p] = b[p], b[c]
         for r in range(c + 1, n):
             f = a[r, c] / a[c, c]
+            a[r, c] = f
             if f != 0.0:
                 for q in range(c + 1, n):
                     a[r, q] -= f * a[c, q]
-                b[r] -= f * b[c]
+    return True
+
+
+@_njit(inline="always")
+def _lu_solve(a, piv, b):
+    """b <- A⁻¹ b from :func:`_lu_factor`'s ``a``, ``piv``."""
+    n = b.shape[0]
+    for c in range(n):
+        p = piv[c]
+        if p != c:
+            b[c], b[p] = b[p], b[c]
+    for c in range(n):
+        for r in range(c + 1, n):
+            b[r] -= a[r, c] * b[c]
     for c in range(n - 1, -1, -1):
         acc = b[c]
         for q in range(c + 1, n):
@@ -154,113 +177,135 @@ def _solve_in_place(a, b):
         b[c] = acc / a[c, c]
 
 
+@_njit(inline="always")
+def _jacobian(y, v, vm, s, jac):
+    """Polar Jacobian (2n-2, 2n-2) into ``jac``, as :func:`anm_torchrl.grid.powerflow._jacobian`."""
+    k = v.shape[0] - 1
+    for i in range(k):
+        vi = v[i + 1]
+        for q in range(k):
+            a = vi * (y[i + 1, q + 1] * v[q + 1]).conjugate()  # A_iq = V_i conj(Y_iq V_q)
+            b = a / vm[q + 1]
+            jac[i, q], jac[k + i, q] = a.imag, -a.real
+            jac[i, k + q], jac[k + i, k + q] = b.real, b.imag
+        sr, si = s[i + 1].real, s[i + 1].imag
+        jac[i, i] -= si
+        jac[k + i, k + i] += si / vm[i + 1]
+        jac[i, k + i] += sr / vm[i + 1]
+        jac[k + i, i] += sr
+
+
 @_njit()
-def _newton_raphson(y, s_bus, tol, max_iter, vm, va, s):
-    """Flat-start NR (spec §4.1) for one env; fills vm, va, s (n,). Returns (n_iter, ||F||_inf)."""
+def _flat_start_lu(y):
+    """LU factors of the Jacobian at the flat start (the same for every env): (lu, piv, non-singular)."""
+    n = y.shape[0]
+    vm, va = np.ones(n), np.zeros(n)
+    s, v = np.empty(n, dtype=np.complex128), np.empty(n, dtype=np.complex128)
+    _injection(vm, va, y, s, v)
+    lu, piv = np.empty((2 * n - 2, 2 * n - 2)), np.empty(2 * n - 2, dtype=np.int64)
+    _jacobian(y, v, vm, s, lu)
+    ok = _lu_factor(lu, piv)
+    return lu, piv, ok
+
+
+@_njit(inline="always")
+def _newton_raphson(y, lu0, piv0, ok0, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv):
+    """Flat-start NR (spec §4.1) for one env; fills vm, va, s, v (n,) (``f``, ``jac``, ``piv``: scratch).
+
+    The first iteration reuses the flat-start factors ``lu0``, ``piv0`` (``ok0`` False: singular). A singular
+    Jacobian gives a NaN step, as gym-anm's ``spsolve``. Returns (n_iter, ||F||_inf).
+    """
     n = s_bus.shape[0]
     k = n - 1
     for i in range(n):
         vm[i], va[i] = 1.0, 0.0
-    f = np.empty(2 * k)
-    jac = np.empty((2 * k, 2 * k))
-    v = _injection(vm, va, y, s)
+    _injection(vm, va, y, s, v)
     diff = _mismatch_inf(s, s_bus, f)
     it = 0
     while diff > tol and it < max_iter:
         it += 1
-        # polar Jacobian, as powerflow._jacobian: A_ik = V_i conj(Y_ik V_k)
-        for i in range(k):
-            vi = v[i + 1]
-            for q in range(k):
-                a = vi * (y[i + 1, q + 1] * v[q + 1]).conjugate()
-                b = a / vm[q + 1]
-                jac[i, q], jac[k + i, q] = a.imag, -a.real
-                jac[i, k + q], jac[k + i, k + q] = b.real, b.imag
-            sr, si = s[i + 1].real, s[i + 1].imag
-            jac[i, i] -= si
-            jac[k + i, k + i] += si / vm[i + 1]
-            jac[i, k + i] += sr / vm[i + 1]
-            jac[k + i, i] += sr
-        _solve_in_place(jac, f)
+        if it == 1:
+            lu, pv, ok = lu0, piv0, ok0
+        else:
+            _jacobian(y, v, vm, s, jac)
+            lu, pv, ok = jac, piv, _lu_factor(jac, piv)
+        if ok:
+            _lu_solve(lu, pv, f)
+        else:
+            f[:] = np.nan
         for i in range(k):
             va[i + 1] -= f[i]
             vm[i + 1] -= f[k + i]
-        v = _injection(vm, va, y, s)
+        _injection(vm, va, y, s, v)
         diff = _mismatch_inf(s, s_bus, f)
     return it, diff
 
 
 # ---------------------------------------------------------------------------------------- transition
-@_njit(parallel=True)
-def _transition(soc, t_index, setpoints,  # inputs (N, n_des), (N,), (N, action_dim)
-                load_series, p_max_series, dev, lid, gid, did, slack, dev_bus, counted,
-                gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows,
-                y, f_bus, t_bus, y_series, y_shunt, tap, rate, v_min, v_max,
-                delta_t, lamb, c0, c1, term_reward, tol, max_iter,
-                p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward):
-    n_env = setpoints.shape[0]
-    n_gen, n_des, n_load = gid.shape[0], did.shape[0], lid.shape[0]
-    n_bus, n_br = y.shape[0], f_bus.shape[0]
-    g_m, g_grp, g_g, g_gn2, g_d, g_coup, g_kind, g_inv = gen_poly
-    d_m, d_grp, d_g, d_gn2, d_d, d_coup, d_kind, d_inv = des_poly
-    for e in numba.prange(n_env):
+@_njit()
+def _env_steps(lo, hi, soc, t_index, setpoints, load_series, p_max_series, dev, lid, gid, did, slack, dev_bus,
+               counted, gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows, y, lu0, piv0, ok0, f_bus,
+               t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max, delta_t, lamb, c0, c1, term_reward, tol, max_iter,
+               p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward, scratch):
+    """The whole transition of envs ``lo..hi-1`` (spec §3.5 steps 4–7), written into their output rows.
+
+    One call per chunk of envs: a call passes ~50 arrays, each reference-counted, so it is not made per env.
+    """
+    hp, h_gen, h_des, s_bus, s, vm, va, f, jac, piv = scratch
+    n_gen, n_des = gid.shape[0], did.shape[0]
+    for e in range(lo, hi):
         t = t_index[e]
-        pd, qd = p_dev[e], q_dev[e]
+        pd, qd, v = p_dev[e], q_dev[e], v_out[e]
         pd[:] = 0.0
         qd[:] = 0.0
-        for c in range(n_load):  # 1. loads
+        for c in range(lid.shape[0]):  # 1. loads follow the series
             r = lid[c]
             p = _clamp(load_series[c, t], dev[r, PMIN], dev[r, PMAX])
             pd[r], qd[r] = p, p * dev[r, 3]
-        xy = np.empty(2)
-        for c in range(n_gen):  # 2. renewables: potential, projection
+        for c in range(n_gen):  # 2. renewables: potential, then projection
             r = gid[c]
             pp = _clamp(p_max_series[c, t], dev[r, PMIN], dev[r, PMAX])
             p_pot[e, c] = pp
-            h = gen_h0[c].copy()
-            h[gen_ppot_row] = pp
-            _project(setpoints[e, c], setpoints[e, n_gen + c], h, g_m[c], g_grp[c], g_g[c], g_gn2[c], g_d[c],
-                     g_coup[c], g_kind[c], g_inv[c], xy)
-            pd[r], qd[r] = xy[0], xy[1]
+            for w in range(h_gen.shape[0]):
+                h_gen[w] = gen_h0[c, w]
+            h_gen[gen_ppot_row] = pp
+            pd[r], qd[r] = _project(setpoints[e, c], setpoints[e, n_gen + c], h_gen, c, gen_poly, hp)
         for c in range(n_des):  # 3. storage: SoC-dependent projection, SoC update
             r = did[c]
             eff = dev[r, EFF]
-            h = des_h0[c].copy()
-            h[des_soc_rows[0]] = -(soc[e, c] - dev[r, SOC_MAX]) / (delta_t * eff)
-            h[des_soc_rows[1]] = eff * (soc[e, c] - dev[r, SOC_MIN]) / delta_t
-            _project(setpoints[e, 2 * n_gen + c], setpoints[e, 2 * n_gen + n_des + c], h, d_m[c], d_grp[c],
-                     d_g[c], d_gn2[c], d_d[c], d_coup[c], d_kind[c], d_inv[c], xy)
-            pd[r], qd[r] = xy[0], xy[1]
-            nxt = soc[e, c] - delta_t * eff * xy[0] if xy[0] <= 0 else soc[e, c] - delta_t * xy[0] / eff
+            for w in range(h_des.shape[0]):
+                h_des[w] = des_h0[c, w]
+            h_des[des_soc_rows[0]] = -(soc[e, c] - dev[r, SOC_MAX]) / (delta_t * eff)
+            h_des[des_soc_rows[1]] = eff * (soc[e, c] - dev[r, SOC_MIN]) / delta_t
+            px, qx = _project(setpoints[e, 2 * n_gen + c], setpoints[e, 2 * n_gen + n_des + c], h_des, c, des_poly, hp)
+            pd[r], qd[r] = px, qx
+            nxt = soc[e, c] - delta_t * eff * px if px <= 0 else soc[e, c] - delta_t * px / eff
             soc_next[e, c] = _clamp(nxt, dev[r, SOC_MIN], dev[r, SOC_MAX])
         # 4. bus injections and the AC power flow
-        s_bus = np.zeros(n_bus, dtype=np.complex128)
+        s_bus[:] = 0.0
         for r in range(pd.shape[0]):
             s_bus[dev_bus[r]] += complex(pd[r], qd[r])
-        vm, va, s = np.empty(n_bus), np.empty(n_bus), np.empty(n_bus, dtype=np.complex128)
-        it, diff = _newton_raphson(y, s_bus, tol, max_iter, vm, va, s)
+        it, diff = _newton_raphson(y, lu0, piv0, ok0, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv)
         ok = diff == diff and diff <= tol
         converged[e], n_iter[e] = ok, it
-        for i in range(n_bus):
-            v_out[e, i] = complex(vm[i] * math.cos(va[i]), vm[i] * math.sin(va[i]))
         # 5. slack injection (+inf when NaN) and branch flows
         pd[slack] = np.inf if s[0].real != s[0].real else s[0].real
         qd[slack] = np.inf if s[0].imag != s[0].imag else s[0].imag
         viol = 0.0
-        for i in range(n_bus):
-            a = abs(v_out[e, i])
+        for i in range(v.shape[0]):
+            a = abs(v[i])
             viol += _relu(a - v_max[i]) + _relu(v_min[i] - a)
-        for b in range(n_br):
-            vf, vt, ys, ysh, tp = v_out[e, f_bus[b]], v_out[e, t_bus[b]], y_series[b], y_shunt[b], tap[b]
-            i_f = (ys + ysh) * vf / (abs(tp) ** 2) - ys * vt / tp.conjugate()
-            i_t = (ys + ysh) * vt - ys * vf / tp
+        for b in range(f_bus.shape[0]):
+            vf, vt = v[f_bus[b]], v[t_bus[b]]
+            i_f = y_ff[b] * vf - y_ft[b] * vt  # π-model, as network.branch_flows
+            i_t = y_tt[b] * vt - y_tf[b] * vf
             sf, st = vf * i_f.conjugate(), vt * i_t.conjugate()
             af, at = abs(sf), abs(st)
-            big = af if (af > at or af != af) else at
+            big = af if (af > at or af != af) else at  # NaN-propagating max, as torch.maximum
             sgn = 1.0 if sf.real > 0 else (-1.0 if sf.real < 0 else (0.0 if sf.real == 0 else np.nan))
             s_max[e, b] = sgn * big
             viol += _relu(abs(s_max[e, b]) - rate[b])
-        # 6. reward terms
+        # 6. reward terms; a non-converged power flow is terminal
         cu = 0.0
         for c in range(n_gen):
             cu += _relu(p_pot[e, c] - pd[gid[c]])
@@ -275,6 +320,31 @@ def _transition(soc, t_index, setpoints,  # inputs (N, n_des), (N,), (N, action_
             reward[e] = -(sg * min(abs(el), c0) + min(max(pe, 0.0), c1))
         else:
             reward[e] = term_reward
+
+
+def _transition_py(soc, t_index, setpoints, load_series, p_max_series, dev, lid, gid, did, slack, dev_bus, counted,
+                   gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows, y, lu0, piv0, ok0, f_bus, t_bus,
+                   y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max, delta_t, lamb, c0, c1, term_reward, tol, max_iter,
+                   p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward):
+    """All envs; inputs soc (N, n_des), t_index (N,), setpoints (N, action_dim) p.u.; outputs preallocated."""
+    n_env, n_bus = setpoints.shape[0], y.shape[0]
+    n_chunk = (n_env + CHUNK - 1) // CHUNK
+    for ch in numba.prange(n_chunk):  # scratch is allocated once per chunk of envs, not per env
+        scratch = (np.empty(max(gen_poly[1].shape[1], des_poly[1].shape[1])),
+                   np.empty(gen_h0.shape[1]), np.empty(des_h0.shape[1]), np.empty(n_bus, dtype=np.complex128),
+                   np.empty(n_bus, dtype=np.complex128), np.empty(n_bus), np.empty(n_bus),
+                   np.empty(2 * n_bus - 2), np.empty((2 * n_bus - 2, 2 * n_bus - 2)),
+                   np.empty(2 * n_bus - 2, dtype=np.int64))
+        _env_steps(ch * CHUNK, min(n_env, (ch + 1) * CHUNK), soc, t_index, setpoints, load_series, p_max_series,
+                   dev, lid, gid, did, slack, dev_bus, counted, gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row,
+                   des_soc_rows, y, lu0, piv0, ok0, f_bus, t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max,
+                   delta_t, lamb, c0, c1, term_reward, tol, max_iter, p_dev, q_dev, soc_next, p_pot, v_out, s_max,
+                   converged, n_iter, e_loss, pen, curt, reward, scratch)
+
+
+# one serial loop (1 thread, small batches: no thread pool at all) and one prange loop over the envs
+_transition_serial = _njit()(_transition_py)
+_transition_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_transition_py) if numba else _transition_py
 
 
 def _polygon_arrays(polys, h0: torch.Tensor) -> tuple:
@@ -317,11 +387,18 @@ class CompiledTransition:
         self.consts = (
             npy(net.dev), npy(sim._lid), npy(sim._gid), npy(sim._did),
             int(sim.slack_ids[0]), npy(net.dev_bus), npy(sim.counted), gen_poly, des_poly, gen_h0, des_h0,
-            int(row_ppot), np.array(rows_soc, dtype=np.int64), npy(net.y_bus), npy(br.f_bus), npy(br.t_bus),
-            npy(br.y_series), npy(br.y_shunt), npy(br.tap), npy(br.rate), npy(net.v_min), npy(net.v_max),
+            int(row_ppot), np.array(rows_soc, dtype=np.int64), npy(net.y_bus), *_flat_start_lu(npy(net.y_bus)),
+            npy(br.f_bus), npy(br.t_bus),
+            *self._branch_admittances(br), npy(br.rate), npy(net.v_min), npy(net.v_max),
             float(net.delta_t), float(sim.lamb), float(sim.costs_clipping[0]), float(sim.costs_clipping[1]),
             float(sim.terminal_reward))
         self.sizes = (net.n_dev, sim.n_des, sim.n_gen, net.n_bus, br.f_bus.shape[0])
+
+    @staticmethod
+    def _branch_admittances(br) -> tuple[np.ndarray, ...]:
+        """π-model coefficients (y_ff, y_ft, y_tf, y_tt): i_from = y_ff v_f - y_ft v_t, i_to = y_tt v_t - y_tf v_f."""
+        ys, ysh, tp = (x.cpu().numpy() for x in (br.y_series, br.y_shunt, br.tap))
+        return tuple(np.ascontiguousarray(a) for a in ((ys + ysh) / np.abs(tp) ** 2, ys / tp.conj(), ys / tp, ys + ysh))
 
     def __call__(self, soc: torch.Tensor, t_index: torch.Tensor, setpoints: torch.Tensor, tol: float,
                  max_iter: int) -> dict[str, torch.Tensor]:
@@ -332,9 +409,13 @@ class CompiledTransition:
                "s_apparent_max": np.empty((n, n_br)), "converged": np.empty(n, dtype=np.bool_),
                "n_iter": np.empty(n, dtype=np.int64), "e_loss": np.empty(n), "penalty": np.empty(n),
                "curtailment": np.empty(n), "reward": np.empty(n)}
-        numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+        threads = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
+        kernel = _transition_serial
+        if threads > 1 and n >= PARALLEL_MIN_BATCH:
+            numba.set_num_threads(threads)
+            kernel = _transition_parallel
         arr = lambda x, dt: np.ascontiguousarray(x.detach().cpu().numpy(), dtype=dt)  # noqa: E731
-        _transition(arr(soc, np.float64), arr(t_index, np.int64), arr(setpoints, np.float64),
+        kernel(arr(soc, np.float64), arr(t_index, np.int64), arr(setpoints, np.float64),
                     arr(self.sim.load_series, np.float64), arr(self.sim.p_max_series, np.float64), *self.consts,
                     float(tol), int(max_iter), *out.values())
         return {k: torch.from_numpy(v) for k, v in out.items()}
