@@ -533,5 +533,13 @@ def test_numba_backend_equals_torch_backend():
             assert a.shape == b.shape and a.dtype == b.dtype, f
             torch.testing.assert_close(a[ok], b[ok], rtol=1e-9, atol=1e-9, msg=f)
         assert torch.equal(t1.reward[~ok], t0.reward[~ok])
+    # with several torch threads the batch is split over a thread pool: bit-for-bit the same rows
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        n3, t3 = sn.step(state, action)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(n3, n1) and torch.equal(t3.reward, t1.reward) and torch.equal(t3.n_iter, t1.n_iter)
     with pytest.raises(ValueError, match="backend"):
         anm6_easy_simulator(backend="cuda-magic")

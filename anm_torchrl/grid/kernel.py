@@ -3,10 +3,11 @@
 The torch implementation spends its time in dispatch and in memory traffic: at batch 16,384 every one of
 its ~400 small ops streams (N, 10, 10) tensors through memory. Here each env runs the same maths start to end
 in registers and L1 — edge-clamp projections, SoC update, Newton–Raphson with a 10×10 LU, slack, branch flows,
-reward — and, with ``torch.get_num_threads() > 1`` and a large batch, ``prange`` spreads envs over that many
-threads (numba's own ``workqueue`` pool, so torch's OpenMP settings are left alone). Same algorithms, same stopping
-rule and order of operations as the torch code, so results agree to float64 round-off (tested against both
-the torch backend and gym-anm).
+reward. With ``torch.get_num_threads() > 1`` and a large batch, the batch is split into that many slices run
+by Python threads (the kernel releases the GIL). Not numba's ``parallel=True``: its OpenMP layer resets torch's
+thread count and its own pool hangs a process forked after first use (TorchRL's multi-process collectors);
+the pool here is per process. Same algorithms, same stopping rule and order of operations as the torch code,
+so results agree to float64 round-off (tested against both the torch backend and gym-anm).
 
 Compiled on first use (cached on disk by numba); ``available()`` says whether numba can be used.
 """
@@ -15,23 +16,20 @@ from __future__ import annotations
 
 import math
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 
+from anm_torchrl.grid.devices import _FEAS_TOL, EFF, PMAX, PMIN, SOC_MAX, SOC_MIN
+
 try:
     import numba
-
-    if "NUMBA_THREADING_LAYER" not in os.environ:
-        # numba's own thread pool: the OpenMP layer would share (and reset) torch's OpenMP thread count
-        numba.config.THREADING_LAYER = "workqueue"
 except ImportError:  # pragma: no cover - numba is a dependency; the torch backend is the fallback
     numba = None
 
-PARALLEL_MIN_BATCH = 1024  # below this, spreading envs over threads costs more than it saves
-CHUNK = 256  # envs per parallel work item
-
-from anm_torchrl.grid.devices import _FEAS_TOL, EFF, PMAX, PMIN, SOC_MAX, SOC_MIN
+PARALLEL_MIN_BATCH = 1024  # below this, splitting the batch over threads costs more than it saves
+_POOL: dict[int, tuple[int, ThreadPoolExecutor]] = {}  # pid -> (threads, pool): a forked child makes its own
 
 
 def available() -> bool:
@@ -249,7 +247,7 @@ def _env_steps(lo, hi, soc, t_index, setpoints, load_series, p_max_series, dev, 
                p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward, scratch):
     """The whole transition of envs ``lo..hi-1`` (spec §3.5 steps 4–7), written into their output rows.
 
-    One call per chunk of envs: a call passes ~50 arrays, each reference-counted, so it is not made per env.
+    Called once per batch slice, never per env: a call passes ~50 arrays, each reference-counted.
     """
     hp, h_gen, h_des, s_bus, s, vm, va, f, jac, piv = scratch
     n_gen, n_des = gid.shape[0], did.shape[0]
@@ -322,29 +320,33 @@ def _env_steps(lo, hi, soc, t_index, setpoints, load_series, p_max_series, dev, 
             reward[e] = term_reward
 
 
-def _transition_py(soc, t_index, setpoints, load_series, p_max_series, dev, lid, gid, did, slack, dev_bus, counted,
-                   gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows, y, lu0, piv0, ok0, f_bus, t_bus,
-                   y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max, delta_t, lamb, c0, c1, term_reward, tol, max_iter,
-                   p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward):
+@_njit()
+def _transition(soc, t_index, setpoints, load_series, p_max_series, dev, lid, gid, did, slack, dev_bus, counted,
+                gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows, y, lu0, piv0, ok0, f_bus, t_bus,
+                y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max, delta_t, lamb, c0, c1, term_reward, tol, max_iter,
+                p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward):
     """All envs; inputs soc (N, n_des), t_index (N,), setpoints (N, action_dim) p.u.; outputs preallocated."""
-    n_env, n_bus = setpoints.shape[0], y.shape[0]
-    n_chunk = (n_env + CHUNK - 1) // CHUNK
-    for ch in numba.prange(n_chunk):  # scratch is allocated once per chunk of envs, not per env
-        scratch = (np.empty(max(gen_poly[1].shape[1], des_poly[1].shape[1])),
-                   np.empty(gen_h0.shape[1]), np.empty(des_h0.shape[1]), np.empty(n_bus, dtype=np.complex128),
-                   np.empty(n_bus, dtype=np.complex128), np.empty(n_bus), np.empty(n_bus),
-                   np.empty(2 * n_bus - 2), np.empty((2 * n_bus - 2, 2 * n_bus - 2)),
-                   np.empty(2 * n_bus - 2, dtype=np.int64))
-        _env_steps(ch * CHUNK, min(n_env, (ch + 1) * CHUNK), soc, t_index, setpoints, load_series, p_max_series,
-                   dev, lid, gid, did, slack, dev_bus, counted, gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row,
-                   des_soc_rows, y, lu0, piv0, ok0, f_bus, t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max,
-                   delta_t, lamb, c0, c1, term_reward, tol, max_iter, p_dev, q_dev, soc_next, p_pot, v_out, s_max,
-                   converged, n_iter, e_loss, pen, curt, reward, scratch)
+    n_bus = y.shape[0]
+    scratch = (np.empty(max(gen_poly[1].shape[1], des_poly[1].shape[1])),
+               np.empty(gen_h0.shape[1]), np.empty(des_h0.shape[1]), np.empty(n_bus, dtype=np.complex128),
+               np.empty(n_bus, dtype=np.complex128), np.empty(n_bus), np.empty(n_bus),
+               np.empty(2 * n_bus - 2), np.empty((2 * n_bus - 2, 2 * n_bus - 2)),
+               np.empty(2 * n_bus - 2, dtype=np.int64))
+    _env_steps(0, setpoints.shape[0], soc, t_index, setpoints, load_series, p_max_series, dev, lid, gid, did,
+               slack, dev_bus, counted, gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows, y, lu0,
+               piv0, ok0, f_bus, t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max, delta_t, lamb, c0, c1,
+               term_reward, tol, max_iter, p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss,
+               pen, curt, reward, scratch)
 
 
-# one serial loop (1 thread, small batches: no thread pool at all) and one prange loop over the envs
-_transition_serial = _njit()(_transition_py)
-_transition_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_transition_py) if numba else _transition_py
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """This process's thread pool with ``threads`` workers (re-created after a fork or a thread-count change)."""
+    pid = os.getpid()
+    if pid not in _POOL or _POOL[pid][0] != threads:
+        if pid in _POOL:
+            _POOL[pid][1].shutdown(wait=False)
+        _POOL[pid] = (threads, ThreadPoolExecutor(threads, thread_name_prefix="anm_torchrl-kernel"))
+    return _POOL[pid][1]
 
 
 def _polygon_arrays(polys, h0: torch.Tensor) -> tuple:
@@ -409,13 +411,20 @@ class CompiledTransition:
                "s_apparent_max": np.empty((n, n_br)), "converged": np.empty(n, dtype=np.bool_),
                "n_iter": np.empty(n, dtype=np.int64), "e_loss": np.empty(n), "penalty": np.empty(n),
                "curtailment": np.empty(n), "reward": np.empty(n)}
-        threads = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
-        kernel = _transition_serial
-        if threads > 1 and n >= PARALLEL_MIN_BATCH:
-            numba.set_num_threads(threads)
-            kernel = _transition_parallel
         arr = lambda x, dt: np.ascontiguousarray(x.detach().cpu().numpy(), dtype=dt)  # noqa: E731
-        kernel(arr(soc, np.float64), arr(t_index, np.int64), arr(setpoints, np.float64),
-                    arr(self.sim.load_series, np.float64), arr(self.sim.p_max_series, np.float64), *self.consts,
-                    float(tol), int(max_iter), *out.values())
+        inputs = (arr(soc, np.float64), arr(t_index, np.int64), arr(setpoints, np.float64))
+        series = (arr(self.sim.load_series, np.float64), arr(self.sim.p_max_series, np.float64))
+        outs = list(out.values())
+
+        def run(lo: int, hi: int) -> None:
+            _transition(*(x[lo:hi] for x in inputs), *series, *self.consts, float(tol), int(max_iter),
+                        *(o[lo:hi] for o in outs))
+
+        threads = torch.get_num_threads()
+        if threads > 1 and n >= PARALLEL_MIN_BATCH:
+            bounds = np.linspace(0, n, threads + 1).astype(int)
+            for job in [_pool(threads).submit(run, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]:
+                job.result()
+        else:
+            run(0, n)
         return {k: torch.from_numpy(v) for k, v in out.items()}
