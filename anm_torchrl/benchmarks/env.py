@@ -4,6 +4,7 @@ Usage::
 
     python -m anm_torchrl.benchmarks.env [--batch-sizes 1,16,256,1024,4096,16384] [--gym-steps 200]
                                          [--min-time 2.0] [--device cpu] [--threads 1] [--no-gym]
+                                         [--backends auto|numba|torch|numba,torch]
 
 Prints one markdown table. Every row separates the warm-up (construction, first reset and first step, where
 lazy initialisation happens) from the steady state (further steps, timed until ``--min-time`` seconds and at
@@ -97,17 +98,23 @@ def time_env_steps(make: Callable[[], object], min_time: float, min_steps: int, 
     return warm, n / elapsed
 
 
-def bench_env(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0) -> dict:
+def bench_env(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0, backend: str = "auto") -> dict:
     """``ANM6Env`` at batch ``batch``: warm-up and transitions/s."""
     from anm_torchrl.envs import ANM6Env
 
-    warm, steps_per_s = time_env_steps(lambda: ANM6Env(num_envs=batch, device=device, seed=seed), min_time,
-                                       min_steps, seed)
-    return {"impl": "`ANM6Env` (`rand_action` + `step_and_maybe_reset`)", "batch": batch, "warm": warm,
-            "rate": batch * steps_per_s}
+    used = []  # the backend "auto" resolved to
+
+    def make() -> ANM6Env:
+        env = ANM6Env(num_envs=batch, device=device, seed=seed, backend=backend)
+        used.append(env.sim.backend)
+        return env
+
+    warm, steps_per_s = time_env_steps(make, min_time, min_steps, seed)
+    return {"impl": f"`ANM6Env` ({used[-1]}; `rand_action` + `step_and_maybe_reset`)", "batch": batch,
+            "warm": warm, "rate": batch * steps_per_s}
 
 
-def bench_grid(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0) -> dict:
+def bench_grid(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0, backend: str = "auto") -> dict:
     from anm_torchrl.grid.simulator import anm6_easy_simulator
 
     gen = torch.Generator(device=device).manual_seed(seed)
@@ -118,7 +125,7 @@ def bench_grid(batch: int, min_time: float, min_steps: int, device: str, seed: i
                                        device=device) * (box["high"] - box["low"])
 
     def first():
-        sim = anm6_easy_simulator(device)
+        sim = anm6_easy_simulator(device, backend=backend)
         box["low"], box["high"] = sim.action_bounds()
         state = sim.reset(batch, gen)
         state = state[0] if isinstance(state, tuple) else state
@@ -128,7 +135,8 @@ def bench_grid(batch: int, min_time: float, min_steps: int, device: str, seed: i
         box["state"] = box["sim"].step(box["state"], actions())[0]
 
     warm, elapsed, n = _timed(first, step, min_time, min_steps)
-    return {"impl": "`GridSimulator.step` (raw physics)", "batch": batch, "warm": warm, "rate": batch * n / elapsed}
+    return {"impl": f"`GridSimulator.step` ({box['sim'].backend}; raw physics)", "batch": batch, "warm": warm,
+            "rate": batch * n / elapsed}
 
 
 def markdown_table(rows: list[dict], gym_rate: float | None) -> str:
@@ -151,6 +159,8 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
     parser.add_argument("--skip-grid", action="store_true", help="skip the raw GridSimulator rows")
+    parser.add_argument("--backends", default="auto",
+                        help="comma-separated physics backends to measure: auto, numba, torch (e.g. numba,torch)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     batches = [int(b) for b in args.batch_sizes.split(",") if b.strip()]
@@ -164,11 +174,14 @@ def main(argv: list[str] | None = None) -> str:
             gym_rate = g["rate"]
         except ImportError:
             pass
-    for b in batches:
-        rows.append(bench_env(b, args.min_time, args.min_steps, args.device))
-    if not args.skip_grid:
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    for backend in backends:
         for b in batches:
-            rows.append(bench_grid(b, args.min_time, args.min_steps, args.device))
+            rows.append(bench_env(b, args.min_time, args.min_steps, args.device, backend=backend))
+    if not args.skip_grid:
+        for backend in backends:
+            for b in batches:
+                rows.append(bench_grid(b, args.min_time, args.min_steps, args.device, backend=backend))
     table = markdown_table(rows, gym_rate)
     print(table)
     print(f"\n<!-- torch {torch.__version__}, {torch.get_num_threads()} thread(s), device {args.device}, "
