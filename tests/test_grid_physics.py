@@ -543,3 +543,29 @@ def test_numba_backend_equals_torch_backend():
     assert torch.equal(n3, n1) and torch.equal(t3.reward, t1.reward) and torch.equal(t3.n_iter, t1.n_iter)
     with pytest.raises(ValueError, match="backend"):
         anm6_easy_simulator(backend="cuda-magic")
+
+
+def test_numba_backend_on_general_networks():
+    """The compiled loop is not hard-wired to ANM6: on gym-anm's 3-bus networks with loops, taps, phase shifts
+    and line charging (a load, a classical and a renewable generator, storage) it equals the torch backend."""
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(7)
+    f64 = dict(dtype=torch.float64)
+    for name, buses, branches, devices in _networks(rng):
+        if devices is not DEVICES3:
+            continue
+        net = make_network(buses, branches, devices, base_mva=250.0, delta_t=0.25)
+        loads = torch.as_tensor(rng.uniform(-12, 0, (1, 8)), **f64)
+        pmax = torch.as_tensor(rng.uniform(0, 400, (1, 8)), **f64)
+        sims = [GridSimulator(net, loads, pmax, gamma=0.99, lamb=50.0, costs_clipping=(2.0, 80.0), backend=b)
+                for b in ("torch", "numba")]
+        lo, hi = sims[0].action_bounds()
+        action = lo + torch.as_tensor(rng.random((500, lo.numel())), **f64) * (hi - lo)
+        state, _ = sims[0].random_state(500, torch.Generator().manual_seed(1))
+        (n0, t0), (n1, t1) = (s.step(state, action) for s in sims)
+        assert t0.converged.double().mean() > 0.5, name
+        assert torch.equal(t0.converged, t1.converged) and torch.equal(t0.n_iter, t1.n_iter), name
+        torch.testing.assert_close(n1, n0, rtol=0, atol=1e-9, msg=name)
+        ok = t0.converged
+        for f in ("v", "s_apparent_max", "penalty", "reward"):
+            torch.testing.assert_close(getattr(t1, f)[ok], getattr(t0, f)[ok], rtol=1e-9, atol=1e-9, msg=f"{name} {f}")

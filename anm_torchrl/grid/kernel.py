@@ -349,11 +349,11 @@ def _pool(threads: int) -> ThreadPoolExecutor:
     return _POOL[pid][1]
 
 
-def _polygon_arrays(polys, h0: torch.Tensor) -> tuple:
+def _polygon_arrays(polys, h0: torch.Tensor | None) -> tuple:
     """Stack the precomputed data of :class:`~anm_torchrl.grid.devices.Polygon` objects (padded to the largest
     number of distinct lines; the group index is padded with -1)."""
-    m = max(p.g.shape[0] for p in polys)
-    w = max(p.group_idx.shape[1] for p in polys)
+    m = max((p.g.shape[0] for p in polys), default=1)  # default: a network without such devices
+    w = max((p.group_idx.shape[1] for p in polys), default=1)
     k = len(polys)
     out_m = np.array([p.g.shape[0] for p in polys], dtype=np.int64)
     grp = -np.ones((k, m, w), dtype=np.int64)
@@ -367,7 +367,8 @@ def _polygon_arrays(polys, h0: torch.Tensor) -> tuple:
         g[c, :mc], d[c, :mc], gn2[c, :mc] = p.g.cpu().numpy(), p.d.cpu().numpy(), p.gn2.cpu().numpy()
         coup[c, :mc, :mc], inv[c, :mc, :mc] = p.coupling.cpu().numpy(), p.inv_a.cpu().numpy()
         kind[c, :mc, :mc] = p.upper.cpu().numpy().astype(np.int64) - p.lower.cpu().numpy().astype(np.int64)
-    return (out_m, grp, g, gn2, d, coup, kind, inv), np.ascontiguousarray(h0.cpu().numpy())
+    h0 = np.zeros((0, 1)) if h0 is None else h0.cpu().numpy()
+    return (out_m, grp, g, gn2, d, coup, kind, inv), np.ascontiguousarray(h0)
 
 
 class CompiledTransition:
