@@ -204,7 +204,10 @@ def sections(res: dict, figs: dict, rel: Path, machine: str) -> str:
     out.append(f"""## Fig. 6 — inference time per transition (the honest speed table)
 
 **Paper.** PINN median 0.0021 s vs 0.0194 s for the plain env over 1,000 transitions (≈10×).
-**Measured** on {machine}, same run, seconds per transition: {_status(rec)}.
+**Measured** on {machine}, same run, seconds per transition: {_status(rec)}. `gym_anm` is gym-anm 2.0.1 itself;
+`anm6env` the batched true simulator on its default CPU backend (the compiled numba loop), `anm6env_torch` the
+same env on its batched-torch backend, `grid_sim` the raw physics without TorchRL; every other row is a surrogate
+env. Batch-1 times are dominated by per-call overhead (TorchRL's `step_and_maybe_reset`, model dispatch).
 
 {table}
 
