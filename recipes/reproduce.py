@@ -119,6 +119,15 @@ def main(cfg: DictConfig) -> dict:
 
     t0 = time.perf_counter()
     out_dir = _abs(cfg.out_dir)
+    if cfg.report_only:  # redraw the figures and rewrite the page from the records already in out_dir
+        import json
+
+        run_info = json.loads((out_dir / "run.json").read_text())
+        results = load_results(out_dir)
+        figs = plots.make_all(results, out_dir / "figures")
+        md = report.write_results_md(results, figs, _abs(cfg.results_md), run_info) if cfg.results_md else None
+        log.info("report only: figures %s, page %s", sorted(figs), md)
+        return run_info
     out_dir.mkdir(parents=True, exist_ok=True)
     p = OmegaConf.to_container(cfg.preset, resolve=True)
     surrogates = [dict(s) for s in p.get("surrogates", [])]

@@ -37,7 +37,7 @@ def test_reproduce_writes_every_record(results: Path):
         assert rec["status"] in ("ok", "partial", "not available"), (name, rec["reason"])
         assert rec["meta"]["wall_s"] >= 0 and "machine" in rec["meta"]
     speed = json.loads((results / "speed.json").read_text())["data"]
-    assert {r["impl"] for r in speed["table"]} >= {"gym_anm", "anm6env", "grid_sim"}
+    assert {r["impl"] for r in speed["table"]} >= {"gym_anm", "anm6env", "anm6env_torch", "grid_sim"}
     assert (results / "speed_table.csv").exists() and (results / "figures" / "fig6_speed.png").exists()
 
 
@@ -46,6 +46,17 @@ def test_results_md_is_generated(results: Path):
     assert "do not edit by hand" in md and md.count("| **") >= 4
     for title in ("Fig. 5", "Fig. 6", "Fig. 7", "Figs. 8–9", "Figs. 10–11", "PPO training curves"):
         assert title in md
+
+
+def test_report_only_rewrites_the_page_from_the_records(results: Path):
+    """``report_only=true`` runs nothing: same records, a page rendered again from them."""
+    md = results / "RESULTS_again.md"  # beside the original, so figure links compare equal
+    records = {p.name: p.read_bytes() for p in results.glob("*.json")}
+    proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), f"out_dir={results}",
+                           f"results_md={md}", "report_only=true"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert records == {p.name: p.read_bytes() for p in results.glob("*.json")}
+    assert md.read_text().split("\n", 3)[3] == (results / "RESULTS.md").read_text().split("\n", 3)[3]
 
 
 @pytest.mark.parametrize("notebook", NOTEBOOKS)
