@@ -111,7 +111,8 @@ def _injection(vm, va, y, s, v):
     for i in range(n):
         acc = 0j
         for k in range(n):
-            acc += y[i, k] * v[k]
+            if y[i, k] != 0:  # distribution grids are sparse; adding exact zeros would change nothing
+                acc += y[i, k] * v[k]
         s[i] = v[i] * acc.conjugate()
 
 
@@ -182,6 +183,9 @@ def _jacobian(y, v, vm, s, jac):
     for i in range(k):
         vi = v[i + 1]
         for q in range(k):
+            if y[i + 1, q + 1] == 0:  # A_iq = 0 exactly
+                jac[i, q], jac[k + i, q], jac[i, k + q], jac[k + i, k + q] = 0.0, 0.0, 0.0, 0.0
+                continue
             a = vi * (y[i + 1, q + 1] * v[q + 1]).conjugate()  # A_iq = V_i conj(Y_iq V_q)
             b = a / vm[q + 1]
             jac[i, q], jac[k + i, q] = a.imag, -a.real
