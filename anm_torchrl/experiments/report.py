@@ -129,6 +129,11 @@ def claim_training_time(res: dict) -> tuple[str, str]:
     else:
         return "missing timings", "not measured"
     verdict = "holds" if saving >= 0.4 and comparable else "does not hold"
+    exact = t.get("none")
+    if ref_name != "none" and exact and exact.get("threshold_wall_s") and p.get("threshold_wall_s"):
+        # the same question against the batched exact simulator of this package, not the paper's baseline
+        what += (f"; against the batched exact simulator (`none`): PINN {p['threshold_wall_s']:.0f} s vs "
+                 f"{exact['threshold_wall_s']:.0f} s to the same return, final {_fmt(exact['last_mean_return'])}")
     note = _budget_note([p, r])
     return what, f"{note} ({verdict})" if note else verdict
 
