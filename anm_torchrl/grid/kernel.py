@@ -29,6 +29,7 @@ except ImportError:  # pragma: no cover - numba is a dependency; the torch backe
     numba = None
 
 PARALLEL_MIN_BATCH = 1024  # below this, splitting the batch over threads costs more than it saves
+SLICES_PER_THREAD = 8
 _POOL: dict[int, tuple[int, ThreadPoolExecutor]] = {}  # pid -> (threads, pool): a forked child makes its own
 
 
@@ -427,7 +428,8 @@ class CompiledTransition:
 
         threads = torch.get_num_threads()
         if threads > 1 and n >= PARALLEL_MIN_BATCH:
-            bounds = np.linspace(0, n, threads + 1).astype(int)
+            # more slices than threads: a slice holding the rare 100-iteration envs does not hold up the rest
+            bounds = np.linspace(0, n, SLICES_PER_THREAD * threads + 1).astype(int)
             for job in [_pool(threads).submit(run, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]:
                 job.result()
         else:
