@@ -147,10 +147,19 @@ def main(cfg: DictConfig) -> dict:
         run_info["experiments"][name] = {"status": rec["status"], "reason": rec.get("reason"),
                                          "wall_s": rec["meta"]["wall_s"]}
         log.info("experiment %s: %s (%.0f s) %s", name, rec["status"], rec["meta"]["wall_s"], rec.get("reason") or "")
+    run_info["wall_s"] = time.perf_counter() - t0
+    if cfg.merge and (out_dir / "run.json").exists():  # keep the earlier run's record; note this one as an update
+        import json
+
+        earlier = json.loads((out_dir / "run.json").read_text())
+        update = {k: run_info[k] for k in ("command", "date", "wall_s", "versions")}
+        update["experiments"] = run_info["experiments"]
+        earlier["experiments"] = {**earlier.get("experiments", {}), **run_info["experiments"]}
+        earlier["updates"] = [*earlier.get("updates", []), update]
+        run_info = earlier
     results = load_results(out_dir)
     figs = plots.make_all(results, out_dir / "figures")
     run_info["figures"] = figs
-    run_info["wall_s"] = time.perf_counter() - t0
     write_json(out_dir / "run.json", run_info)
     if cfg.results_md:
         md = report.write_results_md(load_results(out_dir), figs, _abs(cfg.results_md), run_info)
