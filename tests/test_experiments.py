@@ -69,3 +69,37 @@ def test_notebook_runs(results: Path, notebook: str, tmp_path: Path, monkeypatch
     nb = nbformat.read(REPO / "notebooks" / notebook, as_version=4)
     nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
                             resources={"metadata": {"path": str(REPO / "notebooks")}}).execute()
+
+
+def test_accuracy_rows_name_the_dataset_evaluated_on(tmp_path: Path):
+    """A cross-dataset entry is labelled with the other dataset (the one it was evaluated on)."""
+    from anm_torchrl.experiments.accuracy import rows_from_metrics
+
+    m = {"kind": "xgb", "dataset": "agent", "in_dataset": {"r2": 0.99, "mae": 0.1},
+         "cross_dataset": {"dataset": "generative", "r2": 0.7, "mae": 0.9}}
+    path = tmp_path / "xgb_agent" / "metrics.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps(m))
+    rows = {r["split"]: r for r in rows_from_metrics(path)}
+    assert (rows["in_dataset"]["eval_dataset"], rows["in_dataset"]["cross"]) == ("agent", False)
+    assert (rows["cross_dataset"]["eval_dataset"], rows["cross_dataset"]["cross"]) == ("generative", True)
+    assert rows["cross_dataset"]["r2"] == 0.7 and rows["cross_dataset"]["train_dataset"] == "agent"
+
+
+def test_run_ppo_starts_from_an_empty_run_dir(tmp_path: Path, monkeypatch):
+    """Logs left by an earlier run of the same cell are not read back as part of the new run's curve."""
+    from anm_torchrl.experiments import ppo_runs
+
+    stale = tmp_path / "cell"
+    (stale / "logs").mkdir(parents=True)
+    (stale / "summary.json").write_text("{}")
+    seen = {}
+
+    def fake_run(cmd, **kw):
+        seen["existed"] = stale.exists()
+        return subprocess.CompletedProcess(cmd, 1, "", "boom")
+
+    monkeypatch.setattr(ppo_runs.subprocess, "run", fake_run)
+    rec = ppo_runs.run_ppo(["surrogate=none"], stale)
+    assert seen["existed"] is False and rec["summary"] is None and rec["curve"] == []
+    assert rec["error"].startswith("exit 1") and not rec["ok"]

@@ -41,7 +41,10 @@ def rows_from_metrics(path: str | Path) -> list[dict[str, Any]]:
         train_ds = train_ds or (parts[1] if len(parts) > 1 else None)
     rows = []
     for keys, m in _walk(data, ()):
-        eval_ds = next((k for k in reversed(keys) if k in DATASETS), train_ds)
+        # the dataset evaluated on: named inside the entry ({"cross_dataset": {"dataset": "generative", ...}}),
+        # else by a key on the path, else the training dataset
+        eval_ds = m.get("dataset") if m.get("dataset") in DATASETS else next(
+            (k for k in reversed(keys) if k in DATASETS), train_ds)
         model, tds = kind, train_ds
         for k in keys:  # an aggregate file: {"xgb": {"agent": {...}}} or {"xgb_agent": {...}}
             head = k.split("_")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -63,9 +64,12 @@ def eval_curve(run_dir: str | Path) -> list[dict[str, float]]:
 def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None = None) -> dict[str, Any]:
     """Run the PPO recipe with Hydra ``overrides`` into ``run_dir``.
 
-    Returns ``{"ok", "run_dir", "overrides", "wall_s", "summary", "curve", "error"}``.
+    Returns ``{"ok", "run_dir", "overrides", "wall_s", "summary", "curve", "error"}``. An existing ``run_dir`` (an
+    earlier run of the same experiment cell) is removed first: its logs would otherwise be read back with the new.
     """
     run_dir = Path(run_dir).resolve()
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
     cmd = [sys.executable, str(RECIPE), *overrides, "logger.backend=csv", "logger.progress=false",
            f"hydra.run.dir={run_dir}"]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
