@@ -219,25 +219,32 @@ def _band(runs: list[dict], x: str, n: int = 50):
 
 
 def fig_ppo_curves(rec: dict, path) -> Path | None:
-    """PPO evaluation return on the true simulator against frames and wall time (mean, 95 % CI over seeds)."""
+    """PPO evaluation loss (−return) on the true simulator against frames and wall time, log scales (returns span
+    three decades); mean over seeds with its 95 % CI, one colour per training env, baselines dotted."""
     if not _ok(rec) or not rec["data"].get("runs"):
         return None
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
-    for ax, x, xlabel in ((axes[0], "frames", "training frames"), (axes[1], "wall_s", "wall time (s)")):
-        for lab, runs in rec["data"]["runs"].items():
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5))
+    colours = plt.cm.tab20(np.linspace(0, 1, 20))
+    for ax, x, xlabel in ((axes[0], "frames", "training frames"), (axes[1], "wall_s", "wall time (s), log scale")):
+        for k, (lab, runs) in enumerate(rec["data"]["runs"].items()):
             b = _band(runs, x)
             if b is None:
                 continue
-            line, = ax.plot(b[0], b[1], label=f"{lab} ({len([r for r in runs if r.get('curve')])} seeds)")
-            if b[2] is not None:
-                ax.fill_between(b[0], b[1] - b[2], b[1] + b[2], color=line.get_color(), alpha=0.2)
+            loss = -b[1]
+            ax.plot(b[0], loss, color=colours[k % 20], lw=2 if lab in ("pinn", "none", "gym_anm") else 1,
+                    label=f"{lab} ({len([r for r in runs if r.get('curve')])} seeds)")
+            if b[2] is not None:  # a band that would cross zero is cut at a tenth of the mean (log axis)
+                ax.fill_between(b[0], np.maximum(loss - b[2], 0.1 * np.abs(loss)), loss + b[2],
+                                color=colours[k % 20], alpha=0.15)
         for k, (name, m) in enumerate(rec["data"].get("baselines", {}).items()):
-            if m.get("available"):
-                ax.axhline(m["return"], ls=":", color=f"C{k + 6}", label=f"{name} (baseline)")
+            if m.get("available") and m["return"] < 0:
+                ax.axhline(-m["return"], ls=":", color=str(0.2 + 0.25 * k), label=f"{name} (baseline)")
         ax.set_xlabel(xlabel)
-        ax.set_ylabel("eval return (true simulator)")
-        ax.set_yscale("symlog")
-        ax.legend(fontsize=7)
+        ax.set_ylabel("eval loss = −return (true simulator)")
+        ax.set_yscale("log")
+        if x == "wall_s":
+            ax.set_xscale("log")
+    axes[1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     return _save(fig, path)
 
 
