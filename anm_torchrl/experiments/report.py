@@ -170,8 +170,12 @@ def claim_structure(res: dict) -> tuple[str, str]:
     b = rec["data"]["best"]
     grid = rec["data"]["grid"]
     tested = any(r["n_envs"] == 100 and r["buffer"] == 30 for r in grid)
+    std = f" ± {_fmt(b['mean_return_std'])} over {b['seeds']} seeds" if b.get("mean_return_std") is not None else ""
+    ref = next((r for r in grid if (r["n_envs"], r["buffer"]) == (100, 30)), None)
     what = (f"best of {len(grid)} cells on `{rec['data']['surrogate']}`: n_envs={b['n_envs']}, buffer={b['buffer']} "
-            f"(mean return {_fmt(b['mean_return'])})")
+            f"(mean return {_fmt(b['mean_return'])}{std})")
+    if ref is not None and ref is not b:
+        what += f"; 100 × 30: {_fmt(ref['mean_return'])}"
     if rec["data"].get("note"):
         what += f"; {rec['data']['note']}"
     if not tested:
@@ -255,7 +259,8 @@ higher R²; its error over an expert episode shows daily periodicity.
     rec = res.get("sweep")
     table = ""
     if rec and rec["status"] in ("ok", "partial"):
-        table = _table(rec["data"]["grid"], ["n_envs", "buffer", "frames_per_batch", "mean_return", "train_time_s",
+        table = _table(rec["data"]["grid"], ["n_envs", "buffer", "frames_per_batch", "seeds", "mean_return",
+                                             "mean_return_std", "train_time_s",
                                              "frames", "evaluations"]) + "\n\nCorrelations: " + ", ".join(
             f"{a}–{b} {_fmt(rec['data']['correlation'][a][b], '.2f')}" for a, b in
             (("buffer", "mean_return"), ("n_envs", "mean_return"), ("buffer", "train_time_s"),

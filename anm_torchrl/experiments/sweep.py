@@ -1,9 +1,9 @@
 """Structural sweep of PPO on the PINN surrogate: number of envs × buffer size (paper Figs. 10–11).
 
 buffer = steps per env between updates, so ``collector.frames_per_batch = n_envs × buffer``. Every cell trains
-with the same frame budget and is evaluated on the true simulator; recorded: the mean evaluation return over
-the last ``last_k`` evaluations and the training wall time, then Pearson correlations between n_envs, buffer,
-mean return and training time, and the best cell. The same grid runs as a Hydra multirun::
+with the same frame budget (once per seed) and is evaluated on the true simulator; recorded: the mean evaluation
+return over the last ``last_k`` evaluations (mean and std over seeds) and the training wall time, then Pearson
+correlations between n_envs, buffer, mean return and training time, and the best cell. The same grid runs as a Hydra multirun::
 
     python recipes/ppo.py -m surrogate=pinn env.num_envs=10,100 collector.frames_per_batch=300,3000
 
@@ -39,6 +39,7 @@ def pearson(x: list[float], y: list[float]) -> float | None:
 
 def run(cfg: dict[str, Any], out_dir: str | Path, seed: int = 0) -> dict:
     """cfg keys: ``surrogate`` (spec), ``fallback`` (spec or null), ``n_envs`` (list), ``buffer`` (list),
+    ``seeds`` (list; default ``[seed]``: every cell is trained once per seed and its numbers are seed means),
     ``base`` (overrides), ``last_k``, ``timeout_s``, ``eval_every_frames`` (optional: evaluate every this many
     frames in every cell, so cells with small batches are not dominated by evaluation; default every update)."""
     reason = recipe_available()
@@ -54,26 +55,37 @@ def run(cfg: dict[str, Any], out_dir: str | Path, seed: int = 0) -> dict:
         note = f"{label(spec)} not available ({why}); swept on {label(fb)} instead"
         spec = dict(fb)
     rows = []
+    seeds = [int(x) for x in cfg.get("seeds", [seed])]
+    last_k = int(cfg.get("last_k", 10))
     for n in cfg.get("n_envs", [10, 100]):
         for b in cfg.get("buffer", [30, 300]):
             over = {**cfg.get("base", {}), "env.num_envs": int(n), "collector.frames_per_batch": int(n) * int(b)}
             if cfg.get("eval_every_frames"):
                 over["eval.interval"] = max(1, round(int(cfg["eval_every_frames"]) / (int(n) * int(b))))
-            rec = run_ppo(ppo_overrides(spec, seed, over), Path(out_dir) / "runs" / "sweep" / f"n{n}_b{b}",
-                          timeout_s=cfg.get("timeout_s"))
+            recs = [run_ppo(ppo_overrides(spec, s, over), Path(out_dir) / "runs" / "sweep" / f"n{n}_b{b}_s{s}",
+                            timeout_s=cfg.get("timeout_s")) for s in seeds]
+            per_seed = [last_mean(r["curve"], "return", last_k) for r in recs]
+            got = [x for x in per_seed if x is not None]
+            mean = lambda xs: sum(xs) / len(xs) if xs else None  # noqa: E731
             rows.append({"n_envs": int(n), "buffer": int(b), "frames_per_batch": int(n) * int(b),
-                         "mean_return": last_mean(rec["curve"], "return", int(cfg.get("last_k", 10))),
-                         "mean_discounted_return": last_mean(rec["curve"], "discounted_return",
-                                                             int(cfg.get("last_k", 10))),
-                         "train_time_s": (rec["summary"] or {}).get("wall_time"),
-                         "train_time_no_eval_s": rec["curve"][-1]["train_s"] if rec["curve"] else None,
-                         "frames": rec["curve"][-1]["frames"] if rec["curve"] else None,
-                         "evaluations": len(rec["curve"]), "error": rec["error"], "run_dir": rec["run_dir"]})
+                         "seeds": len(got), "mean_return": mean(got),
+                         "mean_return_std": (sum((x - mean(got)) ** 2 for x in got) / (len(got) - 1)) ** 0.5
+                         if len(got) > 1 else None,
+                         "mean_return_per_seed": per_seed,
+                         "mean_discounted_return": mean([x for x in (last_mean(r["curve"], "discounted_return",
+                                                                                 last_k) for r in recs) if x is not None]),
+                         "train_time_s": mean([r["summary"]["wall_time"] for r in recs if r["summary"]]),
+                         "train_time_no_eval_s": mean([r["curve"][-1]["train_s"] for r in recs if r["curve"]]),
+                         "frames": mean([r["curve"][-1]["frames"] for r in recs if r["curve"]]),
+                         "evaluations": mean([len(r["curve"]) for r in recs if r["curve"]]),
+                         "error": "; ".join(str(r["error"]) for r in recs if r["error"]) or None,
+                         "run_dirs": [r["run_dir"] for r in recs]})
     corr = {a: {b: pearson([r[a] for r in rows], [r[b] for r in rows]) for b in VARS} for a in VARS}
     valid = [r for r in rows if r["mean_return"] is not None]
     best = max(valid, key=lambda r: r["mean_return"]) if valid else None
     status = "ok" if valid and note is None and len(valid) == len(rows) else ("partial" if valid else "error")
     return result("sweep", status, {"surrogate": label(spec), "note": note, "grid": rows, "correlation": corr,
+                                    "seeds": seeds,
                                     "best": best, "command": "python recipes/ppo.py -m surrogate=" + spec["name"] +
                                     " env.num_envs=" + ",".join(map(str, cfg.get("n_envs", []))) +
                                     " collector.frames_per_batch=<n_envs x buffer>"},
