@@ -125,7 +125,8 @@ def claim_training_time(res: dict) -> tuple[str, str]:
         comparable = True  # the PINN policy reached a return the reference did not reach at all
     elif p.get("wall_s") and r.get("wall_s"):
         saving = 1 - p["wall_s"] / r["wall_s"]
-        what = f"run wall time: PINN {p['wall_s']:.0f} s vs {ref_name} {r['wall_s']:.0f} s ({100 * saving:.0f} % less); {score}"
+        what = (f"run wall time: PINN {p['wall_s']:.0f} s vs {ref_name} {r['wall_s']:.0f} s "
+                f"({100 * saving:.0f} % less); {score}")
     else:
         return "missing timings", "not measured"
     verdict = "holds" if saving >= 0.4 and comparable else "does not hold"
@@ -155,7 +156,8 @@ def claim_only_pinn(res: dict) -> tuple[str, str]:
         f"{k} {'yes' if v else 'no'} ({_fmt(t[k]['last_mean_return'])})" for k, v in usable.items())
     ref = (t.get("none") or {}).get("last_mean_return")
     if ref is not None and ref < 0:  # a stricter bar: within 2x the loss of PPO trained on the true simulator
-        near = [k for k in surrogate_labels if t[k]["last_mean_return"] is not None and t[k]["last_mean_return"] >= 2 * ref]
+        near = [k for k in surrogate_labels
+                if t[k]["last_mean_return"] is not None and t[k]["last_mean_return"] >= 2 * ref]
         what += f"; within 2× the loss of PPO on the true simulator ({_fmt(ref)}): {', '.join(near) or 'none'}"
     holds = usable["pinn"] and not any(v for k, v in usable.items() if k != "pinn")
     verdict = "holds" if holds else "does not hold"

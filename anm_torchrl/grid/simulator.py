@@ -93,7 +93,8 @@ class GridSimulator:
         cpu64 = self.net.dev.device.type == "cpu" and self.net.dev.dtype == torch.float64
         if backend == "numba" and not (kernel.available() and cpu64):
             raise ValueError("backend='numba' needs numba installed and a float64 network on the CPU "
-                             f"(numba {'found' if kernel.available() else 'missing'}, network on {self.net.dev.device})")
+                             f"(numba {'found' if kernel.available() else 'missing'}, "
+                             f"network on {self.net.dev.device})")
         if backend == "auto":
             return "numba" if kernel.available() and cpu64 else "torch"
         return backend
