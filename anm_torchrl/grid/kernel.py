@@ -21,7 +21,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
-from anm_torchrl.grid.devices import _FEAS_TOL, EFF, PMAX, PMIN, SOC_MAX, SOC_MIN
+from anm_torchrl.grid.devices import _FEAS_TOL, DES_SOC_ROWS, EFF, GEN_PPOT_ROW, PMAX, PMIN, SOC_MAX, SOC_MIN
+from anm_torchrl.grid.powerflow import MAX_ITER, TOL
 
 try:
     import numba
@@ -246,17 +247,15 @@ def _newton_raphson(y, lu0, piv0, ok0, s_bus, tol, max_iter, vm, va, s, v, f, ja
 
 # ---------------------------------------------------------------------------------------- transition
 @_njit()
-def _env_steps(lo, hi, soc, t_index, setpoints, load_series, p_max_series, dev, lid, gid, did, slack, dev_bus,
-               counted, gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows, y, lu0, piv0, ok0, f_bus,
-               t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max, delta_t, lamb, c0, c1, term_reward, tol, max_iter,
+def _env_steps(soc, t_index, setpoints, load_series, p_max_series, dev, lid, gid, did, slack, dev_bus, counted,
+               gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows, y, lu0, piv0, ok0, f_bus, t_bus,
+               y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max, delta_t, lamb, c0, c1, term_reward, tol, max_iter,
                p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward, scratch):
-    """The whole transition of envs ``lo..hi-1`` (spec §3.5 steps 4–7), written into their output rows.
-
-    Called once per batch slice, never per env: a call passes ~50 arrays, each reference-counted.
-    """
+    """The loop of :func:`_transition` over the envs, with its scratch arrays passed in (measured ~8 % faster
+    than allocating them in the same function)."""
     hp, h_gen, h_des, s_bus, s, vm, va, f, jac, piv = scratch
     n_gen, n_des = gid.shape[0], did.shape[0]
-    for e in range(lo, hi):
+    for e in range(setpoints.shape[0]):
         t = t_index[e]
         pd, qd, v = p_dev[e], q_dev[e], v_out[e]
         pd[:] = 0.0
@@ -330,18 +329,21 @@ def _transition(soc, t_index, setpoints, load_series, p_max_series, dev, lid, gi
                 gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows, y, lu0, piv0, ok0, f_bus, t_bus,
                 y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max, delta_t, lamb, c0, c1, term_reward, tol, max_iter,
                 p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward):
-    """All envs; inputs soc (N, n_des), t_index (N,), setpoints (N, action_dim) p.u.; outputs preallocated."""
+    """The whole transition (spec §3.5 steps 4–7) of every env of a batch slice, written into its output rows.
+
+    Inputs soc (N, n_des), t_index (N,), setpoints (N, action_dim) p.u.; outputs preallocated (N, ...).
+    Called once per batch slice, never per env: a call passes ~50 arrays, each reference-counted.
+    """
     n_bus = y.shape[0]
     scratch = (np.empty(max(gen_poly[1].shape[1], des_poly[1].shape[1])),
                np.empty(gen_h0.shape[1]), np.empty(des_h0.shape[1]), np.empty(n_bus, dtype=np.complex128),
                np.empty(n_bus, dtype=np.complex128), np.empty(n_bus), np.empty(n_bus),
                np.empty(2 * n_bus - 2), np.empty((2 * n_bus - 2, 2 * n_bus - 2)),
                np.empty(2 * n_bus - 2, dtype=np.int64))
-    _env_steps(0, setpoints.shape[0], soc, t_index, setpoints, load_series, p_max_series, dev, lid, gid, did,
-               slack, dev_bus, counted, gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows, y, lu0,
-               piv0, ok0, f_bus, t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max, delta_t, lamb, c0, c1,
-               term_reward, tol, max_iter, p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss,
-               pen, curt, reward, scratch)
+    _env_steps(soc, t_index, setpoints, load_series, p_max_series, dev, lid, gid, did, slack, dev_bus, counted,
+               gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row, des_soc_rows, y, lu0, piv0, ok0, f_bus, t_bus,
+               y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max, delta_t, lamb, c0, c1, term_reward, tol, max_iter,
+               p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward, scratch)
 
 
 def _pool(threads: int) -> ThreadPoolExecutor:
@@ -383,7 +385,7 @@ class CompiledTransition:
     (N, action_dim) p.u.); it returns the fields of a ``Transition`` as a dict of CPU tensors.
     """
 
-    def __init__(self, sim, row_ppot: int, rows_soc: tuple[int, int]):
+    def __init__(self, sim):
         net = sim.net
         if net.dev.device.type != "cpu" or net.dev.dtype != torch.float64:
             raise ValueError(f"the numba kernel needs a float64 CPU simulator, got {net.dev.dtype} on {net.dev.device}")
@@ -395,7 +397,7 @@ class CompiledTransition:
         self.consts = (
             npy(net.dev), npy(sim._lid), npy(sim._gid), npy(sim._did),
             int(sim.slack_ids[0]), npy(net.dev_bus), npy(sim.counted), gen_poly, des_poly, gen_h0, des_h0,
-            int(row_ppot), np.array(rows_soc, dtype=np.int64), npy(net.y_bus), *_flat_start_lu(npy(net.y_bus)),
+            GEN_PPOT_ROW, np.array(DES_SOC_ROWS, dtype=np.int64), npy(net.y_bus), *_flat_start_lu(npy(net.y_bus)),
             npy(br.f_bus), npy(br.t_bus),
             *self._branch_admittances(br), npy(br.rate), npy(net.v_min), npy(net.v_max),
             float(net.delta_t), float(sim.lamb), float(sim.costs_clipping[0]), float(sim.costs_clipping[1]),
@@ -408,8 +410,7 @@ class CompiledTransition:
         ys, ysh, tp = (x.cpu().numpy() for x in (br.y_series, br.y_shunt, br.tap))
         return tuple(np.ascontiguousarray(a) for a in ((ys + ysh) / np.abs(tp) ** 2, ys / tp.conj(), ys / tp, ys + ysh))
 
-    def __call__(self, soc: torch.Tensor, t_index: torch.Tensor, setpoints: torch.Tensor, tol: float,
-                 max_iter: int) -> dict[str, torch.Tensor]:
+    def __call__(self, soc: torch.Tensor, t_index: torch.Tensor, setpoints: torch.Tensor) -> dict[str, torch.Tensor]:
         n = setpoints.shape[0]
         n_dev, n_des, n_gen, n_bus, n_br = self.sizes
         out = {"p_dev": np.empty((n, n_dev)), "q_dev": np.empty((n, n_dev)), "soc": np.empty((n, n_des)),
@@ -423,8 +424,7 @@ class CompiledTransition:
         outs = list(out.values())
 
         def run(lo: int, hi: int) -> None:
-            _transition(*(x[lo:hi] for x in inputs), *series, *self.consts, float(tol), int(max_iter),
-                        *(o[lo:hi] for o in outs))
+            _transition(*(x[lo:hi] for x in inputs), *series, *self.consts, TOL, MAX_ITER, *(o[lo:hi] for o in outs))
 
         threads = torch.get_num_threads()
         if threads > 1 and n >= PARALLEL_MIN_BATCH:

@@ -13,7 +13,7 @@ import torch
 from anm_torchrl.grid import anm6_easy as data
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.network import LOAD, RENEWABLE, SLACK, STORAGE, Network, anm6_easy_network, branch_flows
-from anm_torchrl.grid.powerflow import MAX_ITER, TOL, newton_raphson
+from anm_torchrl.grid.powerflow import newton_raphson
 from anm_torchrl.grid.residuals import power_injection
 from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, penalty, terminal_reward
 
@@ -191,12 +191,12 @@ class GridSimulator:
             t_index: (N,) long, time index whose loads and potentials apply.
             setpoints: (N, action_dim) p.u., action order (P gen, Q gen, P DES, Q DES).
         """
-        if self.backend == "numba" and setpoints.device.type == "cpu":
+        if self.backend == "numba":
             if self._kernel is None:
                 from anm_torchrl.grid.kernel import CompiledTransition
 
-                self._kernel = CompiledTransition(self, dv.GEN_PPOT_ROW, dv.DES_SOC_ROWS)
-            return Transition(**self._kernel(soc, t_index, setpoints, TOL, MAX_ITER))
+                self._kernel = CompiledTransition(self)
+            return Transition(**self._kernel(soc, t_index, setpoints))
         net, ng, nd = self.net, self.n_gen, self.n_des
         n_env = setpoints.shape[0]
         p_dev = setpoints.new_zeros(n_env, net.n_dev)
