@@ -14,6 +14,7 @@ from those files only.
 from __future__ import annotations
 
 import datetime
+import json
 import logging
 import sys
 import time
@@ -111,21 +112,40 @@ def write_tables(rec: dict, out_dir: Path) -> None:
             write_csv(out_dir / f"{name}_{key}.csv", d[key])
 
 
+def merge_into_earlier(earlier: dict, run_info: dict) -> dict:
+    """``earlier`` (an existing run.json record) with this run's experiments merged in and listed as an update."""
+    update = {k: run_info[k] for k in ("command", "date", "wall_s", "versions")}
+    update["experiments"] = run_info["experiments"]
+    earlier["experiments"] = {**earlier.get("experiments", {}), **run_info["experiments"]}
+    earlier["updates"] = [*earlier.get("updates", []), update]
+    return earlier
+
+
+def render(cfg: DictConfig, out_dir: Path, run_info: dict, write_run: bool = False) -> tuple[dict, Path | None]:
+    """Draw every figure from ``out_dir``'s records and write ``cfg.results_md`` (if set); with ``write_run``, also
+    store ``run_info`` (with the figure paths) as ``run.json``. Returns (figures, page path)."""
+    from anm_torchrl.experiments import plots, report
+    from anm_torchrl.experiments.io import load_results, write_json
+
+    results = load_results(out_dir)
+    figs = plots.make_all(results, out_dir / "figures")
+    if write_run:
+        run_info["figures"] = figs
+        write_json(out_dir / "run.json", run_info)
+    md = report.write_results_md(results, figs, _abs(cfg.results_md), run_info) if cfg.results_md else None
+    return figs, md
+
+
 @hydra.main(config_path="conf", config_name="reproduce", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
-    from anm_torchrl.experiments import plots, report
-    from anm_torchrl.experiments.io import load_results, machine_info, versions, write_json
+    from anm_torchrl.experiments.io import machine_info, versions, write_json
 
     t0 = time.perf_counter()
     out_dir = _abs(cfg.out_dir)
     if cfg.report_only:  # redraw the figures and rewrite the page from the records already in out_dir
-        import json
-
         run_info = json.loads((out_dir / "run.json").read_text())
-        results = load_results(out_dir)
-        figs = plots.make_all(results, out_dir / "figures")
-        md = report.write_results_md(results, figs, _abs(cfg.results_md), run_info) if cfg.results_md else None
+        figs, md = render(cfg, out_dir, run_info)
         log.info("report only: figures %s, page %s", sorted(figs), md)
         return run_info
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -147,24 +167,13 @@ def main(cfg: DictConfig) -> dict:
         run_info["experiments"][name] = {"status": rec["status"], "reason": rec.get("reason"),
                                          "wall_s": rec["meta"]["wall_s"]}
         log.info("experiment %s: %s (%.0f s) %s", name, rec["status"], rec["meta"]["wall_s"], rec.get("reason") or "")
-    run_info["wall_s"] = time.perf_counter() - t0
-    if cfg.merge and (out_dir / "run.json").exists():  # keep the earlier run's record; note this one as an update
-        import json
-
-        earlier = json.loads((out_dir / "run.json").read_text())
-        update = {k: run_info[k] for k in ("command", "date", "wall_s", "versions")}
-        update["experiments"] = run_info["experiments"]
-        earlier["experiments"] = {**earlier.get("experiments", {}), **run_info["experiments"]}
-        earlier["updates"] = [*earlier.get("updates", []), update]
-        run_info = earlier
-    results = load_results(out_dir)
-    figs = plots.make_all(results, out_dir / "figures")
-    run_info["figures"] = figs
-    write_json(out_dir / "run.json", run_info)
-    if cfg.results_md:
-        md = report.write_results_md(load_results(out_dir), figs, _abs(cfg.results_md), run_info)
+    run_info["wall_s"] = wall = time.perf_counter() - t0
+    if cfg.merge and (out_dir / "run.json").exists():
+        run_info = merge_into_earlier(json.loads((out_dir / "run.json").read_text()), run_info)
+    figs, md = render(cfg, out_dir, run_info, write_run=True)
+    if md:
         log.info("wrote %s", md)
-    log.info("done in %.0f s: %s", run_info["wall_s"], {k: v["status"] for k, v in run_info["experiments"].items()})
+    log.info("done in %.0f s: %s", wall, {k: v["status"] for k, v in run_info["experiments"].items()})
     return run_info
 
 

@@ -12,14 +12,14 @@ baseline's return on the same states).
 
 from __future__ import annotations
 
-import statistics
 import time
 from pathlib import Path
 from typing import Any
 
 from anm_torchrl.experiments.common import label, make_env_or_reason
 from anm_torchrl.experiments.io import result
-from anm_torchrl.experiments.ppo_runs import last_mean, ppo_overrides, recipe_available, run_ppo, time_to_reach
+from anm_torchrl.experiments.ppo_runs import (aggregate, last_mean, ppo_overrides, recipe_available, run_ppo,
+                                              time_to_reach)
 
 
 def evaluate_baselines(names: list[str], num_episodes: int, max_steps: int, eval_seed: int = 0,
@@ -48,13 +48,6 @@ def evaluate_baselines(names: list[str], num_episodes: int, max_steps: int, eval
         except Exception as err:  # noqa: BLE001
             out[name] = {"available": False, "reason": f"{type(err).__name__}: {err}"}
     return out
-
-
-def _agg(xs: list[float | None]) -> dict[str, float | None]:
-    xs = [x for x in xs if x is not None]
-    if not xs:
-        return {"mean": None, "std": None, "n": 0}
-    return {"mean": statistics.fmean(xs), "std": statistics.stdev(xs) if len(xs) > 1 else 0.0, "n": len(xs)}
 
 
 def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seeds: list[int]) -> dict:
@@ -99,16 +92,15 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seeds:
         ok = [r for r in seed_runs if r["curve"]]
         if not ok:
             not_available[lab] = "; ".join(str(r["error"])[-300:] for r in seed_runs)
+        ret = aggregate([r["last_mean_return"] for r in ok])
         table.append({
-            "env": lab, "seeds": len(ok),
-            "last_mean_return": _agg([r["last_mean_return"] for r in ok])["mean"],
-            "last_mean_return_std": _agg([r["last_mean_return"] for r in ok])["std"],
-            "best_return": _agg([r["best_return"] for r in ok])["mean"],
-            "wall_s": _agg([(r["summary"] or {}).get("wall_time") for r in ok])["mean"],
-            "train_s": _agg([r["curve"][-1]["train_s"] if r["curve"] else None for r in ok])["mean"],
-            "frames": _agg([r["curve"][-1]["frames"] if r["curve"] else None for r in ok])["mean"],
-            "threshold_wall_s": _agg([(r["time_to_threshold"] or {}).get("wall_s") for r in ok])["mean"],
-            "threshold_frames": _agg([(r["time_to_threshold"] or {}).get("frames") for r in ok])["mean"],
+            "env": lab, "seeds": len(ok), "last_mean_return": ret["mean"], "last_mean_return_std": ret["std"],
+            "best_return": aggregate([r["best_return"] for r in ok])["mean"],
+            "wall_s": aggregate([(r["summary"] or {}).get("wall_time") for r in ok])["mean"],
+            "train_s": aggregate([r["curve"][-1]["train_s"] if r["curve"] else None for r in ok])["mean"],
+            "frames": aggregate([r["curve"][-1]["frames"] if r["curve"] else None for r in ok])["mean"],
+            "threshold_wall_s": aggregate([(r["time_to_threshold"] or {}).get("wall_s") for r in ok])["mean"],
+            "threshold_frames": aggregate([(r["time_to_threshold"] or {}).get("frames") for r in ok])["mean"],
             "reached_threshold": sum(1 for r in ok if (r["time_to_threshold"] or {}).get("frames") is not None),
         })
     status = "ok" if not not_available else ("partial" if any(r["seeds"] for r in table) else "not available")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import time
@@ -101,6 +102,14 @@ def ppo_overrides(surrogate: dict[str, Any], seed: int, base: dict[str, Any]) ->
     out += [f"surrogate.{k}={'null' if v is None else v}" for k, v in surrogate.items() if k != "name"]
     out += [f"{k}={'null' if v is None else v}" for k, v in base.items()]
     return out
+
+
+def aggregate(xs: list[float | None]) -> dict[str, float | None]:
+    """Mean, sample std (0.0 for one value) and count of the values that are not None (seeds of one setting)."""
+    xs = [x for x in xs if x is not None]
+    if not xs:
+        return {"mean": None, "std": None, "n": 0}
+    return {"mean": statistics.fmean(xs), "std": statistics.stdev(xs) if len(xs) > 1 else 0.0, "n": len(xs)}
 
 
 def last_mean(curve: list[dict[str, float]], key: str = "return", k: int = 10) -> float | None:

@@ -3,7 +3,8 @@
 buffer = steps per env between updates, so ``collector.frames_per_batch = n_envs × buffer``. Every cell trains
 with the same frame budget (once per seed) and is evaluated on the true simulator; recorded: the mean evaluation
 return over the last ``last_k`` evaluations (mean and std over seeds) and the training wall time, then Pearson
-correlations between n_envs, buffer, mean return and training time, and the best cell. The same grid runs as a Hydra multirun::
+correlations between n_envs, buffer, mean return and training time, and the best cell. The same grid runs as a
+Hydra multirun::
 
     python recipes/ppo.py -m surrogate=pinn env.num_envs=10,100 collector.frames_per_batch=300,3000
 
@@ -19,7 +20,7 @@ from typing import Any
 
 from anm_torchrl.experiments.common import label, make_env_or_reason
 from anm_torchrl.experiments.io import result
-from anm_torchrl.experiments.ppo_runs import last_mean, ppo_overrides, recipe_available, run_ppo
+from anm_torchrl.experiments.ppo_runs import aggregate, last_mean, ppo_overrides, recipe_available, run_ppo
 
 VARS = ("n_envs", "buffer", "mean_return", "train_time_s")
 
@@ -65,19 +66,18 @@ def run(cfg: dict[str, Any], out_dir: str | Path, seed: int = 0) -> dict:
             recs = [run_ppo(ppo_overrides(spec, s, over), Path(out_dir) / "runs" / "sweep" / f"n{n}_b{b}_s{s}",
                             timeout_s=cfg.get("timeout_s")) for s in seeds]
             per_seed = [last_mean(r["curve"], "return", last_k) for r in recs]
-            got = [x for x in per_seed if x is not None]
-            mean = lambda xs: sum(xs) / len(xs) if xs else None  # noqa: E731
+            ret = aggregate(per_seed)
             rows.append({"n_envs": int(n), "buffer": int(b), "frames_per_batch": int(n) * int(b),
-                         "seeds": len(got), "mean_return": mean(got),
-                         "mean_return_std": (sum((x - mean(got)) ** 2 for x in got) / (len(got) - 1)) ** 0.5
-                         if len(got) > 1 else None,
+                         "seeds": ret["n"], "mean_return": ret["mean"],
+                         "mean_return_std": ret["std"] if ret["n"] > 1 else None,
                          "mean_return_per_seed": per_seed,
-                         "mean_discounted_return": mean([x for x in (last_mean(r["curve"], "discounted_return",
-                                                                                 last_k) for r in recs) if x is not None]),
-                         "train_time_s": mean([r["summary"]["wall_time"] for r in recs if r["summary"]]),
-                         "train_time_no_eval_s": mean([r["curve"][-1]["train_s"] for r in recs if r["curve"]]),
-                         "frames": mean([r["curve"][-1]["frames"] for r in recs if r["curve"]]),
-                         "evaluations": mean([len(r["curve"]) for r in recs if r["curve"]]),
+                         "mean_discounted_return": aggregate([last_mean(r["curve"], "discounted_return", last_k)
+                                                              for r in recs])["mean"],
+                         "train_time_s": aggregate([(r["summary"] or {}).get("wall_time") for r in recs])["mean"],
+                         "train_time_no_eval_s": aggregate([r["curve"][-1]["train_s"] for r in recs
+                                                            if r["curve"]])["mean"],
+                         "frames": aggregate([r["curve"][-1]["frames"] for r in recs if r["curve"]])["mean"],
+                         "evaluations": aggregate([len(r["curve"]) for r in recs if r["curve"]])["mean"],
                          "error": "; ".join(str(r["error"]) for r in recs if r["error"]) or None,
                          "run_dirs": [r["run_dir"] for r in recs]})
     corr = {a: {b: pearson([r[a] for r in rows], [r[b] for r in rows]) for b in VARS} for a in VARS}
