@@ -6,7 +6,6 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -27,21 +26,12 @@ def dataset_dir(kind: str, size: int, seed: int) -> Path:
 
 
 def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
-    """``torch.save`` to ``path`` through a synced temporary file and ``os.replace``: an interrupted write leaves
-    the previous file intact and no temporary file behind. Creates the parent folder. Returns the path."""
+    """``torch.save`` to ``path`` atomically (:func:`anm_torchrl.artifacts.atomic_write`). Returns the path.
+
+    Kept for PPO checkpoints; new artifacts use :func:`anm_torchrl.artifacts.save_tensors` (hash-checked).
+    """
     import torch
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    from anm_torchrl.artifacts import atomic_write
+
+    return atomic_write(path, lambda tmp: torch.save(obj, tmp))
