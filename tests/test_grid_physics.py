@@ -556,7 +556,7 @@ def test_numba_backend_on_general_networks():
             continue
         net = make_network(buses, branches, devices, base_mva=250.0, delta_t=0.25)
         loads = torch.as_tensor(rng.uniform(-12, 0, (1, 8)), **f64)
-        pmax = torch.as_tensor(rng.uniform(0, 400, (1, 8)), **f64)
+        pmax = torch.as_tensor(rng.uniform(0, 400, (2, 8)), **f64)  # classical and renewable generator
         sims = [GridSimulator(net, loads, pmax, gamma=0.99, lamb=50.0, costs_clipping=(2.0, 80.0), backend=b)
                 for b in ("torch", "numba")]
         lo, hi = sims[0].action_bounds()

@@ -64,7 +64,7 @@ def generator_polygon(net: Network, dev_ids: list[int]) -> tuple[torch.Tensor, t
         gs.append([[-1, 0], [1, 0], [1, 0], [0, -1], [0, 1], [-t1, 1], [t2, -1]])
         hs.append([-row[PMIN], row[PMAX], float("inf"), -row[QMIN], row[QMAX], r1, -r2])
     kw = dict(dtype=net.dev.dtype, device=net.dev.device)
-    return torch.tensor(gs, **kw), torch.tensor(hs, **kw)
+    return torch.tensor(gs, **kw).reshape(-1, GEN_ROWS, 2), torch.tensor(hs, **kw).reshape(-1, GEN_ROWS)
 
 
 def generator_h(h0: torch.Tensor, p_pot: torch.Tensor) -> torch.Tensor:
@@ -144,6 +144,7 @@ class Polygon:
         t_hi = torch.where(self.upper, ratio, inf).amin(-2)  # (..., j)
         t_lo = torch.where(self.lower, ratio, -inf).amax(-2)
         ok = torch.where(self.parallel, b >= -_FEAS_TOL, True).all(-2) & (t_lo <= t_hi + _FEAS_TOL)
+        ok = ok & torch.isfinite(h)  # a line at +inf (a bound given as None) never holds the projection
         t = torch.minimum(torch.maximum((target @ d.T) / self.gn2, t_lo), t_hi)  # (..., j)
         cand = (h / self.gn2).unsqueeze(-1) * g + t.unsqueeze(-1) * d  # p0_j + t_j d_j: (..., j, 2)
         diff = cand - target.unsqueeze(-2)

@@ -1,7 +1,8 @@
 """Network description as float64 torch tensors, the branch π-model, Y-bus and branch flows.
 
-General over any radial or meshed network given as gym-anm style tables (bus 0 is the slack); the ANM6-Easy
-instance is :func:`anm6_easy_network`. All quantities are in p.u. on ``base_mva`` unless a name says otherwise.
+General over any radial or meshed network given as gym-anm style tables (bus 0 is the slack; the tables are
+checked and given gym-anm's defaults by :func:`anm_torchrl.networks.validation.validate_network`). All
+quantities are in p.u. on ``base_mva`` unless a name says otherwise.
 """
 
 from __future__ import annotations
@@ -12,8 +13,6 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-
-from anm_torchrl.grid import anm6_easy as data
 
 DTYPE = torch.float64
 CDTYPE = torch.complex128
@@ -144,6 +143,9 @@ def make_network(buses, branches, devices, base_mva: float, delta_t: float, devi
     br = make_branches(branches, base_mva, device=device)
     dev_pu = dev.clone()
     dev_pu[:, 4:14] = dev[:, 4:14] / base_mva  # PMAX ... SOC_MIN (MW, MVAr, MWh)
+    # gym-anm's Load never divides PMAX by baseMVA (devices.py): a load's PMAX (<= 0, usually 0) is used as p.u.
+    is_load = dev[:, 2] == LOAD
+    dev_pu[is_load, 4] = dev[is_load, 4]
     dev_bus = dev[:, 1].long()
     incidence = torch.zeros(dev.shape[0], n_bus, dtype=DTYPE, device=bus.device)
     incidence[torch.arange(dev.shape[0]), dev_bus] = 1.0
@@ -160,7 +162,3 @@ def make_network(buses, branches, devices, base_mva: float, delta_t: float, devi
         incidence=incidence,
     )
 
-
-def anm6_easy_network(device=None) -> Network:
-    """The ANM6-Easy network of gym-anm 2.0.1 (spec §1)."""
-    return make_network(data.BUSES, data.BRANCHES, data.DEVICES, data.BASE_MVA, data.DELTA_T, device=device)

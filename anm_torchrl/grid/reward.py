@@ -7,9 +7,16 @@ import torch
 from anm_torchrl.grid.network import Network
 
 
-def curtailment(p_pot: torch.Tensor, p_gen: torch.Tensor) -> torch.Tensor:
-    """Σ_g max(0, P_pot,g - P_g) over renewable generators, (N,) p.u.; inputs (N, n_gen)."""
-    return torch.relu(p_pot - p_gen).sum(-1)
+def curtailment(p_pot: torch.Tensor, p_gen: torch.Tensor, renewable: torch.Tensor | None = None) -> torch.Tensor:
+    """Σ_g max(0, P_pot,g - P_g) over renewable generators, (N,) p.u.
+
+    Args:
+        p_pot, p_gen: (N, n_gen) p.u., every non-slack generator.
+        renewable: (n_gen,) 1/0 (or bool): which generators are renewable (classical ones are not curtailed,
+            gym-anm); ``None``: all of them.
+    """
+    gap = torch.relu(p_pot - p_gen)
+    return (gap if renewable is None else gap * renewable.to(gap.dtype)).sum(-1)
 
 
 def energy_loss(p_dev: torch.Tensor, counted: torch.Tensor, curtailed: torch.Tensor, delta_t: float) -> torch.Tensor:

@@ -1,7 +1,10 @@
-"""The ANM6-Easy transition as batched float64 torch maths, numbered as in gym-anm (spec §3.5), and its reset.
+"""gym-anm's transition on any network as batched float64 maths, numbered as in gym-anm (spec §3.5), and resets.
 
-State vectors are in gym-anm's order and units (MW, MVAr, MWh, time index; spec §3.1); actions in MW/MVAr
-(spec §3.2). Internally everything is p.u. on ``base_mva``. No TorchRL here: :mod:`anm_torchrl.envs` wraps it.
+State vectors are in gym-anm's order and units (MW, MVAr, MWh, auxiliary variable; spec §3.1); actions in
+MW/MVAr (spec §3.2). Internally everything is p.u. on ``base_mva``. Two backends compute the same transition:
+batched torch ops here (any device, differentiable) and a compiled numba loop (:mod:`anm_torchrl.grid.kernel`)
+fed with one :class:`~anm_torchrl.grid.constants.TransitionConstants`. No TorchRL here: :mod:`anm_torchrl.envs`
+wraps it.
 """
 
 from __future__ import annotations
@@ -10,9 +13,11 @@ import dataclasses
 
 import torch
 
-from anm_torchrl.grid import anm6_easy as data
+from collections.abc import Callable
+
 from anm_torchrl.grid import devices as dv
-from anm_torchrl.grid.network import LOAD, RENEWABLE, SLACK, STORAGE, Network, anm6_easy_network, branch_flows
+from anm_torchrl.grid.constants import TransitionConstants, build_constants
+from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STORAGE, Network, branch_flows
 from anm_torchrl.grid.powerflow import newton_raphson
 from anm_torchrl.grid.residuals import power_injection
 from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, penalty, terminal_reward
@@ -24,7 +29,8 @@ class Transition:
 
     Attributes:
         p_dev, q_dev: (N, n_dev) applied injections, slack from the power flow (+inf if NaN).
-        soc: (N, n_des) p.u.·h after the update.  p_pot: (N, n_gen) clipped potentials.
+        soc: (N, n_des) p.u.·h after the update.  p_pot: (N, n_gen) clipped potentials of the non-slack
+            generators (classical and renewable).
         v: (N, n_bus) complex voltages.  s_apparent_max: (N, n_branch) signed flows.
         converged: (N,) bool.  n_iter: (N,) long.
         e_loss: (N,) p.u.·h.  penalty: (N,) λΦ.  curtailment: (N,) p.u.  reward: (N,) with terminal reward.
@@ -45,12 +51,17 @@ class Transition:
 
 
 class GridSimulator:
-    """Batched transition model of a gym-anm environment (float64), e.g. :func:`anm6_easy_simulator`.
+    """Batched transition model of a gym-anm environment (float64) on any valid network.
+
+    Exogenous variables follow gym-anm's ``next_vars``: by default (the ANM6-Easy convention) the auxiliary
+    variable is a time index t and a step reads column (t + 1) mod T of the series; ``next_vars_hook`` replaces
+    that rule (see :meth:`next_vars`).
 
     Args:
-        net: the network.
+        net: the network (bus 0 the slack; build it from validated tables).
         load_series: (n_load, T) load P (MW) per time index, loads in ascending device id.
-        p_max_series: (n_gen, T) raw renewable potentials (MW); clipped to [PMIN, PMAX] when used.
+        p_max_series: (n_gen, T) raw potentials (MW) of the non-slack generators (classical and renewable, in
+            device-id order); clipped to [PMIN, PMAX] when used.
         gamma, lamb, costs_clipping: reward constants.
         backend: ``"torch"`` (batched tensor ops, any device), ``"numba"`` (one compiled loop over the batch,
             float64 CPU only, several times faster; :mod:`anm_torchrl.grid.kernel`) or ``"auto"`` (numba when
@@ -58,19 +69,29 @@ class GridSimulator:
     """
 
     def __init__(self, net: Network, load_series: torch.Tensor, p_max_series: torch.Tensor, gamma: float,
-                 lamb: float, costs_clipping: tuple[float, float], backend: str = "auto"):
+                 lamb: float, costs_clipping: tuple[float, float], backend: str = "auto",
+                 next_vars_hook: Callable | None = None):
         self.net = net
         kind = net.dev_type.tolist()
         self.slack_ids = [i for i, k in enumerate(kind) if k == SLACK]
         self.load_ids = [i for i, k in enumerate(kind) if k == LOAD]
-        self.gen_ids = [i for i, k in enumerate(kind) if k == RENEWABLE]
+        self.gen_ids = [i for i, k in enumerate(kind) if k in (CLASSICAL_GEN, RENEWABLE)]
         self.des_ids = [i for i, k in enumerate(kind) if k == STORAGE]
         if len(self.slack_ids) != 1 or net.dev_bus[self.slack_ids[0]] != 0:
             raise ValueError("exactly one slack device, at bus 0, is required")
+        if tuple(load_series.shape[:1]) != (len(self.load_ids),) or tuple(p_max_series.shape[:1]) != (self.n_gen,):
+            raise ValueError(f"load_series must be ({len(self.load_ids)}, T) and p_max_series ({self.n_gen}, T), "
+                             f"got {tuple(load_series.shape)} and {tuple(p_max_series.shape)}")
+        # 1.0 for renewable generators: only their curtailment counts in ΔE (gym-anm's RenewableGen)
+        self.renewable = torch.tensor([float(kind[i] == RENEWABLE) for i in self.gen_ids], dtype=net.dev.dtype,
+                                      device=net.dev.device)
+        self.next_vars_hook = next_vars_hook
         self.gamma, self.lamb, self.costs_clipping = gamma, lamb, costs_clipping
         self.load_series = load_series.to(net.dev) / net.base_mva
         self.p_max_series = p_max_series.to(net.dev) / net.base_mva
         self.n_time = self.load_series.shape[1]
+        if self.n_time < 1 or self.p_max_series.shape[1] != self.n_time:
+            raise ValueError(f"series need the same T >= 1 columns, got {self.n_time} and {self.p_max_series.shape[1]}")
         self.gen_g, self.gen_h0 = dv.generator_polygon(net, self.gen_ids)
         polys = [dv.storage_polygon(net, d) for d in self.des_ids]
         self.des_g = torch.stack([p[0] for p in polys]) if polys else None
@@ -84,6 +105,14 @@ class GridSimulator:
         self.terminal_reward = terminal_reward(gamma, costs_clipping)
         self.backend = self._pick_backend(backend)
         self._kernel = None
+        self._constants: TransitionConstants | None = None
+
+    @property
+    def constants(self) -> TransitionConstants:
+        """The network tables as one :class:`TransitionConstants` (built on first use)."""
+        if self._constants is None:
+            self._constants = build_constants(self)
+        return self._constants
 
     def _pick_backend(self, backend: str) -> str:
         from anm_torchrl.grid import kernel
@@ -100,6 +129,24 @@ class GridSimulator:
         return backend
 
     # ----------------------------------------------------------------------------------------------- layout
+    @classmethod
+    def from_tables(cls, network: dict, load_p, gen_p_max, delta_t: float, gamma: float, lamb: float,
+                    costs_clipping: tuple[float, float], device=None, backend: str = "auto",
+                    next_vars_hook: Callable | None = None) -> "GridSimulator":
+        """A simulator from a validated network dict (:func:`anm_torchrl.networks.validation.validate_network`)
+        and profiles ``load_p`` (T, n_load), ``gen_p_max`` (T, n_gen) MW in device-id order."""
+        from anm_torchrl.grid.network import make_network
+
+        net = make_network(network["bus"], network["branch"], network["device"], float(network["baseMVA"]),
+                           float(delta_t), device=device)
+        as_t = lambda x: torch.as_tensor(x, dtype=torch.float64, device=device).reshape(-1, x.shape[-1]).T  # noqa: E731
+        return cls(net, as_t(load_p), as_t(gen_p_max), gamma=gamma, lamb=lamb, costs_clipping=costs_clipping,
+                   backend=backend, next_vars_hook=next_vars_hook)
+
+    @property
+    def n_load(self) -> int:
+        return len(self.load_ids)
+
     @property
     def n_gen(self) -> int:
         return len(self.gen_ids)
@@ -148,14 +195,45 @@ class GridSimulator:
     # ------------------------------------------------------------------------------------------- physics
     def loads_at(self, t_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Load (P, Q) (N, n_load) p.u. at time indices ``t_index`` (N,): P clipped to [PMIN, PMAX]."""
+        return self.load_pq(self.load_series[:, t_index].T)
+
+    def load_pq(self, p_load: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Load (P, Q) (N, n_load) p.u. from raw load P (N, n_load) p.u.: clipped to [PMIN, PMAX], Q = (Q/P)·P."""
         dev = self.net.dev[self._lid]
-        p = torch.clamp(self.load_series[:, t_index].T, dev[:, dv.PMIN], dev[:, dv.PMAX])
+        p = torch.clamp(p_load, dev[:, dv.PMIN], dev[:, dv.PMAX])
         return p, p * dev[:, 3]
 
     def p_pot_at(self, t_index: torch.Tensor) -> torch.Tensor:
-        """Clipped renewable potentials (N, n_gen) p.u. at time indices ``t_index`` (N,)."""
+        """Clipped generator potentials (N, n_gen) p.u. at time indices ``t_index`` (N,)."""
+        return self.clip_p_pot(self.p_max_series[:, t_index].T)
+
+    def clip_p_pot(self, p_pot: torch.Tensor) -> torch.Tensor:
+        """Potentials (N, n_gen) p.u. clipped to each generator's [PMIN, PMAX] (gym-anm's ``p_pot`` setter)."""
         dev = self.net.dev[self._gid]
-        return torch.clamp(self.p_max_series[:, t_index].T, dev[:, dv.PMIN], dev[:, dv.PMAX])
+        return torch.clamp(p_pot, dev[:, dv.PMIN], dev[:, dv.PMAX])
+
+    def next_vars(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """gym-anm's ``next_vars`` for a batch: the exogenous variables of the step leaving ``state``.
+
+        Default (ANM6-Easy convention): t' = (t + 1) mod T from the state's time index, load P and raw
+        potentials from column t' of the series. With ``next_vars_hook`` set, returns ``hook(state)``.
+
+        Args:
+            state: (N, state_dim) MW/MVAr/MWh/aux.
+
+        Returns:
+            load P (N, n_load) MW, raw generator potentials (N, n_gen) MW, aux (N, 1) of the next state.
+        """
+        if self.next_vars_hook is not None:
+            p_load, p_pot, aux = self.next_vars_hook(state)
+            n = state.shape[0]
+            for name, x, k in (("load P", p_load, self.n_load), ("potentials", p_pot, self.n_gen), ("aux", aux, 1)):
+                if tuple(x.shape) != (n, k):
+                    raise ValueError(f"next_vars_hook must return {name} of shape ({n}, {k}), got {tuple(x.shape)}")
+            return p_load.to(state), p_pot.to(state), aux.to(state)
+        t = (state[:, -1].round().long() + 1) % self.n_time
+        b = self.net.base_mva
+        return self.load_series[:, t].T * b, self.p_max_series[:, t].T * b, t.unsqueeze(1).to(state)
 
     def project_generators(self, target: torch.Tensor, p_pot: torch.Tensor) -> torch.Tensor:
         """Feasible (P, Q) (N, n_gen, 2) p.u. for set-points ``target`` (N, n_gen, 2) and ``p_pot`` (N, n_gen)."""
@@ -184,27 +262,33 @@ class GridSimulator:
         return torch.clamp(nxt, d[:, dv.SOC_MIN], d[:, dv.SOC_MAX])
 
     def transition(self, soc: torch.Tensor, t_index: torch.Tensor, setpoints: torch.Tensor) -> Transition:
-        """One batched transition of the simulator (spec §3.5 steps 4–7).
+        """One batched transition at time indices ``t_index`` (N,) of the series (see :meth:`apply`)."""
+        return self.apply(soc, self.load_series[:, t_index].T, self.p_max_series[:, t_index].T, setpoints)
+
+    def apply(self, soc: torch.Tensor, p_load: torch.Tensor, p_pot: torch.Tensor, setpoints: torch.Tensor
+              ) -> Transition:
+        """One batched transition of the simulator (spec §3.5 steps 4–7), on this simulator's backend.
 
         Args:
             soc: (N, n_des) state of charge before the step, p.u.·h.
-            t_index: (N,) long, time index whose loads and potentials apply.
+            p_load: (N, n_load) raw load P p.u. (clipped to [PMIN, PMAX] here).
+            p_pot: (N, n_gen) raw generator potentials p.u. (clipped to [PMIN, PMAX] here).
             setpoints: (N, action_dim) p.u., action order (P gen, Q gen, P DES, Q DES).
         """
         if self.backend == "numba":
             if self._kernel is None:
                 from anm_torchrl.grid.kernel import CompiledTransition
 
-                self._kernel = CompiledTransition(self)
-            return Transition(**self._kernel(soc, t_index, setpoints))
+                self._kernel = CompiledTransition(self.constants)
+            return Transition(**self._kernel(soc, p_load, p_pot, setpoints))
         net, ng, nd = self.net, self.n_gen, self.n_des
         n_env = setpoints.shape[0]
         p_dev = setpoints.new_zeros(n_env, net.n_dev)
         q_dev = setpoints.new_zeros(n_env, net.n_dev)
-        # 1. loads follow the time series.
-        p_dev[:, self._lid], q_dev[:, self._lid] = self.loads_at(t_index)
-        # 2. renewable generators: potential, then projection onto the capability polygon.
-        p_pot = self.p_pot_at(t_index)
+        # 1. loads follow their exogenous P.
+        p_dev[:, self._lid], q_dev[:, self._lid] = self.load_pq(p_load)
+        # 2. non-slack generators: potential, then projection onto the capability polygon.
+        p_pot = self.clip_p_pot(p_pot)
         gen = self.project_generators(torch.stack([setpoints[:, :ng], setpoints[:, ng:2 * ng]], -1), p_pot)
         p_dev[:, self._gid], q_dev[:, self._gid] = gen[..., 0], gen[..., 1]
         # 3. storage: SoC-dependent projection, then SoC update.
@@ -229,7 +313,7 @@ class GridSimulator:
         q_dev[:, self.slack_ids[0]] = torch.where(torch.isnan(s_slack.imag), inf, s_slack.imag)
         s_max = branch_flows(pf.v, net.branches)["s_apparent_max"]
         # 6. reward terms; a non-converged power flow is terminal.
-        curt = curtailment(p_pot, p_dev[:, self._gid])
+        curt = curtailment(p_pot, p_dev[:, self._gid], self.renewable)
         e_loss = energy_loss(p_dev, self.counted, curt, net.delta_t)
         pen = penalty(pf.v.abs(), s_max, net, self.lamb)
         reward = clipped_reward(e_loss, pen, self.costs_clipping)
@@ -253,29 +337,39 @@ class GridSimulator:
         the time index — are those of the series at ``t_index`` (N,) (perfect foresight)."""
         sl, b = self.state_slices(), self.net.base_mva
         out = state.clone()
-        p_load, q_load = self.loads_at(t_index)
-        out[:, sl["dev_p"].start + self._lid] = p_load * b
-        out[:, sl["dev_q"].start + self._lid] = q_load * b
-        out[:, sl["gen_p_max"]] = self.p_pot_at(t_index) * b
-        out[:, sl["aux"]] = t_index.unsqueeze(1).to(out)
+        return self.with_next_vars(state, self.load_series[:, t_index].T * b, self.p_max_series[:, t_index].T * b,
+                                   t_index.unsqueeze(1).to(state))
+
+    def with_next_vars(self, state: torch.Tensor, p_load: torch.Tensor, p_pot: torch.Tensor, aux: torch.Tensor
+                       ) -> torch.Tensor:
+        """A copy of ``state`` whose exogenous entries are those of :meth:`next_vars`' output (MW, aux)."""
+        sl, b = self.state_slices(), self.net.base_mva
+        out = state.clone()
+        p, q = self.load_pq(p_load / b)
+        out[:, sl["dev_p"].start + self._lid] = p * b
+        out[:, sl["dev_q"].start + self._lid] = q * b
+        out[:, sl["gen_p_max"]] = self.clip_p_pot(p_pot / b) * b
+        out[:, sl["aux"]] = aux.to(out)
         return out
 
     def build_state(self, tr: Transition, aux: torch.Tensor) -> torch.Tensor:
-        """State (N, state_dim) in MW/MVAr/MWh after ``tr``; zeros where the power flow did not converge."""
+        """State (N, state_dim) in MW/MVAr/MWh after ``tr`` and ``aux`` (N,) or (N, 1); zeros where the power flow
+        did not converge."""
         b = self.net.base_mva
-        state = torch.cat([tr.p_dev * b, tr.q_dev * b, tr.soc * b, tr.p_pot * b, aux.unsqueeze(1).to(tr.p_dev)], 1)
+        state = torch.cat([tr.p_dev * b, tr.q_dev * b, tr.soc * b, tr.p_pot * b, aux.reshape(-1, 1).to(tr.p_dev)], 1)
         return torch.where(tr.converged.unsqueeze(1), state, torch.zeros_like(state))
 
     def step(self, state: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, Transition]:
         """gym-anm ``step`` for a batch: ``state`` (N, state_dim) MW…, ``action`` (N, action_dim) MW/MVAr.
 
         Returns the next state (zeros on terminal rows) and the :class:`Transition` (reward, convergence…).
-        Only the SoC and the time index of ``state`` matter: loads and potentials come from the series.
+        Only the SoC and the auxiliary variable of ``state`` matter: loads, potentials and the next auxiliary
+        variable come from :meth:`next_vars`.
         """
-        sl = self.state_slices()
-        aux_next = (state[:, sl["aux"]].squeeze(1).round().long() + 1) % self.n_time
-        tr = self.transition(state[:, sl["des_soc"]] / self.net.base_mva, aux_next, action / self.net.base_mva)
-        return self.build_state(tr, aux_next), tr
+        b = self.net.base_mva
+        p_load, p_pot, aux = self.next_vars(state)
+        tr = self.apply(state[:, self.state_slices()["des_soc"]] / b, p_load / b, p_pot / b, action / b)
+        return self.build_state(tr, aux), tr
 
     # --------------------------------------------------------------------------------------------- reset
     def sample_initial(self, n: int, generator: torch.Generator | None = None,
@@ -331,6 +425,9 @@ class GridSimulator:
         """
         dev, b = self.net.dev, self.net.base_mva
         a_low, a_high = self.action_bounds()
+        if not (torch.isfinite(a_low).all() and torch.isfinite(a_high).all()):
+            raise ValueError(f"random_state draws set-points over the action box, which must be finite; got low "
+                             f"{a_low.tolist()}, high {a_high.tolist()} (give PMAX/QMAX/QMIN or use a reset hook)")
         d = dev[self._did]
         kw = dict(generator=generator, dtype=dev.dtype, device=dev.device)
 
@@ -361,7 +458,10 @@ class GridSimulator:
 
 
 def anm6_easy_simulator(device=None, backend: str = "auto") -> GridSimulator:
-    """The ANM6-Easy simulator of gym-anm 2.0.1 on ``device`` (``backend``: see :class:`GridSimulator`)."""
-    series = torch.as_tensor(data.TIME_SERIES_MW, device=device)
-    return GridSimulator(anm6_easy_network(device), load_series=series[:3], p_max_series=series[3:],
-                         gamma=data.GAMMA, lamb=data.LAMB, costs_clipping=data.COSTS_CLIPPING, backend=backend)
+    """The ANM6-Easy simulator of gym-anm 2.0.1 on ``device`` (``backend``: see :class:`GridSimulator`).
+
+    Kept here for its many importers; the data lives in :mod:`anm_torchrl.networks.anm6_easy`.
+    """
+    from anm_torchrl.networks import anm6_easy
+
+    return anm6_easy.simulator(device=device, backend=backend)

@@ -1,6 +1,7 @@
 """ANM6-Easy data: network tables and the five 96-step time series (gym-anm 2.0.1).
 
-Pure data, no logic beyond building the series from their nine pieces (spec §2.2). Units are those of
+Data plus the gym-anm network dict and profile tables built from it (:func:`network`, :func:`load_p`,
+:func:`gen_p_max`); the series are built from their nine pieces (spec §2.2). Units are those of
 gym-anm's ``network.py``: MW, MVAr, MWh, p.u. on ``BASE_MVA``; device rows use the column order of
 ``gym_anm/simulator/components/constants.py``.
 """
@@ -74,3 +75,29 @@ TIME_SERIES_MW = np.stack(
     ]
 )
 TIME_SERIES_DEVICES = (1, 3, 5, 2, 4)
+
+
+def network() -> dict:
+    """The ANM6-Easy network as a gym-anm network dict (float64 arrays, NaN where gym-anm has None)."""
+    return {"baseMVA": BASE_MVA, "bus": np.array(BUSES, dtype=np.float64),
+            "device": np.array(DEVICES, dtype=np.float64), "branch": np.array(BRANCHES, dtype=np.float64)}
+
+
+def load_p() -> np.ndarray:
+    """Load P profiles (96, 3) MW of devices 1, 3, 5 (device-id order)."""
+    return TIME_SERIES_MW[:3].T.copy()
+
+
+def gen_p_max() -> np.ndarray:
+    """Raw generator potential profiles (96, 2) MW of devices 2 (PV) and 4 (wind); the PV column exceeds its
+    PMAX at four steps (clipped by the simulator, as gym-anm)."""
+    return TIME_SERIES_MW[3:].T.copy()
+
+
+def simulator(device=None, backend: str = "auto"):
+    """The ANM6-Easy :class:`~anm_torchrl.grid.simulator.GridSimulator` (gym-anm 2.0.1) on ``device``."""
+    from anm_torchrl.grid.simulator import GridSimulator
+    from anm_torchrl.networks.validation import validate_network
+
+    return GridSimulator.from_tables(validate_network(network()), load_p(), gen_p_max(), DELTA_T, GAMMA, LAMB,
+                                     COSTS_CLIPPING, device=device, backend=backend)

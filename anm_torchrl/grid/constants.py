@@ -1,0 +1,111 @@
+"""``TransitionConstants``: every network table the transition reads, as ONE structure, and its content key.
+
+A ``NamedTuple`` of NumPy arrays and scalars (p.u.), built once per simulator by :func:`build_constants`. The
+numba kernel (:mod:`anm_torchrl.grid.kernel`) takes it as one argument and unpacks it in one place; the
+torch backend reads the same tables from its :class:`~anm_torchrl.grid.network.Network` (torch tensors,
+any device). :func:`content_key` hashes the tables and profiles so that a model built for one network can
+refuse another.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from anm_torchrl.grid.devices import DES_SOC_ROWS, GEN_PPOT_ROW
+from anm_torchrl.grid.powerflow import MAX_ITER, TOL
+
+
+class TransitionConstants(NamedTuple):
+    """The network as the transition sees it (float64 / int64 / complex128 arrays, p.u.).
+
+    Attributes (n_dev devices, n_gen non-slack generators, n_des storage units, n_bus buses, n_br branches):
+        dev: (n_dev, 15) device table in p.u. (gym-anm column order).
+        lid, gid, did: device rows of the loads, non-slack generators (classical and renewable), storage units.
+        renewable: (n_gen,) 1.0 for renewable generators (their curtailment counts in ΔE), 0.0 for classical.
+        slack: device row of the slack generator.  dev_bus: (n_dev,) bus of each device.
+        counted: (n_dev,) 1.0 for devices whose P counts in ΔE (generators, slack, loads).
+        gen_poly, des_poly: projection data of the generator / storage polygons (kernel layout).
+        gen_h0, des_h0: (n_gen, 7), (n_des, 10) constant right-hand sides (+inf in state-dependent rows).
+        gen_ppot_row, des_soc_rows: rows of ``h`` filled from P_pot and from the SoC.
+        y: (n_bus, n_bus) Y-bus.  lu0, piv0, ok0: LU factors of the flat-start Jacobian (shared by all envs).
+        f_bus, t_bus: (n_br,) branch ends.  y_ff, y_ft, y_tf, y_tt: π-model coefficients
+            (i_from = y_ff v_f - y_ft v_t, i_to = y_tt v_t - y_tf v_f).  rate: (n_br,) p.u.
+        v_min, v_max: (n_bus,) p.u.  delta_t (h), lamb, c0, c1 (costs clipping), term_reward.
+        tol, max_iter: Newton–Raphson stopping rule.
+    """
+
+    dev: np.ndarray
+    lid: np.ndarray
+    gid: np.ndarray
+    did: np.ndarray
+    renewable: np.ndarray
+    slack: int
+    dev_bus: np.ndarray
+    counted: np.ndarray
+    gen_poly: tuple
+    des_poly: tuple
+    gen_h0: np.ndarray
+    des_h0: np.ndarray
+    gen_ppot_row: int
+    des_soc_rows: np.ndarray
+    y: np.ndarray
+    lu0: np.ndarray
+    piv0: np.ndarray
+    ok0: bool
+    f_bus: np.ndarray
+    t_bus: np.ndarray
+    y_ff: np.ndarray
+    y_ft: np.ndarray
+    y_tf: np.ndarray
+    y_tt: np.ndarray
+    rate: np.ndarray
+    v_min: np.ndarray
+    v_max: np.ndarray
+    delta_t: float
+    lamb: float
+    c0: float
+    c1: float
+    term_reward: float
+    tol: float
+    max_iter: int
+
+
+def _npy(x: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(x.detach().cpu().numpy())
+
+
+def build_constants(sim) -> TransitionConstants:
+    """The :class:`TransitionConstants` of a :class:`~anm_torchrl.grid.simulator.GridSimulator`."""
+    from anm_torchrl.grid.kernel import _flat_start_lu, _polygon_arrays
+
+    net, br = sim.net, sim.net.branches
+    gen_poly, gen_h0 = _polygon_arrays(sim._gen_poly, sim.gen_h0)
+    des_poly, des_h0 = _polygon_arrays(sim._des_poly, sim.des_h0)
+    ys, ysh, tp = (_npy(x) for x in (br.y_series, br.y_shunt, br.tap))
+    y_bus = _npy(net.y_bus)
+    return TransitionConstants(
+        dev=_npy(net.dev).astype(np.float64), lid=_npy(sim._lid), gid=_npy(sim._gid), did=_npy(sim._did),
+        renewable=_npy(sim.renewable).astype(np.float64), slack=int(sim.slack_ids[0]), dev_bus=_npy(net.dev_bus),
+        counted=_npy(sim.counted).astype(np.float64), gen_poly=gen_poly, des_poly=des_poly, gen_h0=gen_h0,
+        des_h0=des_h0, gen_ppot_row=GEN_PPOT_ROW, des_soc_rows=np.array(DES_SOC_ROWS, dtype=np.int64), y=y_bus,
+        **dict(zip(("lu0", "piv0", "ok0"), _flat_start_lu(y_bus))),
+        f_bus=_npy(br.f_bus), t_bus=_npy(br.t_bus),
+        y_ff=np.ascontiguousarray((ys + ysh) / np.abs(tp) ** 2), y_ft=np.ascontiguousarray(ys / tp.conj()),
+        y_tf=np.ascontiguousarray(ys / tp), y_tt=np.ascontiguousarray(ys + ysh), rate=_npy(br.rate),
+        v_min=_npy(net.v_min), v_max=_npy(net.v_max), delta_t=float(net.delta_t), lamb=float(sim.lamb),
+        c0=float(sim.costs_clipping[0]), c1=float(sim.costs_clipping[1]), term_reward=float(sim.terminal_reward),
+        tol=TOL, max_iter=MAX_ITER)
+
+
+def content_key(*arrays) -> str:
+    """sha256 (hex) of a sequence of arrays / numbers: shapes, dtypes and bytes, in order."""
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a))
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
