@@ -2,6 +2,8 @@
 
 __version__ = "0.1.0"
 
+import anm_torchrl.gym  # noqa: E402,F401  registers the gymnasium ids "anm_torchrl/<Name>-v0"
+
 
 def make_env(*args, **kwargs):
     """See :func:`anm_torchrl.training.factory.make_env`."""

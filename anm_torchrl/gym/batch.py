@@ -1,0 +1,123 @@
+"""A batch of TorchRL envs of this package driven with numpy arrays: the engine of the gymnasium adapters.
+
+Every env of the package (the true simulator and the surrogates) follows one contract (DESIGN.md §3); this
+module turns it into gym-anm's numpy interface — float64 observations equal to gym-anm's (the state clipped to
+its bounds, ``observation="state"``), float64 actions in MW/MVAr, float rewards — for N envs at once.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from gymnasium import error, spaces
+from tensordict import TensorDict
+from torchrl.envs import EnvBase
+
+
+def make_torchrl_env(network: str, num_envs: int, seed: int | None = None, **kwargs) -> EnvBase:
+    """The true-simulator TorchRL env of a registered network, batched over ``num_envs``.
+
+    Args:
+        network: registered network name (``"anm6_easy"``).
+        num_envs: batch size N.
+        seed: seed of the reset sampler (``None``: random).
+        **kwargs: passed to the env (``action_mode``, ``init``, ``backend``).
+
+    Raises:
+        ValueError: unknown network.
+    """
+    if network != "anm6_easy":
+        raise ValueError(f"network must be one of ['anm6_easy'], got {network!r}")
+    from anm_torchrl.envs import ANM6Env
+
+    return ANM6Env(num_envs=num_envs, seed=seed, **kwargs)
+
+
+class NumpyBatch:
+    """N envs of one batched TorchRL env, stepped and reset with numpy arrays; no autoreset.
+
+    Observation (D,) float64: the state clipped to its bounds, as gym-anm's ``observation="state"``. Action (A,)
+    float64 in MW/MVAr, passed to the TorchRL env as float32 (its action dtype). Rewards are the env's float32
+    rewards as float64.
+
+    Args:
+        env: a TorchRL env of this package (``ANM6Env``, ``SurrogateEnv``, …) with batch size (N,).
+
+    Raises:
+        ValueError: the env is not batched in one dimension, or its observation is not its state.
+    """
+
+    def __init__(self, env: EnvBase):
+        if len(env.batch_size) != 1:
+            raise ValueError(f"env batch_size must be (N,), got {tuple(env.batch_size)}")
+        obs_dim = env.observation_spec["observation"].shape[-1]
+        if obs_dim != env.sim.state_dim:
+            raise ValueError(f"the gymnasium adapter needs observation = state (gym-anm's observation='state'); "
+                             f"the env's observation has {obs_dim} entries, its state {env.sim.state_dim}")
+        self.env = env
+        self.num_envs = int(env.batch_size[0])
+        s_low, s_high = (b.cpu().numpy() for b in env.sim.state_bounds())
+        a_low, a_high = (b.cpu().numpy() for b in env.sim.action_bounds())
+        self.observation_space = spaces.Box(s_low, s_high, dtype=np.float64)
+        self.action_space = spaces.Box(a_low, a_high, dtype=np.float64)
+        self._state: torch.Tensor | None = None  # (N, D) float64, the TorchRL env's "state"
+
+    @property
+    def state(self) -> np.ndarray:
+        """gym-anm state (N, D) float64 (MW, MVAr, MWh, time index); zeros on terminated rows."""
+        self._require_reset()
+        return self._state.cpu().numpy().copy()
+
+    def observe(self, state: torch.Tensor) -> np.ndarray:
+        """Observations (N, D) float64 of states (N, D): clipped to the observation bounds."""
+        return np.clip(state.cpu().numpy(), self.observation_space.low, self.observation_space.high)
+
+    def reset(self, mask: np.ndarray | None = None, seed: int | None = None) -> np.ndarray:
+        """Reset all envs (``mask=None``) or the rows where ``mask`` (N,) bool is true; returns observations (N, D).
+
+        ``seed`` re-seeds the batch's reset sampler first (one generator for the whole batch).
+        """
+        if seed is not None:
+            self.env.set_seed(int(seed))
+        if mask is None:
+            self._state = self.env.reset().get("state").clone()
+        else:
+            self._require_reset()
+            mask_t = torch.as_tensor(self._check_mask(mask), device=self.env.device)
+            td = self.env.reset(TensorDict({"_reset": mask_t.unsqueeze(-1)}, self.env.batch_size,
+                                           device=self.env.device))
+            self._state = torch.where(mask_t.unsqueeze(-1), td.get("state"), self._state)
+        return self.observe(self._state)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One transition of every env for ``action`` (N, A) MW/MVAr.
+
+        Returns observations (N, D) float64, rewards (N,) float64 and ``terminated`` (N,) bool.
+
+        Raises:
+            ValueError: wrong action shape, or an action outside the box (the env's ``action_mode="raise"``).
+        """
+        self._require_reset()
+        action = np.asarray(action)
+        expected = (self.num_envs, self.action_space.shape[0])
+        if action.shape != expected:
+            raise ValueError(f"action must have shape {expected}, got {action.shape}")
+        td = TensorDict({"state": self._state,
+                         "action": torch.as_tensor(action, dtype=torch.float32, device=self.env.device)},
+                        self.env.batch_size, device=self.env.device)
+        nxt = self.env.step(td).get("next")
+        self._state = nxt.get("state")
+        reward = nxt.get("reward").squeeze(-1).to(torch.float64).cpu().numpy()
+        terminated = nxt.get("terminated").squeeze(-1).cpu().numpy()
+        return self.observe(self._state), reward, terminated
+
+    def _check_mask(self, mask: np.ndarray) -> np.ndarray:
+        mask = np.asarray(mask)
+        if mask.shape != (self.num_envs,) or mask.dtype != np.bool_:
+            raise ValueError(f"reset mask must be a bool array of shape ({self.num_envs},), got {mask.dtype} "
+                             f"{mask.shape}")
+        return mask
+
+    def _require_reset(self) -> None:
+        if self._state is None:
+            raise error.ResetNeeded("call reset() before step() or a partial reset")

@@ -1,0 +1,58 @@
+"""``ANMGymEnv``: one grid of a TorchRL env of this package as a ``gymnasium.Env`` (gym-anm's interface)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium
+import numpy as np
+from torchrl.envs import EnvBase
+
+from anm_torchrl.gym.batch import NumpyBatch, make_torchrl_env
+
+
+class ANMGymEnv(gymnasium.Env):
+    """A single env with gym-anm's interface, built by ``gymnasium.make("anm_torchrl/ANM6Easy-v0")``.
+
+    Observation (D,) float64 (the state clipped to its bounds), action (A,) float64 MW/MVAr, spaces equal to
+    gym-anm's. As in gym-anm, a step whose power flow does not converge is terminal, and stepping on after
+    that returns a zero observation, reward 0 and ``terminated=True``. No time limit (``gymnasium.make(...,
+    max_episode_steps=T)`` adds one).
+
+    Args:
+        network: registered network name (ignored when ``env`` is given).
+        env: an existing TorchRL env of this package with batch size (1,).
+        **env_kwargs: passed to the true-simulator env (``action_mode``, ``init``, ``backend``).
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, network: str = "anm6_easy", env: EnvBase | None = None, **env_kwargs: Any):
+        if env is not None and tuple(env.batch_size) != (1,):
+            raise ValueError(f"env must have batch size (1,), got {tuple(env.batch_size)}")
+        self._batch = NumpyBatch(env if env is not None else make_torchrl_env(network, 1, **env_kwargs))
+        self.observation_space = self._batch.observation_space
+        self.action_space = self._batch.action_space
+        self._terminated = False
+
+    @property
+    def state(self) -> np.ndarray:
+        """gym-anm state (D,) float64."""
+        return self._batch.state[0]
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Sample an initial state (gym-anm's distribution by default); returns the observation and ``{}``."""
+        if options:
+            raise ValueError(f"options are not supported, got {sorted(options)}")
+        super().reset(seed=seed)
+        obs = self._batch.reset(seed=seed)[0]
+        self._terminated = False
+        return obs, {}
+
+    def step(self, action: np.ndarray):
+        """One transition for ``action`` (A,) MW/MVAr; returns obs, reward, terminated, truncated, ``{}``."""
+        if self._terminated:  # gym-anm stays in its terminal state
+            return np.zeros(self.observation_space.shape), 0.0, True, False, {}
+        obs, reward, terminated = self._batch.step(np.asarray(action, dtype=np.float64)[None])
+        self._terminated = bool(terminated[0])
+        return obs[0], float(reward[0]), self._terminated, False, {}
