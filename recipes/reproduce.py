@@ -1,14 +1,19 @@
-"""Reproduce the paper's experiments (Figs. 5–12 and the four claims) and write ``docs/RESULTS.md``.
+"""Reproduce the paper's experiments (Figs. 5–12 and the four claims) into a run directory; publish explicitly.
 
-    python recipes/reproduce.py                      # preset=quick (<= 15 min on 2 cores) into results/
-    python recipes/reproduce.py preset=full          # <= 3 h, 3 seeds
-    python recipes/reproduce.py preset=tiny out_dir=/tmp/r results_md=/tmp/r/RESULTS.md   # smoke test
-    python recipes/reproduce.py preset.experiments=[speed,rollout_error]                  # a subset
+    python recipes/reproduce.py                      # preset=quick (<= 15 min on 2 cores) into outputs/reproduce/...
+    python recipes/reproduce.py preset=full publish=true          # ~1 h; then results/, docs/RESULTS.md, README
+    python recipes/reproduce.py preset=full preset.experiments=[adaptability] merge=true publish=true
+    python recipes/reproduce.py preset=tiny out_dir=/tmp/r        # smoke test
+    python recipes/reproduce.py report_only=true publish=true     # redraw results/ figures and pages, run nothing
 
 Every experiment is a module of :mod:`anm_torchrl.experiments`; each writes ``<out_dir>/<name>.json`` (status,
 data, machine, versions, seeds, wall time). A piece whose code or trained files are missing is recorded as
-"not available" and the run goes on. Then the figures (``<out_dir>/figures``) and the report are generated
-from those files only.
+"not available" and the run goes on. Then the figures (``<out_dir>/figures``) and ``<out_dir>/RESULTS.md`` are
+generated from those files only. A run never writes outside its run directory unless ``publish=true``: then its
+records are copied into ``publish_dir`` (``results/``; merged experiment by experiment with ``merge=true``) and
+the figures, ``docs/RESULTS.md`` and README's result blocks are rendered from the published records. Publishing
+another preset over the committed record, or a subset of experiments without ``merge=true``, is refused before
+anything runs (``force=true`` overrides).
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from __future__ import annotations
 import datetime
 import json
 import logging
+import os
 import sys
 import time
 import traceback
@@ -29,6 +35,14 @@ REPO = Path(__file__).resolve().parents[1]
 log = logging.getLogger("reproduce")
 
 
+def _md(cfg: DictConfig, out_dir: Path) -> Path | None:
+    """The run's own page: ``results_md`` relative to the run directory (None: no page)."""
+    if cfg.results_md is None:
+        return None
+    p = Path(str(cfg.results_md)).expanduser()
+    return p if p.is_absolute() else out_dir / p
+
+
 def _abs(p: str | None) -> Path | None:
     if p is None:
         return None
@@ -36,38 +50,38 @@ def _abs(p: str | None) -> Path | None:
     return p if p.is_absolute() else REPO / p
 
 
-def prepare_pinn(pcfg: dict, out_dir: Path) -> tuple[dict, list[Path]]:
-    """The PINN surrogate spec to use and the TensorBoard folders where Fig. 5's losses may be.
+def prepare_pinn(pcfg: dict, out_dir: Path) -> tuple[dict, list[Path], float | None]:
+    """The PINN surrogate spec to use, the TensorBoard folders where Fig. 5's losses may be, and the seconds this
+    run spent training it (None when an already trained PINN is used: its training is not timed here).
 
-    Uses ``pinn.path`` (or the default location) if the surrogate loads; otherwise trains it with the
-    ``train_if_missing`` preset of :mod:`anm_torchrl.surrogates.pinn.train` into ``<out_dir>/artifacts/pinn``.
+    Uses ``pinn.path`` (or the default cache) if the surrogate loads; otherwise trains the ``train_if_missing``
+    preset into the default cache (its TensorBoard run in ``<out_dir>/artifacts/pinn_tb``), timing it.
     """
     from anm_torchrl.experiments.common import make_env_or_reason
     from anm_torchrl.paths import surrogate_dir
 
     spec = {"name": "pinn", **({"path": pcfg["path"]} if pcfg.get("path") else {})}
     base = Path(pcfg["path"]).expanduser() if pcfg.get("path") else surrogate_dir("pinn")
-    logs = [_abs(pcfg.get("log_dir")), out_dir / "artifacts" / "pinn_tb", base, base.parent]
-    env, why = make_env_or_reason({**spec, "train_if_missing": False}, 1)  # probe: never train the default here
+    tb = out_dir / "artifacts" / "pinn_tb"
+    logs = [_abs(pcfg.get("log_dir")), tb, base, base.parent]
+    env, why = make_env_or_reason({**spec, "train_if_missing": False}, 1)  # probe: never train here by accident
     if env is not None or not pcfg.get("train_if_missing"):
-        return spec, logs
-    art = out_dir / "artifacts" / "pinn"
-    try:
-        from anm_torchrl.surrogates.pinn.train import preset, save_pinn, train_pinn
+        return spec, logs, None
+    from anm_torchrl.surrogates import load_surrogate
 
-        log.info("PINN not available (%s): training preset %r into %s", why, pcfg["train_if_missing"], art)
-        modules, report = train_pinn(preset(pcfg["train_if_missing"]), log_dir=out_dir / "artifacts" / "pinn_tb")
-        save_pinn(art, modules, preset(pcfg["train_if_missing"]), report)
-        spec = {"name": "pinn", "path": str(art)}
-    except Exception as err:  # noqa: BLE001
-        log.warning("PINN training failed: %s", err)
-    return spec, logs
+    log.info("PINN not available (%s): training preset %r", why, pcfg["train_if_missing"])
+    t0 = time.perf_counter()
+    load_surrogate("pinn", train_if_missing=True, preset=str(pcfg["train_if_missing"]), log_dir=tb, progress=False,
+                   **({"path": pcfg["path"]} if pcfg.get("path") else {}))
+    return spec, logs, time.perf_counter() - t0
 
 
-def run_experiment(name: str, cfg: DictConfig, out_dir: Path, surrogates: list[dict], pinn_logs: list[Path]) -> dict:
-    """Run one experiment by name; any exception becomes an ``error`` record."""
+def run_experiment(name: str, cfg: DictConfig, out_dir: Path, surrogates: list[dict], pinn_logs: list[Path],
+                   train_s: dict[str, float]) -> dict:
+    """Run one experiment by name; any exception becomes an ``error`` record. ``train_s``: seconds this run spent
+    training each surrogate (label -> s), counted in claim 2's time to return."""
     from anm_torchrl.experiments import (accuracy, adaptability, pinn_losses, ppo_curves, rollout_error, speed,
-                                         sweep)
+                                         sweep, test_returns)
     from anm_torchrl.experiments.io import result
 
     p = OmegaConf.to_container(cfg.preset, resolve=True)
@@ -91,8 +105,12 @@ def run_experiment(name: str, cfg: DictConfig, out_dir: Path, surrogates: list[d
                 sub["surrogate"] = next((s for s in surrogates if s["name"] == "pinn"), sub["surrogate"])
             rec = sweep.run(sub, out_dir, seed)
         elif name == "ppo_curves":
-            sub = {**sub, "base": {**sub.get("base", {}), "threads": int(cfg.threads)}}
+            sub = {**sub, "base": {**sub.get("base", {}), "threads": int(cfg.threads)}, "surrogate_train_s": train_s}
             rec = ppo_curves.run(sub, surrogates, out_dir, [int(s) for s in p.get("seeds", [0])])
+        elif name == "test_returns":
+            ppo = sub.get("ppo", {})
+            sub = {**sub, "ppo": {**ppo, "base": {**ppo.get("base", {}), "threads": int(cfg.threads)}}}
+            rec = test_returns.run(sub, surrogates, out_dir)
         else:
             raise ValueError(f"unknown experiment {name!r}")
     except Exception as err:  # noqa: BLE001 - one experiment never stops the others
@@ -112,70 +130,88 @@ def write_tables(rec: dict, out_dir: Path) -> None:
             write_csv(out_dir / f"{name}_{key}.csv", d[key])
 
 
-def merge_into_earlier(earlier: dict, run_info: dict) -> dict:
-    """``earlier`` (an existing run.json record) with this run's experiments merged in and listed as an update."""
-    update = {k: run_info[k] for k in ("command", "date", "wall_s", "versions")}
-    update["experiments"] = run_info["experiments"]
-    earlier["experiments"] = {**earlier.get("experiments", {}), **run_info["experiments"]}
-    earlier["updates"] = [*earlier.get("updates", []), update]
-    return earlier
-
-
-def render(cfg: DictConfig, out_dir: Path, run_info: dict, write_run: bool = False) -> tuple[dict, Path | None]:
-    """Draw every figure from ``out_dir``'s records and write ``cfg.results_md`` (if set); with ``write_run``, also
-    store ``run_info`` (with the figure paths) as ``run.json``. Returns (figures, page path)."""
-    from anm_torchrl.experiments import plots, report
+def render(out_dir: Path, results_md: Path | None, run_info: dict, write_run: bool = False,
+           readme: Path | None = None) -> tuple[dict, Path | None]:
+    """Draw every figure from ``out_dir``'s records and write ``results_md`` (if set) and README's result blocks
+    (if ``readme``); with ``write_run``, also store ``run_info`` (with the figure paths) as ``run.json``.
+    Returns (figures, page path)."""
+    from anm_torchrl.experiments import plots, readme_blocks, report
     from anm_torchrl.experiments.io import load_results, write_json
 
     results = load_results(out_dir)
     figs = plots.make_all(results, out_dir / "figures")
     if write_run:
-        run_info["figures"] = figs
+        run_info["figures"] = {k: os.path.relpath(v, out_dir) if v else None for k, v in figs.items()}
         write_json(out_dir / "run.json", run_info)
-    md = report.write_results_md(results, figs, _abs(cfg.results_md), run_info) if cfg.results_md else None
+    results["run"] = run_info  # the provenance of every record, as written (or about to be)
+    md = report.write_results_md(results, figs, results_md, run_info) if results_md else None
+    if readme is not None:
+        readme_blocks.update_readme(readme, results)
     return figs, md
 
 
 @hydra.main(config_path="conf", config_name="reproduce", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
+    from hydra.core.hydra_config import HydraConfig
+
     from anm_torchrl.experiments.io import machine_info, versions, write_json
+    from anm_torchrl.experiments.publish import check_publish, committed_run, publish
 
     t0 = time.perf_counter()
-    out_dir = _abs(cfg.out_dir)
-    if cfg.report_only:  # redraw the figures and rewrite the page from the records already in out_dir
+    target, target_md = _abs(cfg.publish_dir), _abs(cfg.publish_md)
+    readme = REPO / "README.md" if cfg.publish_readme else None
+    if cfg.report_only:  # run nothing: redraw figures and pages from records already written
+        if cfg.publish:
+            render(target, target_md, committed_run(target), readme=readme)
+            log.info("report only: redrew %s, %s", target, target_md)
+            return committed_run(target)
+        if cfg.out_dir is None:
+            raise ValueError("report_only=true needs out_dir=<a run directory> (or publish=true for results/)")
+        out_dir = _abs(cfg.out_dir)
         run_info = json.loads((out_dir / "run.json").read_text())
-        figs, md = render(cfg, out_dir, run_info)
+        figs, md = render(out_dir, _md(cfg, out_dir), run_info)
         log.info("report only: figures %s, page %s", sorted(figs), md)
         return run_info
-    out_dir.mkdir(parents=True, exist_ok=True)
     p = OmegaConf.to_container(cfg.preset, resolve=True)
+    experiments = list(p.get("experiments", []))
+    if cfg.publish:  # refuse before anything runs
+        check_publish(target, str(p.get("name")), experiments, bool(cfg.merge), bool(cfg.force))
+    out_dir = _abs(cfg.out_dir) if cfg.out_dir is not None else Path(HydraConfig.get().runtime.output_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     surrogates = [dict(s) for s in p.get("surrogates", [])]
-    pinn_spec, pinn_logs = prepare_pinn(p.get("pinn", {}) or {}, out_dir)
+    pinn_spec, pinn_logs, pinn_train_s = prepare_pinn(p.get("pinn", {}) or {}, out_dir)
     surrogates = [pinn_spec if s["name"] == "pinn" else s for s in surrogates]
+    train_s = {} if pinn_train_s is None else {"pinn": pinn_train_s}
 
     run_info = {"name": "run", "status": "ok", "preset": p.get("name"), "command": " ".join(
         ["python recipes/reproduce.py", *sys.argv[1:]]), "date": datetime.datetime.now().isoformat(timespec="seconds"),
         "seeds": {"seed": int(cfg.seed), "ppo_seeds": p.get("seeds")}, "machine": machine_info(),
-        "versions": versions(), "config": OmegaConf.to_container(cfg, resolve=True), "experiments": {}}
-    for name in p.get("experiments", []):
+        "versions": versions(), "surrogate_train_s": train_s, "config": OmegaConf.to_container(cfg, resolve=True),
+        "experiments": {}}
+    for name in experiments:
         log.info("experiment %s ...", name)
-        rec = run_experiment(name, cfg, out_dir, surrogates, pinn_logs)
+        rec = run_experiment(name, cfg, out_dir, surrogates, pinn_logs, train_s)
         rec["meta"].update(machine=run_info["machine"], versions=run_info["versions"])
         write_json(out_dir / f"{name}.json", rec)
         write_tables(rec, out_dir)
         run_info["experiments"][name] = {"status": rec["status"], "reason": rec.get("reason"),
-                                         "wall_s": rec["meta"]["wall_s"]}
+                                         "wall_s": rec["meta"]["wall_s"],
+                                         "git_commit": run_info["versions"].get("git_commit")}
         log.info("experiment %s: %s (%.0f s) %s", name, rec["status"], rec["meta"]["wall_s"], rec.get("reason") or "")
     run_info["wall_s"] = wall = time.perf_counter() - t0
-    if cfg.merge and (out_dir / "run.json").exists():
+    if cfg.merge and cfg.out_dir is not None and (out_dir / "run.json").exists() and not cfg.publish:
+        from anm_torchrl.experiments.publish import merge_into_earlier
+
         run_info = merge_into_earlier(json.loads((out_dir / "run.json").read_text()), run_info)
-    figs, md = render(cfg, out_dir, run_info, write_run=True)
-    if md:
-        log.info("wrote %s", md)
+    figs, md = render(out_dir, _md(cfg, out_dir), run_info, write_run=True)
+    log.info("records, figures and %s in %s", md, out_dir)
+    if cfg.publish:
+        published = publish(out_dir, target, run_info, merge=bool(cfg.merge))
+        render(target, target_md, published, write_run=True, readme=readme)
+        log.info("published into %s, %s%s", target, target_md, " and README.md" if readme else "")
     log.info("done in %.0f s: %s", wall, {k: v["status"] for k, v in run_info["experiments"].items()})
     return run_info
-
 
 if __name__ == "__main__":
     main()

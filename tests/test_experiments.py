@@ -14,7 +14,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 NOTEBOOKS = ["paper_figures.ipynb", "beyond_paper.ipynb", "composable_parts.ipynb"]
-EXPERIMENTS = ["pinn_losses", "speed", "accuracy", "rollout_error", "adaptability", "sweep", "ppo_curves"]
+EXPERIMENTS = ["pinn_losses", "speed", "accuracy", "rollout_error", "adaptability", "sweep", "ppo_curves",
+               "test_returns"]
 
 
 @pytest.fixture(scope="module")
@@ -87,19 +88,166 @@ def test_accuracy_rows_name_the_dataset_evaluated_on(tmp_path: Path):
 
 
 def test_run_ppo_starts_from_an_empty_run_dir(tmp_path: Path, monkeypatch):
-    """Logs left by an earlier run of the same cell are not read back as part of the new run's curve."""
+    """Logs left by an earlier run of the same cell are not read back as part of the new run's curve; the run is
+    the recipe's loop called in-process (no subprocess), and a failing run is recorded with its error."""
     from anm_torchrl.experiments import ppo_runs
+    from anm_torchrl.training import ppo_loop
 
     stale = tmp_path / "cell"
     (stale / "logs").mkdir(parents=True)
     (stale / "summary.json").write_text("{}")
     seen = {}
 
-    def fake_run(cmd, **kw):
-        seen["existed"] = stale.exists()
-        return subprocess.CompletedProcess(cmd, 1, "", "boom")
+    def fake_train(cfg, run_dir):
+        seen["existed"], seen["surrogate"] = stale.exists(), cfg.surrogate.name
+        seen["max_minutes"] = cfg.collector.max_minutes
+        raise RuntimeError("boom")
 
-    monkeypatch.setattr(ppo_runs.subprocess, "run", fake_run)
-    rec = ppo_runs.run_ppo(["surrogate=none"], stale)
-    assert seen["existed"] is False and rec["summary"] is None and rec["curve"] == []
-    assert rec["error"].startswith("exit 1") and not rec["ok"]
+    monkeypatch.setattr(ppo_loop, "train_ppo", fake_train)
+    rec = ppo_runs.run_ppo(["surrogate=none"], stale, timeout_s=90)
+    assert seen == {"existed": False, "surrogate": "none", "max_minutes": 1.5}
+    assert rec["summary"] is None and rec["curve"] == [] and not rec["ok"]
+    assert rec["error"].startswith("RuntimeError: boom")
+
+
+def test_no_shell_out_to_recipes():
+    """The package calls library functions; its only subprocesses are ``git`` queries (run provenance)."""
+    import re
+
+    call = re.compile(r"(subprocess\.\w+|os\.system|os\.exec\w*|os\.spawn\w*)\(\s*(\S{0,8})")
+    offenders = [f"{p.relative_to(REPO)}: {m.group(0)}" for p in (REPO / "anm_torchrl").rglob("*.py")
+                 for m in call.finditer(p.read_text())
+                 if not m.group(2).startswith('["git"') and m.group(1) != "subprocess.SubprocessError"]
+    assert offenders == []
+
+
+# ------------------------------------------------------------------------------------------ time to return
+def test_km_median_counts_censored_runs():
+    """Two of three seeds reach the threshold (272 s, 357 s), one is censored at its 391 s run length: the KM
+    median is the second event (357 s, survival 1/3 after it), not the mean of the two that reached it (315 s)."""
+    from anm_torchrl.experiments.time_to_return import censored_summary, km_median
+
+    assert km_median([272.0, 357.0, 391.0], [True, True, False]) == 357.0
+    assert km_median([100.0, 391.0, 400.0], [True, False, False]) is None  # fewer than half reached it
+    runs = [{"time_to_threshold": {"wall_s": 272.0}, "curve": [{"wall_s": 300.0}]},
+            {"time_to_threshold": {"wall_s": 357.0}, "curve": [{"wall_s": 430.0}]},
+            {"time_to_threshold": {"wall_s": None}, "curve": [{"wall_s": 391.0}]}]
+    s = censored_summary(runs, "wall_s", offset_s=100.0)
+    assert (s["median"], s["reached"], s["runs"], s["censored_at"]) == (457.0, 2, 3, [491.0])
+    assert s["restricted_mean"] == (372.0 + 457.0 + 491.0) / 3 and s["lower_bound"]
+
+
+def test_claim_two_reports_both_views_and_censoring():
+    from anm_torchrl.experiments.ppo_curves import threshold_columns
+    from anm_torchrl.experiments.report import claim_training_time
+
+    def runs(times, length):
+        return [{"time_to_threshold": {"wall_s": t, "frames": None if t is None else 1}, "curve": [
+            {"wall_s": length, "frames": 10}]} for t in times]
+
+    table = [{"env": "pinn", "seeds": 3, "last_mean_return": -200.0, "frames": 300_000,
+              **threshold_columns(runs([20.0, 30.0, 40.0], 60.0), 150.0)},
+             {"env": "gym_anm", "seeds": 3, "last_mean_return": -400.0, "frames": 300_000,
+              **threshold_columns(runs([272.0, 357.0, None], 391.0), 0.0)}]
+    what, verdict = claim_training_time({"ppo_curves": {"status": "ok", "data": {"table": table, "threshold": -430}}})
+    assert "PINN, PPO alone 30 s" in what and "92 % less" in what  # 1 - 30/357
+    assert "incl. its training (150 s) 180 s" in what and "50 % less" in what  # 1 - 180/357
+    assert "gym_anm 357 s (2/3 seeds reached it)" in what
+    assert verdict == "holds without the PINN's training counted; holds with the PINN's training counted"
+
+
+# ------------------------------------------------------------------------------------------ publishing
+def _tree_digest(*folders: Path) -> dict[str, str]:
+    import hashlib
+
+    return {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for f in folders for p in sorted(f.rglob("*"))
+            if p.is_file()}
+
+
+def test_quick_run_leaves_results_and_docs_untouched(tmp_path: Path):
+    """A reproduction (here preset=quick, one cheap experiment) writes only into its run directory."""
+    before = _tree_digest(REPO / "results", REPO / "docs") | _tree_digest(REPO / "README.md")
+    run_dir = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "ANM_TORCHRL_HOME": str(tmp_path / "home")}
+    proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), "preset=quick",
+                           "preset.experiments=[accuracy]", "preset.pinn.train_if_missing=null",
+                           f"hydra.run.dir={run_dir}"], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert (run_dir / "accuracy.json").is_file() and (run_dir / "RESULTS.md").is_file()
+    assert json.loads((run_dir / "run.json").read_text())["preset"] == "quick"
+    assert _tree_digest(REPO / "results", REPO / "docs") | _tree_digest(REPO / "README.md") == before
+
+
+def test_publish_refuses_a_quick_run_over_the_full_record(tmp_path: Path):
+    """publish=true of another preset is refused before anything runs, and the committed record is untouched."""
+    target = tmp_path / "results"
+    target.mkdir()
+    (target / "run.json").write_text(json.dumps({"name": "run", "preset": "full", "experiments": {"accuracy": {}}}))
+    before = _tree_digest(target)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "ANM_TORCHRL_HOME": str(tmp_path / "home"), "HYDRA_FULL_ERROR": "1"}
+    proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), "preset=quick",
+                           "preset.experiments=[accuracy]", "preset.pinn.train_if_missing=null", "publish=true",
+                           f"publish_dir={target}", f"publish_md={tmp_path / 'R.md'}", "publish_readme=false",
+                           f"hydra.run.dir={tmp_path / 'run'}"], cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode != 0 and "preset='full' record and this run is preset='quick'" in proc.stderr
+    assert _tree_digest(target) == before and not (tmp_path / "R.md").exists()
+    assert not list((tmp_path / "run").glob("*.json"))  # refused before any experiment ran (Hydra made the folder)
+
+
+def test_check_publish_and_merge(tmp_path: Path):
+    from anm_torchrl.experiments.io import write_json
+    from anm_torchrl.experiments.publish import PublishRefused, check_publish, publish
+
+    target = tmp_path / "results"
+    write_json(target / "run.json", {"name": "run", "preset": "full", "experiments": {"a": {}, "b": {}}})
+    write_json(target / "a.json", {"name": "a", "v": 1})
+    write_json(target / "b.json", {"name": "b", "v": 1})
+    with pytest.raises(PublishRefused, match="leaves out experiments"):
+        check_publish(target, "full", ["b"], merge=False, force=False)
+    check_publish(target, "full", ["b"], merge=True, force=False)  # a merged subset is fine
+    check_publish(target, "quick", ["a", "b"], merge=False, force=True)  # forced
+    run = tmp_path / "run"
+    write_json(run / "b.json", {"name": "b", "v": 2})
+    info = publish(run, target, {"preset": "full", "command": "c", "date": "d", "wall_s": 1.0, "versions": {},
+                                 "experiments": {"b": {"status": "ok"}}}, merge=True)
+    assert [json.loads((target / f"{n}.json").read_text())["v"] for n in "ab"] == [1, 2]
+    assert set(info["experiments"]) == {"a", "b"} and info["updates"][-1]["experiments"] == {"b": {"status": "ok"}}
+
+
+# ------------------------------------------------------------------------------------------ README and records
+def test_readme_blocks_are_rendered_from_the_committed_records():
+    """README's result blocks equal what the committed records under results/ render (no hand-typed numbers)."""
+    from anm_torchrl.experiments.io import load_results
+    from anm_torchrl.experiments.readme_blocks import BLOCK, BLOCKS, render_readme
+
+    text = (REPO / "README.md").read_text()
+    assert {m.group("name") for m in BLOCK.finditer(text)} == set(BLOCKS)
+    assert render_readme(text, load_results(REPO / "results")) == text
+
+
+def test_docs_hold_no_machine_local_paths():
+    for page in [REPO / "README.md", *(REPO / "docs").glob("RESULTS*.md")]:
+        text = page.read_text()
+        for local in ("/root/", "/home/", "/tmp/", "/work/", ".cache/anm_torchrl"):
+            assert local not in text, (page.name, local)
+
+
+# ------------------------------------------------------------------------------------------ adaptability
+def test_scaled_simulator_drives_the_true_env():
+    """The true env on a scaled / shifted simulator copy writes the changed loads into its next state."""
+    import torch
+
+    from anm_torchrl.envs import ANM6Env
+    from anm_torchrl.experiments.common import set_state_and_step
+    from anm_torchrl.experiments.rollout_error import _default_sim, scaled_simulator
+    from anm_torchrl.training.evaluation import draw_initial_states
+
+    s0, a = draw_initial_states(4, 0), torch.zeros(4, 6)
+    base = set_state_and_step(ANM6Env(4, action_mode="clip"), s0, a)["state"]
+    scaled = set_state_and_step(ANM6Env(4, action_mode="clip", sim=scaled_simulator(load=1.2)), s0, a)["state"]
+    loads = [1, 3, 5]  # device P of the three loads (MW, negative = consumption), inside their limits at x1.2
+    torch.testing.assert_close(scaled[:, loads], 1.2 * base[:, loads], rtol=1e-9, atol=0.0)  # float64 physics
+    sim = _default_sim()
+    shifted = scaled_simulator(shift=24)
+    torch.testing.assert_close(shifted.load_series[:, 24:], sim.load_series[:, :-24], rtol=0.0, atol=0.0)

@@ -36,9 +36,8 @@ def options(spec: dict[str, Any] | str) -> dict[str, Any]:
 def make_env_or_reason(spec: dict[str, Any] | str, num_envs: int, seed: int = 0, sim=None, **kw):
     """``(env, None)`` or ``(None, "reason")`` for a spec; with ``sim``, the env runs on that simulator.
 
-    With a custom ``sim`` the surrogate model is loaded through the registry and wrapped in a ``SurrogateEnv``
-    on that simulator (the loader gets ``sim=`` when it accepts it, so physics-based models see the changed
-    time series too; see :func:`load_model_on`).
+    With a custom ``sim`` the surrogate model is loaded through the registry for that simulator and wrapped in a
+    ``SurrogateEnv`` on it, so every model sees the changed time series (see :func:`load_model_on`).
     """
     name = spec if isinstance(spec, str) else spec["name"]
     try:
@@ -50,24 +49,22 @@ def make_env_or_reason(spec: dict[str, Any] | str, num_envs: int, seed: int = 0,
 
         if name == TRUE_ENV:
             return ANM6Env(num_envs, seed=seed, action_mode="clip", sim=sim, **kw), None
-        model, _ = load_model_on(spec, sim)
+        model = load_model_on(spec, sim)
         return SurrogateEnv(model, num_envs, seed=seed, action_mode="clip", sim=sim, **kw), None
     except Exception as err:  # noqa: BLE001 - any failure means "not available" here
         log.info("%s not available: %s", label(spec), err)
         return None, f"{type(err).__name__}: {err}"
 
 
-def load_model_on(spec: dict[str, Any], sim) -> tuple[Any, bool]:
-    """Load a surrogate's transition model, passing ``sim`` if the loader accepts it.
+def load_model_on(spec: dict[str, Any], sim) -> Any:
+    """A surrogate's transition model built for the simulator ``sim`` (its loads, potentials and time series).
 
-    Returns (model, whether the model received ``sim``).
+    The registry's loaders take the simulator explicitly (``load_surrogate(kind, sim=..., ...)``); a loader that
+    cannot honour ``sim`` raises, and the surrogate is then reported "not available" by the caller.
     """
     from anm_torchrl.surrogates import load_surrogate
 
-    try:
-        return load_surrogate(spec["name"], sim=sim, **options(spec)), True
-    except TypeError:
-        return load_surrogate(spec["name"], **options(spec)), False
+    return load_surrogate(spec["name"], sim=sim, **options(spec))
 
 
 def set_state_and_step(env, state: torch.Tensor, action: torch.Tensor) -> TensorDict:

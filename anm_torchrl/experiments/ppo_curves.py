@@ -1,13 +1,14 @@
 """PPO training curves against frames and wall time on the true simulator (paper Fig. 12 / §5.4 "training time").
 
 For every training env — the true simulator ``none``, the original package ``gym_anm`` and every available
-surrogate — and every seed, ``recipes/ppo.py`` trains a policy and evaluates it on the true simulator after every
-update (deterministic policy, fixed initial states). Baselines (do-nothing, random, MPC when it fits the time
+surrogate — and every seed, the PPO recipe's loop (:func:`~anm_torchrl.training.ppo_loop.train_ppo`) trains a
+policy and evaluates it on the true simulator after every update (deterministic policy, fixed initial states). Baselines (do-nothing, random, MPC when it fits the time
 budget) are evaluated once on the same initial states and drawn as horizontal lines.
 
 Derived numbers: the mean evaluation return over the last ``last_k`` evaluations, the best one, the wall time of
-the run, and the time (wall and frames) to first reach a fixed return ``threshold`` (default: the do-nothing
-baseline's return on the same states).
+the run, and the time (wall and frames) to first reach a fixed return ``threshold`` (default: a fraction of the
+do-nothing baseline's return on the same states) over seeds, runs that never reach it censored at their run length
+(:mod:`.time_to_return`), both without and with the surrogate's own training time (``surrogate_train_s``).
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from typing import Any
 
 from anm_torchrl.experiments.common import label, make_env_or_reason
 from anm_torchrl.experiments.io import result
-from anm_torchrl.experiments.ppo_runs import (aggregate, last_mean, ppo_overrides, recipe_available, run_ppo,
+from anm_torchrl.experiments.ppo_runs import (aggregate, compose_ppo_config, last_mean, ppo_overrides, run_ppo,
                                               time_to_reach)
+from anm_torchrl.experiments.time_to_return import censored_summary
 
 
 def evaluate_baselines(names: list[str], num_episodes: int, max_steps: int, eval_seed: int = 0,
@@ -50,19 +52,52 @@ def evaluate_baselines(names: list[str], num_episodes: int, max_steps: int, eval
     return out
 
 
+TRAINING_FREE = ("none", "gym_anm")  # envs with no surrogate to train first
+
+
+def threshold_columns(seed_runs: list[dict], train_s: float | None) -> dict[str, Any]:
+    """Time to the return threshold over seeds (Kaplan–Meier median, censored runs at their length): wall time
+    without and with the surrogate's training ``train_s`` (s; None = not measured), frames, runs that reached it."""
+    wall, frames = censored_summary(seed_runs, "wall_s"), censored_summary(seed_runs, "frames")
+    with_training = censored_summary(seed_runs, "wall_s", offset_s=train_s) if train_s is not None else {}
+    return {"threshold_reached": wall["reached"], "threshold_runs": wall["runs"],
+            "threshold_wall_s": wall["median"], "threshold_wall_s_mean": wall["restricted_mean"],
+            "threshold_censored_at_s": wall["censored_at"], "threshold_frames": frames["median"],
+            "surrogate_train_s": train_s, "threshold_wall_with_training_s": with_training.get("median"),
+            "threshold_wall_with_training_s_mean": with_training.get("restricted_mean")}
+
+
+def reused_runs(reuse: dict[str, Any], threshold: float | None) -> dict[str, list[dict]]:
+    """The runs of ``reuse["envs"]`` taken from an earlier ``ppo_curves`` record (``reuse["from"]``) instead of
+    training them again, each marked with that record's git commit and date; they must have been evaluated on the
+    same states with the same threshold (checked: the earlier record's threshold equals this run's)."""
+    from anm_torchrl.experiments.io import read_json
+
+    rec = read_json(reuse["from"])
+    old = rec["data"].get("threshold")
+    if threshold is None or old is None or abs(old - threshold) > 1e-9 * abs(threshold):
+        raise ValueError(f"reuse.from={reuse['from']}: its threshold {old} differs from "
+                         f"this run's {threshold}; reused runs must be evaluated on the same states")
+    origin = {"git_commit": (rec["meta"].get("versions") or {}).get("git_commit"), "file": str(reuse["from"])}
+    missing = [e for e in reuse["envs"] if e not in rec["data"]["runs"]]
+    if missing:
+        raise ValueError(f"reuse.envs {missing} not in {reuse['from']} (it holds {sorted(rec['data']['runs'])})")
+    return {e: [{**r, "reused_from": origin} for r in rec["data"]["runs"][e]] for e in reuse["envs"]}
+
+
 def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seeds: list[int]) -> dict:
     """cfg keys: ``envs`` (extra env specs before the surrogates, default none + gym_anm), ``base`` (Hydra
     overrides for every run), ``per_env`` (label -> extra overrides, e.g. a smaller budget for gym_anm),
     ``baselines``, ``baseline_budget_s``, ``threshold`` (null = ``threshold_scale`` × the do-nothing return; scale 0.1
-    = a tenth of do-nothing's loss), ``last_k``, ``timeout_s``, ``only`` (surrogate labels)."""
-    reason = recipe_available()
-    if reason:
-        return result("ppo_curves", "not available", reason=reason, config=cfg)
+    = a tenth of do-nothing's loss), ``last_k``, ``timeout_s``, ``only`` (surrogate labels), ``reuse``
+    (``{from: <earlier ppo_curves.json>, envs: [labels]}``: take those envs' runs from that record),
+    ``surrogate_train_s``
+    (label -> seconds the surrogate took to train, measured by the caller; unknown labels count as not measured)."""
     out_dir = Path(out_dir)
     base = dict(cfg.get("base", {}))
-    n_ep, max_steps = int(base.get("eval.num_episodes", 16)), int(base.get("eval.max_steps", 3000))
-    baselines = evaluate_baselines(list(cfg.get("baselines", ["do_nothing", "random", "mpc_perfect"])), n_ep,
-                                   max_steps, int(base.get("eval.seed", 0)), cfg.get("baseline_budget_s"))
+    ev = compose_ppo_config(ppo_overrides({"name": "none"}, 0, base)).eval  # the PPO runs' validation protocol
+    baselines = evaluate_baselines(list(cfg.get("baselines", ["do_nothing", "random", "mpc_perfect"])),
+                                   int(ev.num_episodes), int(ev.max_steps), int(ev.seed), cfg.get("baseline_budget_s"))
     threshold = cfg.get("threshold")
     if threshold is None and baselines.get("do_nothing", {}).get("available"):
         threshold = float(cfg.get("threshold_scale", 1.0)) * baselines["do_nothing"]["return"]
@@ -71,23 +106,27 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seeds:
     specs += [s for s in surrogates if not only or label(s) in only]
     runs, not_available, table = {}, {}, []
     last_k = int(cfg.get("last_k", 10))
+    train_s = dict(cfg.get("surrogate_train_s") or {})
+    reuse = dict(cfg.get("reuse") or {})
+    earlier = reused_runs(reuse, threshold) if reuse else {}
     for spec in specs:
         lab = label(spec)
-        env, why = make_env_or_reason(spec, 1)
-        if env is None:
-            not_available[lab] = why
-            continue
-        del env
-        extra = dict(cfg.get("per_env", {}).get(lab, {}))
-        seed_runs = []
-        for seed in seeds:
-            rec = run_ppo(ppo_overrides(spec, seed, {**base, **extra}), out_dir / "runs" / "ppo_curves" / f"{lab}_s{seed}",
-                          timeout_s=cfg.get("timeout_s"))
-            rec["seed"] = seed
+        if lab in earlier:
+            seed_runs = earlier[lab]
+        else:
+            env, why = make_env_or_reason(spec, 1)
+            if env is None:
+                not_available[lab] = why
+                continue
+            del env
+            extra = dict(cfg.get("per_env", {}).get(lab, {}))
+            seed_runs = [run_ppo(ppo_overrides(spec, seed, {**base, **extra}),
+                                 out_dir / "runs" / "ppo_curves" / f"{lab}_s{seed}", timeout_s=cfg.get("timeout_s"))
+                         | {"seed": seed} for seed in seeds]
+        for rec in seed_runs:
             rec["last_mean_return"] = last_mean(rec["curve"], "return", last_k)
             rec["best_return"] = max((c["return"] for c in rec["curve"]), default=None)
             rec["time_to_threshold"] = time_to_reach(rec["curve"], threshold) if threshold is not None else None
-            seed_runs.append(rec)
         runs[lab] = seed_runs
         ok = [r for r in seed_runs if r["curve"]]
         if not ok:
@@ -99,9 +138,7 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seeds:
             "wall_s": aggregate([(r["summary"] or {}).get("wall_time") for r in ok])["mean"],
             "train_s": aggregate([r["curve"][-1]["train_s"] if r["curve"] else None for r in ok])["mean"],
             "frames": aggregate([r["curve"][-1]["frames"] if r["curve"] else None for r in ok])["mean"],
-            "threshold_wall_s": aggregate([(r["time_to_threshold"] or {}).get("wall_s") for r in ok])["mean"],
-            "threshold_frames": aggregate([(r["time_to_threshold"] or {}).get("frames") for r in ok])["mean"],
-            "reached_threshold": sum(1 for r in ok if (r["time_to_threshold"] or {}).get("frames") is not None),
+            **threshold_columns(ok, train_s.get(lab, 0.0 if lab in TRAINING_FREE else None)),
         })
     status = "ok" if not not_available else ("partial" if any(r["seeds"] for r in table) else "not available")
     return result("ppo_curves", status, {"runs": runs, "table": table, "baselines": baselines,

@@ -1,29 +1,42 @@
-"""Run ``recipes/ppo.py`` in a subprocess and read back its ``summary.json`` and CSV logs.
+"""Train PPO in-process with the recipe's own loop and read back its ``summary.json`` and CSV logs.
 
-The recipe is the single definition of PPO training here; the experiments only choose overrides. Each run gets
-its own Hydra run directory, ``logger.backend=csv`` (files ``logs/*/scalars/<group>/<tag>.csv``, rows
-``frames,value``) and no progress bar. A run that fails or times out is recorded with its stderr tail.
+:func:`anm_torchrl.training.ppo_loop.train_ppo` is the single definition of PPO training (``recipes/ppo.py`` calls
+it too); the experiments only choose Hydra overrides of the recipe's config (``recipes/conf/config.yaml``), composed
+here with Hydra's compose API. Each run gets its own run directory, ``logger.backend=csv`` (files
+``logs/*/scalars/<group>/<tag>.csv``, rows ``frames,value``) and no progress bar. A run that raises is recorded with
+its error; a time budget becomes the recipe's own ``collector.max_minutes`` (the run stops cleanly and says so).
 """
 
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import statistics
-import subprocess
-import sys
 import time
+import traceback
 from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[2]
-RECIPE = REPO / "recipes" / "ppo.py"
+CONF_DIR = REPO / "recipes" / "conf"
 
 
-def recipe_available() -> str | None:
-    """None if ``recipes/ppo.py`` exists, else the reason."""
-    return None if RECIPE.exists() else f"{RECIPE} not found"
+def compose_ppo_config(overrides: list[str], conf_dir: str | Path = CONF_DIR):
+    """The PPO recipe's config (``config.yaml`` in ``conf_dir``) with Hydra ``overrides``, composed in-process.
+
+    Works inside another Hydra app (``reproduce.py``): its global Hydra state is set aside and restored.
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.initialize import get_gh_backup, restore_gh_from_backup
+
+    backup = get_gh_backup()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(str(Path(conf_dir).resolve()), version_base="1.3"):
+            return compose(config_name="config", overrides=list(overrides))
+    finally:
+        restore_gh_from_backup(backup)
 
 
 def _read_scalar(run_dir: Path, tag: str) -> list[tuple[int, float]]:
@@ -63,26 +76,30 @@ def eval_curve(run_dir: str | Path) -> list[dict[str, float]]:
 
 
 def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None = None) -> dict[str, Any]:
-    """Run the PPO recipe with Hydra ``overrides`` into ``run_dir``.
+    """Train PPO with Hydra ``overrides`` of the recipe's config into ``run_dir``.
 
-    Returns ``{"ok", "run_dir", "overrides", "wall_s", "summary", "curve", "error"}``. An existing ``run_dir`` (an
-    earlier run of the same experiment cell) is removed first: its logs would otherwise be read back with the new.
+    Returns ``{"ok", "run_dir", "overrides", "command", "wall_s", "summary", "curve", "error"}``; ``command`` is the
+    equivalent recipe command line. ``timeout_s`` caps the run's wall-clock budget (``collector.max_minutes``).
+    An existing ``run_dir`` (an earlier run of the same cell) is removed first: its logs
+    would otherwise be read back with the new.
     """
+    from anm_torchrl.training.ppo_loop import train_ppo
+
     run_dir = Path(run_dir).resolve()
     if run_dir.exists():
         shutil.rmtree(run_dir)
-    cmd = [sys.executable, str(RECIPE), *overrides, "logger.backend=csv", "logger.progress=false",
-           f"hydra.run.dir={run_dir}"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    t0 = time.perf_counter()
-    rec: dict[str, Any] = {"ok": False, "run_dir": str(run_dir), "overrides": overrides, "command": " ".join(cmd[1:]),
+    overrides = [*overrides, "logger.backend=csv", "logger.progress=false"]
+    rec: dict[str, Any] = {"ok": False, "run_dir": str(run_dir), "overrides": overrides,
+                           "command": " ".join(["python recipes/ppo.py", *overrides, f"hydra.run.dir={run_dir}"]),
                            "summary": None, "curve": [], "error": None}
+    t0 = time.perf_counter()
     try:
-        proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout_s)
-        if proc.returncode != 0:
-            rec["error"] = f"exit {proc.returncode}: " + proc.stderr[-2000:]
-    except subprocess.TimeoutExpired:
-        rec["error"] = f"timed out after {timeout_s} s"
+        cfg = compose_ppo_config(overrides)
+        if timeout_s is not None:  # the tighter of the run's own budget and the experiment's
+            cfg.collector.max_minutes = min(float(cfg.collector.max_minutes or "inf"), float(timeout_s) / 60)
+        train_ppo(cfg, run_dir)
+    except Exception as err:  # noqa: BLE001 - one failed cell is recorded, the experiment goes on
+        rec["error"] = f"{type(err).__name__}: {err}\n" + traceback.format_exc()[-2000:]
     rec["wall_s"] = time.perf_counter() - t0
     summary = run_dir / "summary.json"
     if summary.exists():

@@ -170,10 +170,10 @@ def _default_sim():
     return anm6_easy_simulator()
 
 
-def scaled_simulator(load: float = 1.0, gen: float = 1.0, sim=None):
-    """A copy of the ANM6-Easy simulator whose load and renewable-potential series are scaled (the physical
-    device limits still clip them, as in gym-anm)."""
+def scaled_simulator(load: float = 1.0, gen: float = 1.0, sim=None, shift: int = 0):
+    """A copy of the ANM6-Easy simulator whose load and renewable-potential series are scaled by ``load`` and
+    ``gen`` and rolled ``shift`` time steps later (the physical device limits still clip them, as in gym-anm)."""
     sim = copy.copy(sim if sim is not None else _default_sim())
-    sim.load_series = sim.load_series * float(load)
-    sim.p_max_series = sim.p_max_series * float(gen)
+    sim.load_series = torch.roll(sim.load_series * float(load), int(shift), dims=-1)
+    sim.p_max_series = torch.roll(sim.p_max_series * float(gen), int(shift), dims=-1)
     return sim

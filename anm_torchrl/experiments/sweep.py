@@ -20,7 +20,7 @@ from typing import Any
 
 from anm_torchrl.experiments.common import label, make_env_or_reason
 from anm_torchrl.experiments.io import result
-from anm_torchrl.experiments.ppo_runs import aggregate, last_mean, ppo_overrides, recipe_available, run_ppo
+from anm_torchrl.experiments.ppo_runs import aggregate, last_mean, ppo_overrides, run_ppo
 
 VARS = ("n_envs", "buffer", "mean_return", "train_time_s")
 
@@ -43,9 +43,6 @@ def run(cfg: dict[str, Any], out_dir: str | Path, seed: int = 0) -> dict:
     ``seeds`` (list; default ``[seed]``: every cell is trained once per seed and its numbers are seed means),
     ``base`` (overrides), ``last_k``, ``timeout_s``, ``eval_every_frames`` (optional: evaluate every this many
     frames in every cell, so cells with small batches are not dominated by evaluation; default every update)."""
-    reason = recipe_available()
-    if reason:
-        return result("sweep", "not available", reason=reason, config=cfg)
     spec = dict(cfg.get("surrogate", {"name": "pinn"}))
     note = None
     env, why = make_env_or_reason(spec, 1)

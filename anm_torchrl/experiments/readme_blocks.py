@@ -1,0 +1,99 @@
+"""README's result tables, rendered from the committed records (``results/*.json``), never typed by hand.
+
+README.md marks each generated block with a pair of HTML comments::
+
+    <!-- results:claims -->
+    ...generated...
+    <!-- /results:claims -->
+
+:func:`update_readme` rewrites every marked block from the records (``reproduce.py publish=true`` calls it), and
+the tests check that the committed README equals what the committed records render (:func:`render_readme`).
+Each block ends with the record, preset and git commit it comes from.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+from anm_torchrl.experiments.report import CLAIMS, _fmt, _table
+
+BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)", re.S)
+
+
+def _source(rec: dict | None, run: dict | None) -> str:
+    """Where a block's numbers come from: record file, preset, date and git commit."""
+    if not rec:
+        return "_(no record)_"
+    meta = rec.get("meta", {})
+    commit = (meta.get("versions") or {}).get("git_commit") or "unknown"
+    preset = (run or {}).get("preset")
+    for u in (run or {}).get("updates", []):
+        if rec["name"] in u.get("experiments", {}):
+            preset = u.get("preset") or preset
+    return f"_From `results/{rec['name']}.json` (preset `{preset}`, git commit `{commit[:7]}`)._"
+
+
+def block_claims(res: dict[str, Any]) -> str:
+    rows = []
+    for text, fn in CLAIMS:
+        what, verdict = fn(res)
+        rows.append({"claim (paper)": text, "verdict here": f"**{verdict}**", "measured": what})
+    sources = " ".join(_source(res.get(n), res.get("run")) for n in ("speed", "ppo_curves", "sweep") if res.get(n))
+    return _table(rows, ["claim (paper)", "verdict here", "measured"]) + "\n\n" + sources
+
+
+def block_test_returns(res: dict[str, Any]) -> str:
+    rec = res.get("test_returns")
+    if not rec or rec["status"] not in ("ok", "partial"):
+        return "_(test_returns not measured)_"
+    d = rec["data"]
+    rows = [{**r, "policy": r["policy"] if not r.get("trained_on") else f"{r['policy']} (trained on "
+             f"`{r['trained_on']}`)"} for r in d["rows"]]
+    pr = d["protocol"]
+    head = (f"{pr['test_episodes']} test states (seed {pr['test_seed']}), T = {pr['max_steps']:,}, "
+            f"γ = {pr['gamma']}; PPO `best` = the checkpoint chosen on the validation states, mean ± std over seeds:")
+    table = _table(rows, ["policy", "seeds", "discounted_return", "discounted_return_std", "return", "frames",
+                          "seconds"], {"discounted_return": ".2f", "discounted_return_std": ".2f", "return": ".1f",
+                                       "frames": ",.0f", "seconds": ".0f"})
+    na = "; ".join(f"`{k}`: {str(v)[:120]}" for k, v in d.get("not_available", {}).items())
+    return f"{head}\n\n{table}\n\n" + (f"Not available: {na}\n\n" if na else "") + _source(rec, res.get("run"))
+
+
+def block_adaptability(res: dict[str, Any]) -> str:
+    rec = res.get("adaptability")
+    if not rec or rec["status"] not in ("ok", "partial"):
+        return "_(adaptability not measured)_"
+    rows = rec["data"]["rows"]
+    scenarios = list(dict.fromkeys(r["scenario"] for r in rows))
+    table = []
+    for agent in dict.fromkeys(r["agent"] for r in rows):
+        for lab in dict.fromkeys(r["surrogate"] for r in rows if r["agent"] == agent):
+            row = {"agent": agent, "surrogate": lab}
+            row.update({sc: next((r["one_step_mae"] for r in rows if (r["agent"], r["surrogate"], r["scenario"]) ==
+                                  (agent, lab, sc)), None) for sc in scenarios})
+            table.append(row)
+    return ("One-step (teacher-forced) state MAE along the episodes of each scenario (MW, MVAr, MWh):\n\n"
+            + _table(table, ["agent", "surrogate", *scenarios]) + "\n\n" + _source(rec, res.get("run")))
+
+
+BLOCKS = {"claims": block_claims, "test_returns": block_test_returns, "adaptability": block_adaptability}
+
+
+def render_readme(text: str, res: dict[str, Any]) -> str:
+    """``text`` with every marked block replaced by its rendering from the records ``res`` (name -> record)."""
+    def one(m: re.Match) -> str:
+        name = m.group("name")
+        if name not in BLOCKS:
+            raise ValueError(f"README block <!-- results:{name} -->: unknown; known blocks {sorted(BLOCKS)}")
+        return m.group(1) + BLOCKS[name](res).rstrip() + "\n" + m.group(4)
+
+    return BLOCK.sub(one, text)
+
+
+def update_readme(path: str | Path, res: dict[str, Any]) -> Path:
+    """Rewrite README's marked blocks at ``path`` from the records ``res``."""
+    path = Path(path)
+    path.write_text(render_readme(path.read_text(), res))
+    return path
