@@ -10,6 +10,7 @@ its error; a time budget becomes the recipe's own ``collector.max_minutes`` (the
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import statistics
 import time
@@ -78,7 +79,8 @@ def eval_curve(run_dir: str | Path) -> list[dict[str, float]]:
 def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None = None) -> dict[str, Any]:
     """Train PPO with Hydra ``overrides`` of the recipe's config into ``run_dir``.
 
-    Returns ``{"ok", "run_dir", "overrides", "command", "wall_s", "summary", "curve", "error"}``; ``command`` is the
+    Returns ``{"ok", "run_dir", "overrides", "command", "wall_s", "summary", "curve", "error", "load_avg_1min"}``;
+    ``load_avg_1min`` is the machine's 1-minute load average before and after the run; ``command`` is the
     equivalent recipe command line. ``timeout_s`` caps the run's wall-clock budget (``collector.max_minutes``).
     An existing ``run_dir`` (an earlier run of the same cell) is removed first: its logs
     would otherwise be read back with the new.
@@ -92,6 +94,8 @@ def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None =
     rec: dict[str, Any] = {"ok": False, "run_dir": str(run_dir), "overrides": overrides,
                            "command": " ".join(["python recipes/ppo.py", *overrides, f"hydra.run.dir={run_dir}"]),
                            "summary": None, "curve": [], "error": None}
+    # machine load (1-min load average, before and after): wall times of runs made at different loads differ
+    rec["load_avg_1min"] = [os.getloadavg()[0]]
     t0 = time.perf_counter()
     try:
         cfg = compose_ppo_config(overrides)
@@ -101,6 +105,7 @@ def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None =
     except Exception as err:  # noqa: BLE001 - one failed cell is recorded, the experiment goes on
         rec["error"] = f"{type(err).__name__}: {err}\n" + traceback.format_exc()[-2000:]
     rec["wall_s"] = time.perf_counter() - t0
+    rec["load_avg_1min"].append(os.getloadavg()[0])
     summary = run_dir / "summary.json"
     if summary.exists():
         s = json.loads(summary.read_text())
