@@ -5,7 +5,8 @@
     python recipes/make_dataset.py -m dataset=generative,agent         # both
     python recipes/make_dataset.py dataset=agent size=2000 out=/tmp/agent_small overwrite=true
 
-Writes ``<out>/dataset.json`` and ``<out>/data/`` (TensorDict memmap); see ``anm_torchrl.data.storage`` for the
+Writes ``<out>/dataset.json``, ``<out>/data/`` (TensorDict memmap) and ``<out>/manifest.json`` in one atomic save
+under an exclusive lock (a second run on the same path fails at once); see ``anm_torchrl.data.storage`` for the
 fields and ``anm_torchrl.data.generative`` / ``anm_torchrl.data.agent`` for how the samples are drawn.
 Options: ``recipes/conf/make_dataset.yaml``.
 """
@@ -24,11 +25,11 @@ log = logging.getLogger("make_dataset")
 
 def run(cfg: DictConfig) -> str:
     """Generate and write the dataset described by ``cfg``; returns its folder."""
-    from anm_torchrl.data import KINDS, make_dataset
+    from anm_torchrl.data import available_datasets, make_dataset
 
     torch.set_num_threads(int(cfg.threads))
-    if cfg.dataset not in KINDS:
-        raise ValueError(f"dataset must be one of {list(KINDS)}, got {cfg.dataset!r}")
+    if cfg.dataset not in available_datasets():
+        raise ValueError(f"dataset must be one of {list(available_datasets())}, got {cfg.dataset!r}")
     options = dict(cfg[cfg.dataset]) if cfg.get(cfg.dataset) is not None else {}
     start = time.perf_counter()
     path = make_dataset(cfg.dataset, int(cfg.size), int(cfg.seed), path=cfg.out, overwrite=bool(cfg.overwrite),

@@ -1,6 +1,6 @@
 """Train the physics-informed surrogate of ANM6-Easy without a single simulator sample, then evaluate it.
 
-    python recipes/train_pinn.py                                   # default preset, saved to surrogate_dir("pinn")
+    python recipes/train_pinn.py                                   # default preset -> the network's default cache
     python recipes/train_pinn.py pinn_preset=paper path=artifacts/pinn_paper
     python recipes/train_pinn.py eval_only=true path=artifacts/pinn_paper
     python recipes/train_pinn.py pinn_preset=smoke path=/tmp/pinn eval.n_random=1000   # seconds
@@ -11,6 +11,11 @@ TensorBoard (``<run dir>/tb``) shows every loss term under ``surrogate/<module>/
 against the exact projection and Newton–Raphson. The evaluation (``anm_torchrl.surrogates.pinn.evaluate``)
 compares the whole chain with ``GridSimulator`` on held-out random and MPC-expert transitions and writes
 ``pinn_eval.json`` and ``pinn_eval.md`` in the run directory.
+
+The default cache (``path=null``) only receives a model that passes its preset's acceptance bar
+(``anm_torchrl.surrogates.pinn.cache``); a smoke preset or a failed training goes to ``<run dir>/pinn.safetensors``
+instead, and the run fails, unless ``overwrite_cache=true``. Presets live in
+``anm_torchrl/surrogates/conf/pinn_preset`` (on Hydra's search path).
 """
 
 from __future__ import annotations
@@ -31,14 +36,15 @@ log = logging.getLogger("train_pinn")
 @hydra.main(config_path="conf", config_name="train_pinn", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     from anm_torchrl.grid.simulator import anm6_easy_simulator
-    from anm_torchrl.paths import surrogate_dir
+    from anm_torchrl.surrogates.pinn.cache import default_path, train_and_save
     from anm_torchrl.surrogates.pinn.chain import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
-    from anm_torchrl.surrogates.pinn.train import PINNTrainConfig, resolve_path, save_pinn, train_pinn
+    from anm_torchrl.surrogates.pinn.train import PINNTrainConfig, resolve_path
 
     torch.set_num_threads(int(cfg.threads))
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    file = resolve_path(to_absolute_path(cfg.path) if cfg.path is not None else surrogate_dir("pinn"))
+    sim = anm6_easy_simulator()
+    file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
     out: dict = {"path": str(file)}
     if not cfg.eval_only:
         preset = OmegaConf.to_container(cfg.pinn_preset, resolve=True)
@@ -46,13 +52,15 @@ def main(cfg: DictConfig) -> dict:
         train_cfg = PINNTrainConfig.from_dict({**preset, "preset": name, "seed": int(cfg.seed)})
         log_dir = Path(to_absolute_path(cfg.log_dir)) if cfg.log_dir is not None else run_dir / "tb"
         log.info("training the %r preset -> %s (TensorBoard: %s)", name, file, log_dir)
-        modules, report = train_pinn(train_cfg, anm6_easy_simulator(), log_dir=log_dir, progress=bool(cfg.progress))
-        save_pinn(file, modules, train_cfg, report)
+        file, report = train_and_save(train_cfg, sim, path=file, overwrite_cache=bool(cfg.overwrite_cache),
+                                      reject_path=run_dir / "pinn.safetensors", log_dir=log_dir,
+                                      progress=bool(cfg.progress))
         log.info("trained in %.1f s: %s", report["time_s"], json.dumps(report, indent=1))
         out["train"] = report
     if cfg.eval.enabled:
-        chain = load_pinn(path=file, train_if_missing=False, residual_threshold=float(cfg.eval.residual_threshold))
-        results = evaluate_sets(chain, n_random=int(cfg.eval.n_random), n_expert_envs=int(cfg.eval.expert_envs),
+        chain = load_pinn(sim, path=file, train_if_missing=False,
+                          residual_threshold=float(cfg.eval.residual_threshold))
+        results = evaluate_sets(chain, sim, n_random=int(cfg.eval.n_random), n_expert_envs=int(cfg.eval.expert_envs),
                                 expert_steps=int(cfg.eval.expert_steps), seed=int(cfg.eval.seed))
         table = format_table(results)
         log.info("accuracy against the exact simulator:\n%s", table)

@@ -9,10 +9,15 @@ Steps: load both datasets (``data.*``; a missing one is generated first unless `
 fit the terminal classifier on the surrogate's dataset (or reuse the cached one), fit the regressor on the
 training split (validation split for early stopping), then evaluate on the held-out test split of the same
 dataset *and* of the other dataset. The surrogate folder (``surrogate.path``, default
-``anm_torchrl.paths.surrogate_dir(name, dataset)``) receives the model, ``surrogate.json``, the classifier,
-``metrics.json``, ``config.yaml`` and, for the DNN, TensorBoard curves in ``tb/``. The trained surrogate is then
-available as ``anm_torchrl.make_env(name, dataset=dataset)`` and ``python recipes/ppo.py surrogate=<name>``.
-Options: ``recipes/conf/train_surrogate.yaml``.
+``anm_torchrl.paths.surrogate_dir(name, dataset)``) receives, in one atomic save with a manifest, the model,
+``surrogate.json``, the classifier, ``metrics.json``, ``config.yaml`` and, for the DNN, TensorBoard curves in
+``tb/``. The trained surrogate is then available as ``anm_torchrl.make_env(name, dataset=dataset)`` and
+``python recipes/ppo.py surrogate=<name>``.
+
+The default folder only receives a model trained on at least the default number of rows (``data.size`` of
+``train_surrogate.yaml``), unless ``overwrite_cache=true``: a quick run on a small dataset never replaces the
+model everyone else loads. Options: ``recipes/conf/train_surrogate.yaml``; model and classifier defaults live in
+``anm_torchrl/surrogates/conf/{models,terminal}/default.yaml`` (on Hydra's search path).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import hashlib
 import json
 import logging
 import shutil
+import tempfile
 import time
 from pathlib import Path
 
@@ -30,17 +36,16 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 log = logging.getLogger("train_surrogate")
-
-DATASETS = ("generative", "agent")
+CONF = Path(__file__).parent / "conf"
 
 
 def load_datasets(cfg: DictConfig, sim) -> dict:
     """``{kind: (td, meta)}`` for both datasets (generated first when missing and allowed)."""
-    from anm_torchrl.data import ensure_dataset, load_dataset
+    from anm_torchrl.data import available_datasets, ensure_dataset, load_dataset
 
-    make_cfg = OmegaConf.load(Path(__file__).parent / "conf" / "make_dataset.yaml")
+    make_cfg = OmegaConf.load(CONF / "make_dataset.yaml")
     out = {}
-    for kind in DATASETS:
+    for kind in available_datasets():
         options = dict(make_cfg[kind]) if kind in make_cfg else {}
         start = time.perf_counter()
         if cfg.data.get(kind):  # an explicit folder: used as it is (its own size and seed), never generated
@@ -59,7 +64,8 @@ def fit_terminal(cfg: DictConfig, dataset: str, data: dict, sim):
     """The terminal classifier for ``dataset``: cached one if ``terminal.reuse`` and the options match, else trained."""
     from anm_torchrl.data import split
     from anm_torchrl.paths import surrogate_dir
-    from anm_torchrl.surrogates.terminal import ModelFileError, TerminalClassifier
+    from anm_torchrl.artifacts import ArtifactError
+    from anm_torchrl.surrogates.terminal import TerminalClassifier
 
     td, meta = data[dataset]
     options = OmegaConf.to_container(cfg.terminal, resolve=True)
@@ -73,7 +79,7 @@ def fit_terminal(cfg: DictConfig, dataset: str, data: dict, sim):
             if clf.info.get("cache_key") == key:
                 log.info("terminal classifier for %s reused from %s", dataset, cache)
                 return clf
-        except ModelFileError as err:
+        except ArtifactError as err:
             log.warning("cached terminal classifier at %s is unusable (%s); retraining", cache, err)
     tr, va = split(td, "train"), split(td, "val")
     start = time.perf_counter()
@@ -93,7 +99,7 @@ def fit_terminal(cfg: DictConfig, dataset: str, data: dict, sim):
 
 def check_request(name: str, dataset: str | None) -> None:
     """Raise ``ValueError`` unless ``name`` is a data-driven surrogate and ``dataset`` a dataset kind."""
-    from anm_torchrl.surrogates.regressors import KINDS
+    from anm_torchrl.surrogates.regressors import DATASETS, KINDS
 
     if name not in KINDS:
         raise ValueError(f"train_surrogate.py trains the data-driven surrogates {list(KINDS)}, got surrogate={name!r}"
@@ -102,26 +108,33 @@ def check_request(name: str, dataset: str | None) -> None:
         raise ValueError(f"surrogate.dataset must be one of {list(DATASETS)}, got {dataset!r}")
 
 
+def check_default_slot(cfg: DictConfig, path: str | None) -> None:
+    """Raise ``ValueError`` if a model trained on fewer rows than the default would land in the default folder."""
+    default_size = int(OmegaConf.load(CONF / "train_surrogate.yaml").data.size)
+    if not path and int(cfg.data.size) < default_size and not cfg.overwrite_cache and not any(
+            cfg.data.get(k) for k in ("generative", "agent")):
+        raise ValueError(f"data.size={cfg.data.size} is below the default {default_size}: a model trained on it would "
+                         f"replace the default one in its default folder; give surrogate.path=... or "
+                         f"overwrite_cache=true")
+
+
 def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: dict, sim) -> dict:
     """Train, save and evaluate surrogate ``name`` on ``dataset``; returns its metrics."""
     from anm_torchrl.data import split
     from anm_torchrl.paths import surrogate_dir
-    from anm_torchrl.surrogates.regressors import evaluate_surrogate, fit_regressor
+    from anm_torchrl.surrogates.regressors import DATASETS, evaluate_surrogate, fit_regressor
 
     check_request(name, dataset)
     out = Path(path) if path else surrogate_dir(name, dataset)
-    out.mkdir(parents=True, exist_ok=True)
     total = time.perf_counter()
     clf = fit_terminal(cfg, dataset, data, sim)
     td, meta = data[dataset]
     params = OmegaConf.to_container(cfg.models[name], resolve=True) if name in cfg.models else {}
-    if name == "dnn" and (out / "tb").exists():
-        shutil.rmtree(out / "tb")
     log.info("training %s on the %s dataset -> %s", name, dataset, out)
+    tb = Path(tempfile.mkdtemp(prefix=f"{name}_tb_")) if name == "dnn" else None
     sur = fit_regressor(name, split(td, "train"), split(td, "val"), sim=sim, params=params,
                         foresight=bool(cfg.foresight), clip=bool(cfg.clip), n_jobs=int(cfg.n_jobs),
-                        seed=int(cfg.seed), progress=bool(cfg.progress),
-                        log_dir=str(out / "tb") if name == "dnn" else None)
+                        seed=int(cfg.seed), progress=bool(cfg.progress), log_dir=None if tb is None else str(tb))
     sur.classifier = clf
     other = [d for d in DATASETS if d != dataset][0]
     metrics = {"kind": name, "dataset": dataset,
@@ -131,13 +144,18 @@ def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: 
                "train_seconds": sur.meta["train_info"]["train_seconds"],
                "terminal_train_seconds": clf.info.get("train_seconds")}
     metrics["total_seconds"] = time.perf_counter() - total
-    sur.save(out, extra={"dataset": dataset, "dataset_meta": {k: meta[k] for k in ("kind", "size", "seed", "checksum")},
-                         "metrics": {"in_dataset_r2": metrics["in_dataset"]["r2"],
-                                     "cross_dataset_r2": metrics["cross_dataset"]["r2"]}})
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     job_cfg = OmegaConf.to_container(cfg, resolve=True)
     job_cfg["surrogate"] = {"name": name, "dataset": dataset, "path": path}
-    (out / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(job_cfg)))
+    files = {"metrics.json": json.dumps(metrics, indent=2), "config.yaml": OmegaConf.to_yaml(OmegaConf.create(job_cfg)),
+             **({"tb": tb} if tb is not None else {})}
+    try:
+        sur.save(out, extra={"dataset": dataset,
+                             "dataset_meta": {k: meta[k] for k in ("kind", "size", "seed", "checksum")},
+                             "metrics": {"in_dataset_r2": metrics["in_dataset"]["r2"],
+                                         "cross_dataset_r2": metrics["cross_dataset"]["r2"]}}, files=files)
+    finally:
+        if tb is not None:
+            shutil.rmtree(tb, ignore_errors=True)
     m, c = metrics["in_dataset"], metrics["cross_dataset"]
     log.info("%s/%s: R² %.4f MAE %.4f (test, same dataset) | R² %.4f MAE %.4f (test, %s) | terminal acc %.4f "
              "recall %.3f | %.1f s", name, dataset, m["r2"], m["mae"], c["r2"], c["mae"], other,
@@ -159,13 +177,15 @@ def summary_table(results: list[dict]) -> str:
 
 def run(cfg: DictConfig) -> list[dict]:
     """Train what ``cfg`` asks for (one surrogate, or all ten with ``all=true``); returns the metrics."""
+    from anm_torchrl.artifacts import atomic_write
     from anm_torchrl.grid.simulator import anm6_easy_simulator
     from anm_torchrl.paths import artifact_home
-    from anm_torchrl.surrogates.regressors import KINDS
+    from anm_torchrl.surrogates.regressors import DATASETS, KINDS
 
     torch.set_num_threads(int(cfg.threads))
     if not cfg.all:  # fail before loading or generating data
         check_request(cfg.surrogate.name, cfg.surrogate.get("dataset"))
+    check_default_slot(cfg, None if cfg.all else cfg.surrogate.get("path"))
     start = time.perf_counter()
     sim = anm6_easy_simulator()
     data = load_datasets(cfg, sim)
@@ -177,8 +197,8 @@ def run(cfg: DictConfig) -> list[dict]:
                    for k, d in tqdm(jobs, desc="surrogates", unit="model", disable=not cfg.progress)]
         table = summary_table(results)
         out = artifact_home() / "surrogates"
-        (out / "summary.json").write_text(json.dumps(results, indent=2))
-        (out / "summary.md").write_text(table + "\n")
+        atomic_write(out / "summary.json", json.dumps(results, indent=2).encode())
+        atomic_write(out / "summary.md", (table + "\n").encode())
         log.info("all surrogates trained in %.1f s; summary in %s\n%s", time.perf_counter() - start,
                  out / "summary.md", table)
         return results

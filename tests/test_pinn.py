@@ -1,11 +1,13 @@
-"""The PINN surrogate (``anm_torchrl.surrogates.pinn``): loss code, feasibility, chain pieces, files, env specs.
+"""The PINN surrogate (``anm_torchrl.surrogates.pinn``): loss code, feasibility, chain pieces, files, cache rules,
+physics alone, env specs.
 
 Tiny networks and a few dozen steps only (the ``smoke`` preset); accuracy of the real model is measured by
-``python -m anm_torchrl.surrogates.pinn.evaluate`` / ``recipes/train_pinn.py`` (see the report in train.py).
+``python -m anm_torchrl.surrogates.pinn.evaluate`` / ``recipes/train_pinn.py`` (see the notes in presets.py).
 """
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -16,11 +18,13 @@ import yaml
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
+from anm_torchrl.artifacts import ArtifactError
 from anm_torchrl.envs import ANM6Env, SurrogateEnv
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.powerflow import newton_raphson
 from anm_torchrl.grid.residuals import constraint_slack
 from anm_torchrl.grid.simulator import anm6_easy_simulator
+from anm_torchrl.surrogates.pinn import cache
 from anm_torchrl.surrogates.pinn import train as tr
 from anm_torchrl.surrogates.pinn.chain import build_chain, load_pinn
 from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn, random_transitions
@@ -43,7 +47,7 @@ def smoke_file(tmp_path_factory, sim):
     """A smoke-preset PINN trained once for the module and saved."""
     cfg = tr.preset("smoke")
     modules, report = tr.train_pinn(cfg, sim)
-    return tr.save_pinn(tmp_path_factory.mktemp("pinn") / "pinn.pt", modules, cfg, report)
+    return tr.save_pinn(tmp_path_factory.mktemp("pinn") / "pinn.safetensors", modules, cfg, report, sim)
 
 
 @pytest.fixture(scope="module")
@@ -196,47 +200,136 @@ def test_chain_pieces_run_alone(sim, chain):
 
 
 def test_save_load_round_trip_and_wrong_kind(sim, smoke_file, tmp_path):
-    a = load_pinn(path=smoke_file, train_if_missing=False)
-    b = load_pinn(path=smoke_file.parent, train_if_missing=False)  # a folder holding pinn.pt
+    a = load_pinn(path=smoke_file)
+    b = load_pinn(path=smoke_file.parent)  # a folder holding pinn.safetensors
     td = _batch(sim, 64, seed=5)
     oa, ob = a(td.clone()), b(td.clone())
     for k in ("next_state", "reward", "terminated", (P, "v_magn")):
         assert torch.equal(oa.get(k), ob.get(k)), k
     payload = tr.read_pinn_file(smoke_file)
     assert payload["kind"] == "anm_torchrl.pinn" and payload["config"]["preset"] == "smoke"
-    bad = tmp_path / "other.pt"
-    torch.save({"kind": "something.else", "state_dict": {}}, bad)
-    with pytest.raises(ValueError, match="anm_torchrl.pinn"):
+    from anm_torchrl.artifacts import save_tensors
+
+    bad = save_tensors(tmp_path / "other.safetensors", {"w": torch.zeros(2)}, {}, "something.else")
+    with pytest.raises(ArtifactError, match="expected 'anm_torchrl.pinn'"):
         load_pinn(path=bad)
-    junk = tmp_path / "junk.pt"
-    junk.write_text("not a torch file")
-    with pytest.raises(ValueError, match="not a readable"):
+    junk = tmp_path / "junk.safetensors"
+    junk.write_text("not a tensor file")
+    with pytest.raises(ValueError, match="not a readable safetensors file"):
         load_pinn(path=junk)
-    with pytest.raises(FileNotFoundError):
-        load_pinn(path=tmp_path / "missing", train_if_missing=False)
+    with pytest.raises(FileNotFoundError, match="recipes/train_pinn.py"):
+        load_pinn(path=tmp_path / "missing")  # an explicit path that does not exist never starts a training
     with pytest.raises(ValueError, match="classifier_path"):
         load_pinn(path=smoke_file, terminal="classifier")
     with pytest.raises(ValueError, match="terminal"):
         load_pinn(path=smoke_file, terminal="oracle")
 
 
+def test_corrupted_pinn_file_fails_naming_it(smoke_file, tmp_path):
+    f = tmp_path / "pinn.safetensors"
+    data = bytearray(smoke_file.read_bytes())
+    data[-6:-2] = bytes(b ^ 0xFF for b in data[-6:-2])  # four bytes of the last weight
+    f.write_bytes(bytes(data))
+    with pytest.raises(ArtifactError, match=r"pinn\.safetensors is corrupted: content hash"):
+        load_pinn(path=f)
+
+
+@pytest.mark.parametrize("kw", [{"residual_threshold": -1.0}, {"residual_threshold": float("nan")},
+                                {"residual_threshold": 0.0}, {"v_range": (1.2, 0.8)},
+                                {"v_range": (0.4, float("inf"))}])
+def test_terminal_check_parameters_are_validated(smoke_file, kw):
+    with pytest.raises(ValueError, match="residual_threshold|v_range"):
+        load_pinn(path=smoke_file, **kw)
+
+
+def test_pinn_refuses_another_network(smoke_file, sim):
+    import copy
+    import dataclasses
+
+    other = copy.copy(sim)
+    dev = sim.net.dev.clone()
+    dev[2, 0] += 1.0  # one device parameter changed: another network
+    other.net = dataclasses.replace(sim.net, dev=dev)
+    with pytest.raises(ArtifactError, match="trained on network"):
+        load_pinn(other, path=smoke_file)
+
+
 def test_load_pinn_trains_and_caches_when_missing(tmp_path, monkeypatch):
-    from anm_torchrl.surrogates.pinn import chain as chain_mod
+    from anm_torchrl.surrogates.pinn import loop
 
     calls = []
-    real = tr.train_pinn
+    real = loop.train_pinn
 
     def spy(cfg, sim, **kw):
         calls.append(cfg.preset)
         return real(cfg, sim, **kw)
 
-    monkeypatch.setattr(tr, "train_pinn", spy)
-    c1 = chain_mod.load_pinn(path=tmp_path, preset="smoke", progress=False)
-    assert (tmp_path / "pinn.pt").is_file() and calls == ["smoke"]
-    c2 = chain_mod.load_pinn(path=tmp_path, preset="smoke")
+    monkeypatch.setattr(cache, "train_pinn", spy)
+    c1 = load_pinn(path=tmp_path, preset="smoke", progress=False, train_if_missing=True)
+    assert (tmp_path / "pinn.safetensors").is_file() and calls == ["smoke"]
+    c2 = load_pinn(path=tmp_path, preset="smoke")
     assert calls == ["smoke"]  # second call loads
     td = _batch(anm6_easy_simulator(), 8)
     assert torch.equal(c1(td.clone()).get("next_state"), c2(td.clone()).get("next_state"))
+
+
+def test_default_cache_never_takes_a_smoke_or_failed_model(tmp_path, monkeypatch, sim):
+    monkeypatch.setenv("ANM_TORCHRL_HOME", str(tmp_path))
+    default = cache.default_path(sim)
+    assert str(default).startswith(str(tmp_path))
+    with pytest.raises(ValueError, match="no acceptance bar"):  # before any training
+        load_pinn(sim, preset="smoke", progress=False)
+    assert not default.exists()
+    # a "default" preset cut to a few steps fails its bar: not cached, saved aside, the error says where
+    short = tr.preset("default", generator={"max_steps": 3, "eval_every": 3, "val_size": 64},
+                      storage={"max_steps": 3, "eval_every": 3, "val_size": 64},
+                      power_balance={"max_steps": 3, "eval_every": 3, "val_size": 64})
+    with pytest.raises(cache.CacheRejectedError, match="failed its acceptance bar.*saved to"):
+        cache.train_and_save(short, sim, reject_path=tmp_path / "rejected")
+    assert not default.exists() and (tmp_path / "rejected" / "pinn.safetensors").is_file()
+    file, report = cache.train_and_save(tr.preset("smoke"), sim, overwrite_cache=True)  # asked for: written
+    assert file == default and not report["accepted"]
+    load_pinn(sim)  # and now the default cache loads
+
+
+def test_bad_training_options_fail_before_training():
+    with pytest.raises(ValueError, match="'max_steps' must be an integer >= 1, got -5"):
+        tr.preset("smoke", generator={"max_steps": -5})
+    with pytest.raises(ValueError, match="'lr' must be a finite number > 0"):
+        tr.preset("smoke", power_balance={"lr": float("nan")})
+
+
+def test_physics_alone(sim, monkeypatch):
+    """Training never reads an exact solution: with every exact reference (projection, Newton–Raphson) replaced
+    by garbage, and the simulator's transition disabled, the trained weights are bit-identical."""
+    cfg = tr.preset("smoke", generator={"max_steps": 30, "eval_every": 10}, storage={"max_steps": 30, "eval_every": 10},
+                    power_balance={"max_steps": 30, "eval_every": 10})
+    clean, _ = tr.train_pinn(cfg, sim)
+
+    from types import SimpleNamespace
+
+    from anm_torchrl.surrogates.pinn import tasks
+
+    def kkt_garbage(self, inputs):  # (N, n, 2) p.u. where the exact projection would be
+        return torch.full_like(inputs[0], float("nan"))
+
+    def pf_garbage(self, inputs):  # a "converged" power flow with absurd voltages
+        p_bus = inputs[0]
+        return SimpleNamespace(converged=torch.ones(p_bus.shape[0], dtype=torch.bool),
+                               v=torch.full(p_bus.shape, 7.0 + 3.0j, dtype=torch.complex128))
+
+    monkeypatch.setattr(tasks._GeneratorTask, "reference", kkt_garbage)
+    monkeypatch.setattr(tasks._StorageTask, "reference", kkt_garbage)
+    monkeypatch.setattr(tasks._PowerBalanceTask, "reference", pf_garbage)
+    monkeypatch.setattr(tasks, "newton_raphson", lambda *a, **k: (_ for _ in ()).throw(AssertionError("NR used")))
+    for name in ("step", "transition", "project_generators", "project_storage"):
+        monkeypatch.setattr(type(sim), name, lambda *a, **k: (_ for _ in ()).throw(AssertionError("simulator used")))
+    dirty, report = tr.train_pinn(cfg, sim)
+    assert math.isnan(report["generator"]["val_mae_pu"])  # the garbage reached the validation errors
+    assert report["power_balance"]["val_vmag_mae"] > 1.0
+    for name in tr.MODULES:
+        for (k, va), vb in zip(clean[name].state_dict().items(), dirty[name].state_dict().values()):
+            assert torch.equal(va, vb), (name, k)
 
 
 def test_classifier_terminal_wiring(sim, smoke_file):
@@ -264,29 +357,67 @@ def test_surrogate_env_specs(chain):
     assert roll.shape == (4, 5)
 
 
-def test_make_env_pinn(smoke_file):
+def test_make_env_pinn(smoke_file, chain):
     from anm_torchrl import make_env
 
     env = make_env("pinn", num_envs=3, seed=0, path=str(smoke_file), max_steps=10)
     td = env.rollout(4, break_when_any_done=False)
     assert td.get(("next", "reward")).shape == (3, 4, 1)
+    # the env's transitions are the chain's (rewards of non-terminal steps computed by the chain itself)
+    first = td[:, 0]
+    pred = chain(TensorDict({"state": first.get("state"), "action": first.get("action").double()}, [3]))
+    live = ~pred.get("terminated").reshape(-1)
+    torch.testing.assert_close(first.get(("next", "reward"))[live], pred.get("reward")[live].float())
 
 
-def test_evaluate_runs(sim, chain):
-    m = evaluate_pinn(chain, sim, *random_transitions(sim, 300, seed=1))
-    assert m["feasible"] == 1.0
-    for k in ("gen_proj_mae_pu", "des_proj_mae_pu", "vmag_mae_pu", "pf_residual_mean", "next_pq_mae_mw",
-              "terminal_precision", "terminal_recall"):
-        assert k in m
+def test_evaluate_metrics_against_independent_computation_and_untrained_baseline(sim, chain, smoke_file):
+    """The evaluation's errors equal an independent computation, and training beats the untrained network."""
+    state, action = random_transitions(sim, 400, seed=1)
+    m = evaluate_pinn(chain, sim, state, action)
+    out = chain(TensorDict({"state": state, "action": action}, [400]))
+    nxt, trans = sim.step(state, action)
+    ok = trans.converged
+    vmag = (out.get((P, "v_magn")) - trans.v.abs())[ok].abs().mean()
+    assert m["vmag_mae_pu"] == pytest.approx(float(vmag), rel=1e-12)
+    ref = sim.project_generators(out.get((P, "gen_target")), out.get((P, "p_pot")))
+    assert m["gen_proj_mae_pu"] == pytest.approx(float((out.get((P, "gen_pq")) - ref)[ok].abs().mean()), rel=1e-12)
+    assert m["terminal_rate_sim"] == pytest.approx(float((~ok).double().mean()))
+    # baseline: the same architecture before training (seeded as the training was) must be worse
+    cfg = tr.read_pinn_file(smoke_file)["config"]
+    torch.manual_seed(cfg["seed"])
+    raw = tr.build_modules(tr.PINNTrainConfig.from_dict(cfg), sim)
+    untrained = evaluate_pinn(build_chain(sim, raw["generator"], raw["storage"], raw["power_balance"]), sim,
+                              state, action)
+    # (|V| itself is not compared: 40 smoke steps lower the physics residual, not yet the |V| error)
+    for k in ("gen_proj_mae_pu", "des_proj_mae_pu", "pf_residual_mean"):
+        assert m[k] < untrained[k], (k, m[k], untrained[k])
+
+
+def test_expert_set_never_falls_back(sim, monkeypatch):
+    from anm_torchrl.baselines import simple
+    from anm_torchrl.surrogates.pinn.evaluate import expert_transitions
+
+    def broken(name, sim=None, **kw):
+        raise RuntimeError("MPC solver missing")
+
+    monkeypatch.setattr(simple, "make_baseline", broken)
+    with pytest.raises(RuntimeError, match="MPC solver missing"):
+        expert_transitions(sim, n_envs=2, steps=2)
 
 
 # ---------------------------------------------------------------------------------------------- configs
 @pytest.mark.parametrize("name", sorted(tr.PRESETS))
-def test_yaml_presets_match_dataclasses(name):
-    data = yaml.safe_load((ROOT / "recipes" / "conf" / "pinn_preset" / f"{name}.yaml").read_text())
+def test_recipe_composes_the_package_presets(name):
+    """The recipe's pinn_preset group is the package's YAML (one home): composing it gives ``preset(name)``."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
+        cfg = compose("train_pinn", overrides=[f"pinn_preset={name}"])
+    data = OmegaConf.to_container(cfg.pinn_preset, resolve=True)
     assert data.pop("name") == name
-    cfg = tr.PINNTrainConfig.from_dict({**data, "preset": name})
-    assert cfg.to_dict() == tr.PRESETS[name]().to_dict()
+    assert tr.PINNTrainConfig.from_dict({**data, "preset": name}).to_dict() == tr.preset(name).to_dict()
+    assert not (ROOT / "recipes" / "conf" / "pinn_preset").exists()  # no second copy
 
 
 def test_unknown_option_is_rejected():
@@ -295,7 +426,7 @@ def test_unknown_option_is_rejected():
 
 
 def test_recipe_smoke(tmp_path):
-    out = tmp_path / "pinn.pt"
+    out = tmp_path / "pinn.safetensors"
     cmd = [sys.executable, str(ROOT / "recipes" / "train_pinn.py"), "pinn_preset=smoke", f"path={out}",
            "eval.n_random=500", "eval.expert_envs=0", "progress=false", f"hydra.run.dir={tmp_path / 'run'}"]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)

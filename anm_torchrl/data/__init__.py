@@ -11,37 +11,42 @@ from pathlib import Path
 
 from tensordict import TensorDict
 
+from anm_torchrl.artifacts import exclusive_lock
 from anm_torchrl.data.agent import WaypointAgent, generate_agent
 from anm_torchrl.data.generative import generate_generative
+from anm_torchrl.data.registry import available_datasets, dataset_generator, register_dataset
 from anm_torchrl.data.storage import (KINDS, SPLITS, DatasetError, checksum, load_dataset, make_command, read_meta,
                                       save_dataset, split)
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.paths import dataset_dir
 
-__all__ = ["KINDS", "SPLITS", "DatasetError", "WaypointAgent", "checksum", "ensure_dataset", "generate",
-           "generate_agent", "generate_generative", "load_dataset", "make_dataset", "read_meta", "save_dataset",
-           "split"]
+__all__ = ["KINDS", "SPLITS", "DatasetError", "WaypointAgent", "available_datasets", "checksum", "ensure_dataset",
+           "generate", "generate_agent", "generate_generative", "load_dataset", "make_dataset", "read_meta",
+           "register_dataset", "save_dataset", "split"]
 
 
 def generate(kind: str, size: int, seed: int = 0, sim: GridSimulator | None = None, progress: bool = False,
              **options) -> tuple[TensorDict, dict]:
-    """Generate (in memory) a dataset of ``kind`` ``"generative"`` or ``"agent"``; ``options`` go to its generator."""
-    if kind == "generative":
-        return generate_generative(size, seed, sim=sim, progress=progress, **options)
-    if kind == "agent":
-        return generate_agent(size, seed, sim=sim, progress=progress, **options)
-    raise ValueError(f"dataset kind must be one of {KINDS}, got {kind!r}")
+    """Generate (in memory) a dataset of a registered ``kind`` (:func:`available_datasets`); ``options`` go to
+    its generator."""
+    return dataset_generator(kind)(size, seed, sim=sim, progress=progress, **options)
 
 
 def make_dataset(kind: str, size: int, seed: int = 0, path: str | os.PathLike | None = None,
                  overwrite: bool = False, sim: GridSimulator | None = None, progress: bool = False,
                  **options) -> Path:
-    """Generate a dataset and write it to ``path`` (default :func:`anm_torchrl.paths.dataset_dir`)."""
+    """Generate a dataset and write it to ``path`` (default :func:`anm_torchrl.paths.dataset_dir`).
+
+    The path's exclusive lock is held from the existence check to the final rename, so two runs on one path
+    cannot both write: the second raises ``LockedError`` (a ``FileExistsError``) at once.
+    """
     path = Path(path) if path is not None else dataset_dir(kind, size, seed)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; pass overwrite=true to replace it")
-    td, meta = generate(kind, size, seed, sim=sim, progress=progress, **options)
-    return save_dataset(td, path, meta, overwrite=overwrite)
+    dataset_generator(kind)  # unknown kind: fail before taking the lock
+    with exclusive_lock(path):
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; pass overwrite=true to replace it")
+        td, meta = generate(kind, size, seed, sim=sim, progress=progress, **options)
+        return save_dataset(td, path, meta, overwrite=overwrite, lock=False)
 
 
 def ensure_dataset(kind: str, size: int, seed: int = 0, path: str | os.PathLike | None = None,

@@ -1,6 +1,7 @@
 """The DNN surrogate's network and training loop (torch MLP on standardised inputs and targets).
 
-Hyper-parameters (:data:`DEFAULT_PARAMS`, all overridable from ``train_surrogate.yaml`` ``models.dnn``):
+Hyper-parameters (:data:`DEFAULT_PARAMS`, from ``surrogates/conf/models/default.yaml``; override with
+``models.dnn.<key>=...`` in ``recipes/train_surrogate.py``):
 
 * 3 hidden layers of 256 units, SiLU — smooth, and enough for ~10 piecewise-smooth outputs from ~30 inputs;
   the paper's PINN modules use 3×512 LeakyReLU, which costs 4× the compute for no gain on this data;
@@ -26,12 +27,12 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
+from anm_torchrl.surrogates.conf import load_defaults
+
 log = logging.getLogger(__name__)
 
-DEFAULT_PARAMS: dict[str, Any] = {
-    "hidden": 256, "depth": 3, "activation": "silu", "lr": 2e-3, "weight_decay": 1e-5, "batch_size": 256,
-    "max_epochs": 150, "patience": 15, "lr_patience": 5, "max_minutes": 3.0,
-}
+#: Read from ``anm_torchrl/surrogates/conf/models/default.yaml`` (``dnn``), the one home of these defaults.
+DEFAULT_PARAMS: dict[str, Any] = load_defaults("models/default")["dnn"]
 
 ACTIVATIONS = {"silu": nn.SiLU, "relu": nn.ReLU, "leaky_relu": lambda: nn.LeakyReLU(0.01), "tanh": nn.Tanh}
 

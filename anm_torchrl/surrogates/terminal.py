@@ -13,7 +13,10 @@ precision–recall curve, and the decision threshold is then chosen on the valid
 (weighting alone makes 0.5 far too eager). Report: accuracy, precision, recall on terminal steps, F1.
 
 API used elsewhere (the PINN chain): ``fit(state, action, terminated, eval_set=...)``,
-``predict_terminated(state (N, 18) f64, action (N, 6) f64) -> (N,) bool``, ``save(dir)``, ``load(dir)``.
+``predict_terminated(state (N, 18) f64, action (N, 6) f64) -> (N,) bool``, ``save(dir)``, ``load(dir, sim=...)``.
+A saved classifier is an artifact folder (``terminal.json``, ``terminal.ubj``, ``manifest.json``; atomic, hash
+checked before reading, :mod:`anm_torchrl.artifacts`); inside a regressor surrogate's folder the surrogate's
+manifest covers the same two files. The foresight features read the simulator it is loaded on.
 """
 
 from __future__ import annotations
@@ -28,27 +31,29 @@ import numpy as np
 import torch
 
 import anm_torchrl
+from anm_torchrl.artifacts import ArtifactError, atomic_folder, verify_manifest, write_manifest
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 from anm_torchrl.surrogates._xgb import train_booster
+from anm_torchrl.surrogates.conf import load_defaults
 from anm_torchrl.surrogates.features import Featurizer
 
 log = logging.getLogger(__name__)
 
 FORMAT = "anm_torchrl.terminal_classifier"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 META_FILE = "terminal.json"
 MODEL_FILE = "terminal.ubj"
 
-#: Booster parameters (documented): trees of depth 6 on 256-bin histograms, learning rate 0.1, row and column
-#: subsampling 0.8 against over-fitting the few positives, early stopping on validation AUC-PR.
-DEFAULT_PARAMS: dict[str, Any] = {
-    "objective": "binary:logistic", "eval_metric": "aucpr", "tree_method": "hist", "max_depth": 6,
-    "eta": 0.1, "subsample": 0.8, "colsample_bytree": 0.8, "min_child_weight": 1.0, "max_bin": 256,
-}
+KIND = "anm_torchrl.terminal_classifier"  # manifest kind of a stand-alone classifier folder
+#: Defaults, one home: ``anm_torchrl/surrogates/conf/terminal/default.yaml`` (documented there).
+DEFAULTS: dict[str, Any] = load_defaults("terminal/default")
+#: Booster parameters: the fixed objective, then the YAML's (early stopping on validation AUC-PR).
+DEFAULT_PARAMS: dict[str, Any] = {"objective": "binary:logistic", "eval_metric": "aucpr", "tree_method": "hist",
+                                  **DEFAULTS["params"]}
 
 
-class ModelFileError(RuntimeError):
-    """A model file is missing, of the wrong kind, or was made for another state layout."""
+class ModelFileError(ArtifactError):
+    """A model file is missing, of the wrong kind, or was made for another state layout (a ``ValueError``)."""
 
 
 def classification_metrics(pred: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
@@ -85,8 +90,9 @@ class TerminalClassifier:
     """
 
     def __init__(self, sim: GridSimulator | None = None, foresight: bool = True, params: dict | None = None,
-                 num_boost_round: int = 1000, early_stopping_rounds: int = 50, threshold: str | float = "f1",
-                 n_jobs: int = 1, seed: int = 0):
+                 num_boost_round: int = DEFAULTS["num_boost_round"],
+                 early_stopping_rounds: int = DEFAULTS["early_stopping_rounds"],
+                 threshold: str | float = DEFAULTS["threshold"], n_jobs: int = 1, seed: int = 0):
         self.sim = sim if sim is not None else anm6_easy_simulator()
         self.featurizer = Featurizer(self.sim, foresight=foresight)
         self.params = {**DEFAULT_PARAMS, **(params or {})}
@@ -157,10 +163,16 @@ class TerminalClassifier:
         return classification_metrics(self.predict_terminated(state, action), terminated)
 
     # ------------------------------------------------------------------------------------------ save/load
-    def save(self, path: str | os.PathLike) -> Path:
-        """Write ``terminal.json`` (+ ``terminal.ubj``, the booster) into folder ``path``."""
-        path = Path(path)
-        path.mkdir(parents=True, exist_ok=True)
+    def save(self, path: str | os.PathLike, overwrite: bool = True) -> Path:
+        """Write the classifier as its own artifact folder ``path`` (atomic, with a manifest)."""
+        with atomic_folder(path, overwrite=overwrite) as tmp:
+            self.write_files(tmp)
+            write_manifest(tmp, KIND)
+        return Path(path)
+
+    def write_files(self, folder: str | os.PathLike) -> None:
+        """Write ``terminal.json`` (+ ``terminal.ubj``, the booster) into ``folder`` (being saved atomically)."""
+        folder = Path(folder)
         if self.booster is None and self.constant is None:
             raise RuntimeError("cannot save an unfitted TerminalClassifier")
         meta = {
@@ -172,20 +184,25 @@ class TerminalClassifier:
             "info": self.info,
         }
         if self.booster is not None:
-            self.booster.save_model(str(path / MODEL_FILE))
-        elif (path / MODEL_FILE).exists():
-            (path / MODEL_FILE).unlink()
-        (path / META_FILE).write_text(json.dumps(meta, indent=2))
-        return path
+            self.booster.save_model(str(folder / MODEL_FILE))
+        (folder / META_FILE).write_text(json.dumps(meta, indent=2))
 
     @classmethod
     def load(cls, path: str | os.PathLike, sim: GridSimulator | None = None, n_jobs: int | None = None
              ) -> "TerminalClassifier":
-        """Load a classifier saved by :meth:`save`.
+        """Load a classifier folder saved by :meth:`save` (its manifest is checked first) to run on ``sim``.
 
         Raises:
-            ModelFileError: missing files, another kind of file, or a model made for another state layout.
+            ArtifactError: no manifest, a file changed since the save, or another kind of folder.
+            ModelFileError: another kind of file, or a model made for another state layout.
         """
+        verify_manifest(path, KIND)
+        return cls.read_files(path, sim=sim, n_jobs=n_jobs)
+
+    @classmethod
+    def read_files(cls, path: str | os.PathLike, sim: GridSimulator | None = None, n_jobs: int | None = None
+                   ) -> "TerminalClassifier":
+        """Rebuild a classifier from the files :meth:`write_files` wrote (the caller verified the folder)."""
         path = Path(path)
         meta = read_meta(path / META_FILE, "terminal classifier", FORMAT, FORMAT_VERSION, "retrain the classifier")
         clf = cls(sim=sim, foresight=meta["foresight"], params=meta["params"],

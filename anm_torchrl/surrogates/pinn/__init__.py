@@ -2,7 +2,10 @@
 
 * :mod:`.kkt` — generator and storage KKT-NNs; :mod:`.power_balance` — the power-balance PINN;
 * :mod:`.losses` — KKT and power-flow losses from :mod:`anm_torchrl.grid.residuals`;
-* :mod:`.train` — Sobol training from physics alone, presets, saved files;
+* :mod:`.presets` — training configuration, presets (YAML in ``surrogates/conf/pinn_preset``), design notes;
+* :mod:`.model`, :mod:`.tasks`, :mod:`.loop` — the networks, what each is trained on, the training loop
+  (physics alone); :mod:`.train` re-exports them;
+* :mod:`.io` — the saved file (safetensors, hash-checked); :mod:`.cache` — the default cache and its rules;
 * :mod:`.chain` — the ``TensorDictSequential`` surrogate and :func:`load_pinn` (registry name ``"pinn"``);
 * :mod:`.evaluate` — accuracy against the exact simulator (``python -m anm_torchrl.surrogates.pinn.evaluate``).
 """

@@ -56,6 +56,7 @@ transitions scored precision 0.81 / recall 0.77 on the same set).
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Any
 
@@ -140,13 +141,23 @@ class SlackAndFlows(nn.Module):
 
 class PhysicsTerminal(nn.Module):
     """``terminated`` (N, 1) = power-flow residual > ``residual_threshold`` (p.u.) or some |V| outside
-    ``[v_low, v_high]`` (p.u.) or a non-finite residual."""
+    ``[v_low, v_high]`` (p.u.) or a non-finite residual.
+
+    Raises:
+        ValueError: ``residual_threshold`` not a finite number > 0, or ``v_range`` not finite with
+            0 <= v_low < v_high.
+    """
 
     def __init__(self, residual_threshold: float = DEFAULT_RESIDUAL_THRESHOLD,
                  v_range: tuple[float, float] = DEFAULT_V_RANGE):
         super().__init__()
-        self.residual_threshold = float(residual_threshold)
-        self.v_low, self.v_high = (float(v) for v in v_range)
+        thr = float(residual_threshold)
+        if not (math.isfinite(thr) and thr > 0):
+            raise ValueError(f"residual_threshold must be a finite number > 0 (p.u.), got {residual_threshold!r}")
+        lo, hi = (float(v) for v in v_range)
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo < hi):
+            raise ValueError(f"v_range must be two finite numbers 0 <= v_low < v_high (p.u.), got {v_range!r}")
+        self.residual_threshold, self.v_low, self.v_high = thr, lo, hi
 
     def forward(self, residual, v_magn):
         bad = ~(residual <= self.residual_threshold)  # NaN counts as terminal
@@ -234,56 +245,65 @@ def build_chain(sim: GridSimulator, generator: GeneratorKKT, storage: StorageKKT
     return chain.eval()
 
 
-def load_pinn(device="cpu", path: str | Path | None = None, terminal: str = "physics",
-              classifier_path: str | Path | None = None, residual_threshold: float = DEFAULT_RESIDUAL_THRESHOLD,
-              v_range: tuple[float, float] = DEFAULT_V_RANGE, train_if_missing: bool = True,
-              preset: str = "default", progress: bool = True, log_dir: str | Path | None = None,
-              seed: int = 0) -> TensorDictSequential:
-    """The PINN surrogate chain, loaded from ``path`` or trained (and cached there) on first use.
+def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | None = None,
+              terminal: str = "physics", classifier_path: str | Path | None = None,
+              residual_threshold: float = DEFAULT_RESIDUAL_THRESHOLD, v_range: tuple[float, float] = DEFAULT_V_RANGE,
+              train_if_missing: bool | None = None, preset: str = "default", overwrite_cache: bool = False,
+              progress: bool = True, log_dir: str | Path | None = None, seed: int = 0) -> TensorDictSequential:
+    """The PINN surrogate chain on ``sim``, loaded from ``path`` or trained (and cached) on first use.
+
+    The chain reads everything exogenous — loads and renewable potentials of the next step — from ``sim``'s
+    profiles, so a simulator with scaled or shifted profiles gets a chain that follows them. Its network
+    (tables, not profiles) must be the one the saved model was trained on.
 
     Args:
-        device: torch device of the chain.
-        path: a saved file or a folder holding ``pinn.pt``; default ``anm_torchrl.paths.surrogate_dir("pinn")``.
-            If nothing is there and ``train_if_missing``, the ``preset`` is trained from physics alone (no
-            simulator samples; a few minutes on 2 CPU cores with ``default``) and saved there.
+        sim: the simulator (network, profiles, constants) the chain runs on; default ANM6-Easy on ``device``.
+        device: torch device; with ``sim`` given it must be ``sim``'s device (or None).
+        path: a saved file or a folder holding ``pinn.safetensors``; default the network's cache
+            (:func:`.cache.default_path`).
         terminal: ``"physics"`` (default, needs no data) or ``"classifier"`` (needs ``classifier_path``).
-        classifier_path: folder of a ``TerminalClassifier`` (``anm_torchrl.surrogates.terminal``).
-        residual_threshold, v_range: of the physics terminal check.
-        train_if_missing: train when no file is found (else raise ``FileNotFoundError``).
+        classifier_path: folder of a ``TerminalClassifier`` (``anm_torchrl.surrogates.terminal``), loaded on ``sim``.
+        residual_threshold, v_range: of the physics terminal check (validated: finite, threshold > 0).
+        train_if_missing: train when nothing is saved there; default True for the default cache and False for
+            an explicit ``path`` (a mistyped path is an error, not a multi-minute training).
         preset: training preset used when training (``default``, ``paper``, ``smoke``).
+        overwrite_cache: let a training without (or failing) its acceptance bar replace the default cache.
         progress: show a tqdm bar while training.
         log_dir: TensorBoard folder for that training (default ``<folder>/tb``).
         seed: training seed.
 
     Raises:
-        ValueError: the file at ``path`` is not a PINN file (wrong kind marker), or bad ``terminal``.
-        FileNotFoundError: nothing at ``path`` and ``train_if_missing=False``.
+        ValueError: bad ``terminal`` / threshold / ``v_range`` / device, or a file that is not a PINN file,
+            corrupted, or trained on another network (``ArtifactError``).
+        FileNotFoundError: nothing at ``path`` and training not requested.
+        CacheRejectedError: a training for the default cache failed its acceptance bar.
     """
-    from anm_torchrl.paths import surrogate_dir
+    from anm_torchrl.surrogates.pinn import cache
     from anm_torchrl.surrogates.pinn import train as tr
 
     if terminal not in TERMINALS:
         raise ValueError(f"terminal must be one of {TERMINALS}, got {terminal!r}")
+    PhysicsTerminal(residual_threshold, v_range)  # validate before any work
+    if sim is None:
+        sim = anm6_easy_simulator(device if device is not None else "cpu")
+    elif device is not None and torch.device(device) != sim.net.dev.device:
+        raise ValueError(f"device={device!r} differs from the simulator's device {sim.net.dev.device}; pass one")
     classifier = None
     if terminal == "classifier":
         if classifier_path is None:
             raise ValueError("terminal='classifier' needs classifier_path (a folder saved by TerminalClassifier)")
         from anm_torchrl.surrogates.terminal import TerminalClassifier
 
-        classifier = TerminalClassifier.load(classifier_path, sim=anm6_easy_simulator("cpu"))
-    sim = anm6_easy_simulator(device)
-    file = tr.resolve_path(path if path is not None else surrogate_dir("pinn"))
-    if file.is_file():
-        modules, _, _ = tr.load_modules(file, sim)
-    elif train_if_missing:
+        classifier = TerminalClassifier.load(classifier_path, sim=sim)
+    file = tr.resolve_path(path) if path is not None else cache.default_path(sim)
+    if not file.is_file():
+        train = train_if_missing if train_if_missing is not None else path is None
+        if not train:
+            raise FileNotFoundError(f"no trained PINN at {file}; train one with: python recipes/train_pinn.py "
+                                    f"path={file} (or pass train_if_missing=True)")
         log.warning("no trained PINN at %s: training the %r preset from physics alone (a few minutes)", file, preset)
-        cfg = tr.preset(preset, seed=seed)
-        cpu_sim = sim if sim.net.dev.device.type == "cpu" else anm6_easy_simulator("cpu")
-        modules, report = tr.train_pinn(cfg, cpu_sim, log_dir=log_dir if log_dir is not None else file.parent / "tb",
-                                        progress=progress)
-        tr.save_pinn(file, modules, cfg, report)
-        modules, _, _ = tr.load_modules(file, sim)
-    else:
-        raise FileNotFoundError(f"no trained PINN at {file} (pass train_if_missing=True to train one)")
+        cache.train_and_save(tr.preset(preset, seed=seed), sim, path=file, overwrite_cache=overwrite_cache,
+                             log_dir=log_dir if log_dir is not None else file.parent / "tb", progress=progress)
+    modules, _, _ = tr.load_modules(file, sim)
     return build_chain(sim, modules["generator"], modules["storage"], modules["power_balance"], terminal=terminal,
                        classifier=classifier, residual_threshold=residual_threshold, v_range=v_range)

@@ -5,7 +5,8 @@ Two transition sets (held out: the PINN never saw a transition):
 * ``random``: states spread over the reachable state space (:meth:`GridSimulator.random_state`) and uniform
   actions over the action box — about 0.5 % of them do not converge (terminal);
 * ``expert``: consecutive transitions of gym-anm's MPC DC-OPF policy (``mpc_perfect``, :mod:`anm_torchrl.baselines`)
-  on the true simulator from random reachable states (falls back to the do-nothing policy if the MPC cannot run).
+  on the true simulator from random reachable states (if the MPC cannot run, the evaluation raises: no other
+  policy is ever labelled "expert").
 
 Metrics (``evaluate_pinn``), per set; errors are over the rows where the simulator converged:
 
@@ -64,16 +65,10 @@ def random_transitions(sim: GridSimulator, n: int, seed: int = 0) -> tuple[torch
 def expert_transitions(sim: GridSimulator, n_envs: int = 8, steps: int = 125, seed: int = 0,
                        policy: str = "mpc_perfect") -> tuple[torch.Tensor, torch.Tensor]:
     """``n_envs × steps`` consecutive (state, action) pairs of ``policy`` on the true simulator, started from
-    random reachable states; terminal rows are reset. Falls back to ``do_nothing`` if the policy cannot run."""
+    random reachable states; terminal rows are reset. A policy that cannot run raises (no fallback)."""
     from anm_torchrl.baselines import simple
 
-    try:
-        pol = simple.make_baseline(policy, sim=sim)
-        state, _ = sim.random_state(n_envs, torch.Generator(device=sim.net.dev.device).manual_seed(seed))
-        pol(TensorDict({"state": state}, [n_envs]))
-    except Exception as err:  # noqa: BLE001 - any failure of the optional expert falls back
-        log.warning("expert policy %r unavailable (%s); using do_nothing", policy, err)
-        pol = simple.make_baseline("do_nothing", sim=sim)
+    pol = simple.make_baseline(policy, sim=sim)
     gen = torch.Generator(device=sim.net.dev.device).manual_seed(seed)
     state, _ = sim.random_state(n_envs, gen)
     states, actions = [], []

@@ -1,0 +1,98 @@
+"""The saved PINN: one safetensors file (:mod:`anm_torchrl.artifacts`: content hash, kind, finite weights).
+
+Tensors ``<module>.<parameter>`` for the three modules; metadata ``config`` (the :class:`PINNTrainConfig`),
+``report`` (training report), ``network`` (:func:`anm_torchrl.data.storage.network_key` of the simulator it
+was trained on: loading it on another network raises) and ``torch_version``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from anm_torchrl.artifacts import ArtifactError, load_tensors, save_tensors
+from anm_torchrl.data.storage import network_key
+from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.surrogates.pinn.model import build_modules
+from anm_torchrl.surrogates.pinn.presets import MODULES, PINNTrainConfig
+
+KIND = "anm_torchrl.pinn"
+FILE_NAME = "pinn.safetensors"
+
+
+def resolve_path(path: str | Path) -> Path:
+    """``path`` itself if it names a file (has a suffix), else ``path / "pinn.safetensors"``."""
+    p = Path(path).expanduser()
+    return p if p.suffix else p / FILE_NAME
+
+
+def _plain(x: Any) -> Any:
+    """JSON-ready copy (dicts, lists, str, int, float, bool, None; other numbers as float)."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, (str, int, float, bool)) or x is None:
+        return x
+    return float(x)
+
+
+def save_pinn(path: str | Path, modules: dict[str, nn.Module], cfg: PINNTrainConfig,
+              report: dict[str, Any] | None = None, sim: GridSimulator | None = None) -> Path:
+    """Write the trained modules, the config, the report and the network key of ``sim`` (the simulator they
+    were trained on; None: ANM6-Easy) to ``path``.
+
+    ``path`` is a file or a folder (then ``<folder>/pinn.safetensors``); written atomically. Returns the file.
+
+    Raises:
+        ArtifactError: a weight is NaN or inf (a diverged training is never saved).
+    """
+    sim = sim if sim is not None else anm6_easy_simulator()
+    tensors = {f"{k}.{n}": t for k, m in modules.items() for n, t in m.state_dict().items()}
+    meta = {"config": cfg.to_dict(), "report": _plain(report or {}), "network": network_key(sim),
+            "torch_version": str(torch.__version__)}
+    return save_tensors(resolve_path(path), tensors, meta, KIND)
+
+
+def read_pinn_file(path: str | Path) -> dict[str, Any]:
+    """Read and check a saved PINN file: ``{"kind", "config", "report", "network", "state_dict"}``.
+
+    Raises:
+        FileNotFoundError: no file at ``path`` (or ``path/pinn.safetensors``).
+        ArtifactError (a ``ValueError``): not a PINN file, corrupted (hash), or a NaN/inf weight.
+    """
+    file = resolve_path(path)
+    if not file.is_file():
+        raise FileNotFoundError(f"no trained PINN at {file}")
+    tensors, meta = load_tensors(file, KIND)
+    state = {k: {} for k in MODULES}
+    for name, t in tensors.items():
+        mod, _, param = name.partition(".")
+        if mod not in state:
+            raise ArtifactError(f"{file} holds tensor {name!r} of no PINN module {MODULES}")
+        state[mod][param] = t
+    return {"kind": KIND, "state_dict": state, **meta}
+
+
+def load_modules(path: str | Path, sim: GridSimulator) -> tuple[dict[str, nn.Module], PINNTrainConfig, dict]:
+    """Rebuild the modules saved at ``path`` for ``sim`` (on its device); returns (modules, config, report).
+
+    Raises:
+        ArtifactError: the file was trained on another network than ``sim``'s, or its weights do not fit.
+    """
+    payload = read_pinn_file(path)
+    if payload.get("network") != network_key(sim):
+        raise ArtifactError(f"{resolve_path(path)} was trained on network {payload.get('network')!r}, the simulator "
+                            f"is network {network_key(sim)!r}: train a PINN for this network")
+    cfg = PINNTrainConfig.from_dict(payload["config"], strict=False)
+    modules = build_modules(cfg, sim)
+    for k, m in modules.items():
+        try:
+            m.load_state_dict(payload["state_dict"][k])
+        except RuntimeError as err:
+            raise ArtifactError(f"{resolve_path(path)}: the {k} weights do not fit its recorded config ({err})") from err
+        m.eval()
+    return modules, cfg, payload.get("report", {})

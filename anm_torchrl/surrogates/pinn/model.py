@@ -1,0 +1,26 @@
+"""The three PINN networks of a training configuration (generator and storage KKT-NNs, power balance)."""
+
+from __future__ import annotations
+
+from torch import nn
+
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT
+from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
+from anm_torchrl.surrogates.pinn.presets import PINNTrainConfig
+
+
+def build_modules(cfg: PINNTrainConfig, sim: GridSimulator) -> dict[str, nn.Module]:
+    """Untrained ``generator`` (:class:`GeneratorKKT`), ``storage`` (:class:`StorageKKT`) and
+    ``power_balance`` (:class:`PowerBalanceNet`) networks for ``cfg``, float32, on the simulator's device."""
+    g, s, p = cfg.generator, cfg.storage, cfg.power_balance
+    mods = {
+        "generator": GeneratorKKT(sim, g.hidden, g.depth, g.activation, g.dual_activation,
+                                  hard_constraints=g.hard_constraints, gated=g.gated, separate_dual=g.separate_dual,
+                                  dual_gate=g.dual_gate),
+        "storage": StorageKKT(sim, s.hidden, s.depth, s.activation, s.dual_activation,
+                              hard_constraints=s.hard_constraints, gated=s.gated, separate_dual=s.separate_dual,
+                              dual_gate=s.dual_gate),
+        "power_balance": PowerBalanceNet(sim, p.hidden, p.depth, p.activation, p.v_scale, p.ang_scale),
+    }
+    return {k: m.to(sim.net.dev.device) for k, m in mods.items()}

@@ -1,0 +1,261 @@
+"""PINN training configuration: :class:`ModuleTrainConfig`, :class:`PINNTrainConfig` and the named presets.
+
+What simulator data touched the PINN's design (its weights never see any: ``tests/test_pinn.py::
+test_physics_alone`` trains with every exact reference replaced by garbage and gets bit-identical weights):
+
+* the ``default`` preset was chosen by comparing candidate settings' validation errors against the *exact*
+  projection and Newton–Raphson solutions on held-out Sobol points (tables below) — exact solvers, not
+  simulator transitions, but simulator code;
+* the acceptance bar of a preset (``acceptance``) is checked on the same errors; it decides only whether a
+  trained model may replace the default cache, never a weight;
+* the terminal check's residual threshold (0.005 p.u., :mod:`.chain`) was swept against the simulator's
+  non-convergence labels on random transitions.
+
+Presets (:data:`PRESETS`; their one home is ``anm_torchrl/surrogates/conf/pinn_preset/*.yaml``, which the
+recipe ``train_pinn.py`` reads too):
+
+* ``paper``: the paper's §5.1 — one 3×512 residual MLP per module (primal and dual heads), LeakyReLU 0.01, AdamW
+  lr 1e-5, batch 64, raw outputs in the losses, early stop after 5,000 steps without progress (capped at
+  300,000 steps per module; ≈9 ms per step here, so up to ≈45 min per module);
+* ``default``: what measured fastest to the accuracy targets on a 2-core CPU: KKT-NNs 3×128 LeakyReLU with the
+  structural options of :mod:`.kkt` (``hard_constraints``, ``gated``, ``separate_dual``, ``dual_gate``) and the
+  per-device residual norm; power balance 128×5 SiLU with a pseudo-Huber residual; AdamW lr 3e-3 with cosine
+  decay, batch 1024; 3,000 / 2,000 / 10,000 steps. About 2 min of training (110 s measured: 39 + 16 + 56 s);
+* ``smoke``: tiny networks and a few steps, for tests.
+
+Measurements behind ``default`` (2-core shared CPU, torch 1 thread; times are wall-clock and noisy, ±30 %).
+Held-out validation set: 4,096 scrambled-Sobol points of the module's input box, errors against the exact
+projection / a 1e-10 Newton–Raphson (converged points). Batch 1024, lr 3e-3 cosine unless noted.
+
+======================================================  =====  ============  ====
+generator KKT-NN (3×128)                                steps  val MAE p.u.  time
+======================================================  =====  ============  ====
+SiLU, squared residuals, raw output (the paper's loss)  3000   2.3e-3        36 s
+LeakyReLU, squared                                      3000   1.3e-3        49 s
+SiLU, squared, primal and complementarity weighted ×10  3000   1.4e-3        50 s
+LeakyReLU, per-device residual norm (``norm=l2``)       3000   6.3e-4        62 s
++ ``hard_constraints``                                  3000   4.9e-4        56 s
++ ``gated``                                             4000   2.6e-4        33 s
++ ``separate_dual`` + ``dual_gate=0.01`` (**default**)  3000   3.3e-6        39 s
+======================================================  =====  ============  ====
+
+Storage KKT-NN (3×128, LeakyReLU, ``norm=l2``): 1.5e-3 (3000 steps) → ``hard_constraints`` 4.7e-4 → ``gated``
+1.6e-5 → + ``separate_dual``/``dual_gate`` 2.3e-6 (**default**, 2000 steps, 16 s). With the dual gate the duals are
+learned too: mean |λ − λ*| 9e-5 (generator) and 8e-5 (storage), λ* the exact multipliers.
+
+===============================================  =====  =======  ========  =======
+power-balance PINN                               steps  |V| MAE  residual  time
+===============================================  =====  =======  ========  =======
+128×3 SiLU, squared residual (paper loss)        2000   3.0e-3   4.7e-3    16 s
+128×3, squared                                   4000   2.1e-3   2.8e-3    34 s
+same + L-BFGS finish, 300 iterations in float64  4000   2.1e-3   2.8e-3    +21 s
+128×3, pseudo-Huber (c = 0.01)                   4000   1.3e-3   2.0e-3    31 s
+128×3, Cauchy (redescending) loss                4000   5.5e-2   2.9e-1    28 s
+256×3, pseudo-Huber                              6000   7.2e-4   1.1e-3    123 s
+256×3, pseudo-Huber, batch 2048                  4000   9.7e-4   1.6e-3    126 s
+128×4, pseudo-Huber, lr 2e-3                     12000  3.6e-4   5.5e-4    58 s
+128×4, pseudo-Huber                              12000  2.7e-4   4.4e-4    76 s
+128×5, pseudo-Huber (**default**)                10000  2.6e-4   4.5e-4    56–67 s
+===============================================  =====  =======  ========  =======
+
+(residual: mean per-sample max |ΔP|, |ΔQ|, p.u.) The squared residual is dominated by the ≈2 % of the box with no
+power-flow solution; the pseudo-Huber penalty fixes that, while a redescending (Cauchy) one never starts
+fitting. L-BFGS made little progress for the same reason. Narrow-and-deep beat wide at equal time.
+
+The ``paper`` preset given more wall-clock than ``default`` (142 s vs 110 s: 43 / 20 / 79 s, i.e. 4,800 / 3,000 /
+12,900 steps, via ``+pinn_preset.<module>.max_time_s``): validation MAE 5.3e-3 (generator), 5.2e-3 (storage), |V|
+MAE 3.5e-3 and residual 9.0e-3 — 13× (power balance) to 2,000× (KKT-NNs) worse.
+On held-out transitions (``evaluate.py``; random / expert): projection MAE 4.8e-3 / 9.9e-3 and 5.2e-3 / 1.8e-3,
+|V| MAE 3.4e-3 / 1.4e-3, residual 8.2e-3 / 6.6e-3, next-state P/Q MAE 0.47 / 0.86 MW; its residual is too large for
+the 0.005 p.u. terminal threshold (89 % flagged). The default preset on the same sets: projection MAE 7.5e-6 /
+1e-14 and 2.2e-6 / 2e-16 p.u., |V| MAE 2.0e-4 / 1.1e-4, residual 3.7e-4 / 2.9e-4, next-state P/Q MAE 0.011 /
+0.007 MW, feasible 100 %, terminal precision 0.97 / recall 0.99 (``python recipes/train_pinn.py``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import math
+from importlib import resources
+from typing import Any
+
+import yaml
+
+log = logging.getLogger(__name__)
+
+MODULES = ("generator", "storage", "power_balance")
+PRESET_PACKAGE = "anm_torchrl.surrogates.conf"
+
+
+@dataclasses.dataclass
+class ModuleTrainConfig:
+    """How one PINN module is built and trained.
+
+    Attributes:
+        hidden, depth, activation: the residual MLP (paper: 512, 3, ``leaky_relu``).
+        dual_activation: KKT-NN dual head, ``softplus`` or ``relu`` (ignored by the power balance).
+        hard_constraints: KKT-NNs only: train through the clamp into the polygon (feasibility by construction,
+            see :class:`.kkt.GeneratorKKT`); ``False`` trains the raw output (the paper's formulation).
+        gated: KKT-NNs only: the primal correction is scaled by the target's largest constraint violation, so a
+            feasible set-point maps to itself exactly (:class:`.kkt.GeneratorKKT`).
+        separate_dual: KKT-NNs only: separate primal and dual networks (else one network with two heads).
+        dual_gate: KKT-NNs only: δ of the multipliers' activity gate (0: none), see :class:`.kkt.GeneratorKKT`.
+        lr: AdamW learning rate (paper: 1e-5); weight_decay: AdamW decoupled weight decay.
+        batch_size: Sobol points per step (paper: 64).
+        max_steps: Adam steps at most; patience: stop after this many steps without a new best held-out
+            physics loss (paper: 5,000); eval_every: steps between held-out evaluations (and TensorBoard points).
+        schedule: ``constant`` or ``cosine`` (decay to ``lr·min_lr_ratio`` over ``max_steps``).
+        warmup_steps: linear learning-rate warm-up.
+        lbfgs_iters: L-BFGS iterations after Adam (0: none), on ``lbfgs_batch`` fixed Sobol points, in float64.
+        weights: loss-term weights (missing terms weigh 1).
+        norm: KKT-NNs only: ``squared`` (mean squared residual) or ``l2`` (mean residual norm per device).
+        robust, robust_scale: power balance only: residual penalty (``squared``, ``pseudo_huber``, ``cauchy``) and
+            its scale (p.u.), see :func:`.losses.power_balance_losses`.
+        v_scale, ang_scale: power balance only: output scaling (p.u., rad per unit output).
+        val_size: held-out Sobol points.
+        max_time_s: wall-clock cap of the Adam phase (None: none).
+    """
+
+    hidden: int = 128
+    depth: int = 3
+    activation: str = "silu"
+    dual_activation: str = "softplus"
+    hard_constraints: bool = False
+    gated: bool = False
+    separate_dual: bool = False
+    dual_gate: float = 0.0
+    lr: float = 3e-3
+    weight_decay: float = 0.0
+    batch_size: int = 1024
+    max_steps: int = 3000
+    patience: int = 5000
+    eval_every: int = 250
+    schedule: str = "cosine"
+    min_lr_ratio: float = 0.01
+    warmup_steps: int = 0
+    lbfgs_iters: int = 0
+    lbfgs_batch: int = 4096
+    weights: dict[str, float] = dataclasses.field(default_factory=dict)
+    norm: str = "squared"
+    robust: str = "squared"
+    robust_scale: float = 0.01
+    v_scale: float = 0.1
+    ang_scale: float = 0.1
+    val_size: int = 4096
+    max_time_s: float | None = None
+
+    def __post_init__(self):
+        """Reject bad values before any work starts (a ``ValueError`` names the option and what it got)."""
+        for k in ("hidden", "depth", "batch_size", "max_steps", "patience", "eval_every", "val_size", "lbfgs_batch"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"PINN training option {k!r} must be an integer >= 1, got {v!r}")
+        for k in ("warmup_steps", "lbfgs_iters"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"PINN training option {k!r} must be an integer >= 0, got {v!r}")
+        for k in ("lr", "robust_scale", "v_scale", "ang_scale"):
+            v = getattr(self, k)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"PINN training option {k!r} must be a finite number > 0, got {v!r}")
+        for k in ("weight_decay", "dual_gate"):
+            v = getattr(self, k)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"PINN training option {k!r} must be a finite number >= 0, got {v!r}")
+        if not 0 <= self.min_lr_ratio <= 1:
+            raise ValueError(f"PINN training option 'min_lr_ratio' must lie in [0, 1], got {self.min_lr_ratio!r}")
+        if self.max_time_s is not None and not self.max_time_s > 0:
+            raise ValueError(f"PINN training option 'max_time_s' must be > 0 or null, got {self.max_time_s!r}")
+        for k, allowed in (("schedule", ("constant", "cosine")), ("norm", ("squared", "l2")),
+                           ("robust", ("squared", "pseudo_huber", "cauchy"))):
+            if getattr(self, k) not in allowed:
+                raise ValueError(f"PINN training option {k!r} must be one of {allowed}, got {getattr(self, k)!r}")
+
+
+@dataclasses.dataclass
+class PINNTrainConfig:
+    """Training of the whole chain: one :class:`ModuleTrainConfig` per module, a seed, the preset's name and
+    its acceptance bar (``{module: {validation metric: largest accepted value}}``; None: never accepted into the
+    default cache)."""
+
+    generator: ModuleTrainConfig = dataclasses.field(default_factory=ModuleTrainConfig)
+    storage: ModuleTrainConfig = dataclasses.field(default_factory=ModuleTrainConfig)
+    power_balance: ModuleTrainConfig = dataclasses.field(default_factory=ModuleTrainConfig)
+    seed: int = 0
+    preset: str = "custom"
+    acceptance: dict[str, dict[str, float]] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], strict: bool = True) -> "PINNTrainConfig":
+        """Build from a (possibly partial) nested dict.
+
+        Unknown keys raise ``ValueError`` naming them, or with ``strict=False`` (reading saved files written by
+        another version) are dropped with a warning.
+        """
+        d = dict(d)
+        kw: dict[str, Any] = {}
+
+        def check(bad: list[str], where: str, known: set[str]) -> None:
+            if bad and strict:
+                raise ValueError(f"unknown {where} options {bad}; known: {sorted(known)}")
+            if bad:
+                log.warning("ignoring unknown %s options %s", where, bad)
+
+        known_mod = {f.name for f in dataclasses.fields(ModuleTrainConfig)}
+        for name in MODULES:
+            if name in d:
+                sub = dict(d.pop(name) or {})
+                check(sorted(set(sub) - known_mod), f"{name} training", known_mod)
+                kw[name] = ModuleTrainConfig(**{k: v for k, v in sub.items() if k in known_mod})
+        known_top = {f.name for f in dataclasses.fields(cls)} - set(MODULES)
+        check(sorted(set(d) - known_top), "PINN training", known_top | set(MODULES))
+        return cls(**kw, **{k: v for k, v in d.items() if k in known_top})
+
+
+def preset_names() -> list[str]:
+    """Names of the presets (the YAML files of ``anm_torchrl/surrogates/conf/pinn_preset``)."""
+    folder = resources.files(PRESET_PACKAGE) / "pinn_preset"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
+
+
+def _load_preset(name: str) -> PINNTrainConfig:
+    data = yaml.safe_load((resources.files(PRESET_PACKAGE) / "pinn_preset" / f"{name}.yaml").read_text())
+    if data.pop("name", name) != name:
+        raise ValueError(f"pinn_preset/{name}.yaml names another preset")
+    return PINNTrainConfig.from_dict({**data, "preset": name})
+
+
+#: ``PRESETS[name]()`` builds the preset, read from its YAML file on each call.
+PRESETS = {n: functools.partial(_load_preset, n) for n in preset_names()}
+
+
+def preset(name: str, **overrides: Any) -> PINNTrainConfig:
+    """The named preset (``default``, ``paper``, ``smoke``), with nested ``overrides`` applied, e.g.
+    ``preset("default", power_balance={"max_steps": 100}, seed=1)``."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown PINN preset {name!r}; available: {sorted(PRESETS)}")
+    d = PRESETS[name]().to_dict()
+    for k, v in overrides.items():
+        if k in MODULES and isinstance(v, dict):
+            d[k] = {**d[k], **v}
+        else:
+            d[k] = v
+    return PINNTrainConfig.from_dict(d)
+
+
+def check_acceptance(cfg: PINNTrainConfig, report: dict[str, Any]) -> list[str]:
+    """The failed acceptance criteria of a training ``report`` (empty: accepted). No bar: one failure."""
+    if not cfg.acceptance:
+        return [f"preset {cfg.preset!r} has no acceptance bar"]
+    failed = []
+    for module, bars in cfg.acceptance.items():
+        for metric, bound in bars.items():
+            got = report.get(module, {}).get(metric)
+            if got is None or not got <= float(bound):
+                failed.append(f"{module}.{metric} = {got} > {bound}")
+    return failed
