@@ -93,7 +93,7 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seeds:
     ``baselines``, ``baseline_budget_s``, ``threshold`` (null = ``threshold_scale`` × the do-nothing return; scale 0.1
     = a tenth of do-nothing's loss), ``last_k``, ``timeout_s``, ``only`` (surrogate labels), ``reuse``
     (``{from: <earlier ppo_curves.json>, envs: [labels]}``: take those envs' runs from that record),
-    ``surrogate_train_s``
+    ``per_env_seeds`` (label -> seeds, default ``seeds``), ``surrogate_train_s``
     (label -> seconds the surrogate took to train, measured by the caller; unknown labels count as not measured)."""
     out_dir = Path(out_dir)
     base = dict(cfg.get("base", {}))
@@ -124,7 +124,7 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seeds:
             extra = dict(cfg.get("per_env", {}).get(lab, {}))
             seed_runs = [run_ppo(ppo_overrides(spec, seed, {**base, **extra}),
                                  out_dir / "runs" / "ppo_curves" / f"{lab}_s{seed}", timeout_s=cfg.get("timeout_s"))
-                         | {"seed": seed} for seed in seeds]
+                         | {"seed": seed} for seed in cfg.get("per_env_seeds", {}).get(lab, seeds)]
         for rec in seed_runs:
             rec["last_mean_return"] = last_mean(rec["curve"], "return", last_k)
             rec["best_return"] = max((c["return"] for c in rec["curve"]), default=None)
