@@ -1,21 +1,22 @@
 """Specs and key names shared by every env of the package (true simulator and surrogates).
 
-The contract (DESIGN.md §3), for a batch of N envs:
+The contract (DESIGN.md §3), for a batch of N envs on a network with n_dev devices, n_gen non-slack
+generators, n_des storage units, n_bus buses, n_br branches (ANM6-Easy: 7, 2, 1, 6, 5):
 
-=================  ==========  =======  ==============================================================
-key                shape       dtype    meaning
-=================  ==========  =======  ==============================================================
-``state``          (N, 18)     float64  gym-anm state (MW, MVAr, MWh, time index)
-``observation``    (N, 18)     float32  clip(state) to the observation bounds
-``action``         (N, 6)      float32  P PV, P wind, Q PV, Q wind, P DES, Q DES (MW / MVAr)
-``reward``         (N, 1)      float32  −(ΔE_c + Pen_c); −100/(1−γ) on a terminal step
-``terminated``     (N, 1)      bool     power flow did not converge (true sim) / predicted (surrogates)
-``grid.e_loss``    (N, 1)      float32  ΔE, p.u.·h (100 MWh)
-``grid.penalty``   (N, 1)      float32  λΦ before clipping
-``grid.curtailment`` (N, 1)    float32  renewable curtailment, MW
-``grid.v_magn``    (N, 6)      float32  bus voltage magnitudes, p.u.
-``grid.branch_s``  (N, 5)      float32  sign(P_from)·max(|S_from|, |S_to|), MVA
-=================  ==========  =======  ==============================================================
+=====================  ==================================  =======  ==========================================
+key                    shape                               dtype    meaning
+=====================  ==================================  =======  ==========================================
+``state``              (N, 2·n_dev + n_des + n_gen + 1)    float64  gym-anm state (MW, MVAr, MWh, time index)
+``observation``        (N, n_obs)                          float32  gym-anm observation clipped to its bounds
+``action``             (N, 2·n_gen + 2·n_des)              float32  P gen, Q gen, P storage, Q storage (MW/MVAr)
+``reward``             (N, 1)                              float32  −(ΔE_c + Pen_c); −c1/(1−γ) when terminal
+``terminated``         (N, 1)                              bool     power flow did not converge / predicted
+``grid.e_loss``        (N, 1)                              float32  ΔE, p.u.·h (baseMVA·h)
+``grid.penalty``       (N, 1)                              float32  λΦ before clipping
+``grid.curtailment``   (N, 1)                              float32  renewable curtailment, MW
+``grid.v_magn``        (N, n_bus)                          float32  bus voltage magnitudes, p.u.
+``grid.branch_s``      (N, n_br)                           float32  sign(P_from)·max(|S_from|, |S_to|), MVA
+=====================  ==================================  =======  ==========================================
 
 Surrogates that cannot predict a ``grid`` quantity report NaN for it.
 """
@@ -26,6 +27,7 @@ import torch
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
 from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.grid.state import _pairs
 
 GRID_KEYS = ("e_loss", "penalty", "curtailment", "v_magn", "branch_s")
 
@@ -36,16 +38,26 @@ def grid_sizes(sim: GridSimulator) -> dict[str, int]:
             "branch_s": int(sim.net.branches.rate.shape[0])}
 
 
-def make_specs(sim: GridSimulator, batch_size: torch.Size, device) -> dict:
-    """The observation, state, action, reward and done specs of an env over ``sim`` with ``batch_size``."""
+def make_specs(sim: GridSimulator, batch_size: torch.Size, device, obs_map=None) -> dict:
+    """The observation, state, action, reward and done specs of an env over ``sim`` with ``batch_size``.
+
+    ``obs_map`` (an :class:`~anm_torchrl.envs.observation.ObservationMap`, default ``"state"``) gives the
+    observation bounds; where gym-anm's low exceeds its high (a load with Q/P < 0) the spec holds the sorted pair,
+    and every bound is widened to include 0: gym-anm's terminal observation is all zeros even where its own
+    bounds exclude 0 (e.g. SOC_MIN > 0), and it is kept exactly.
+    """
+    from anm_torchrl.envs.observation import ObservationMap
+
     bs = torch.Size(batch_size)
-    s_low, s_high = sim.state_bounds()
+    obs_map = obs_map if obs_map is not None else ObservationMap(sim, "state", (0.0, float(sim.n_time - 1)))
+    o_low = torch.minimum(torch.minimum(obs_map.low, obs_map.high), torch.zeros_like(obs_map.low))
+    o_high = torch.maximum(torch.maximum(obs_map.low, obs_map.high), torch.zeros_like(obs_map.low))
     a_low, a_high = sim.action_bounds()
     f32 = torch.float32
     grid = Composite({k: Unbounded((*bs, n), dtype=f32, device=device) for k, n in grid_sizes(sim).items()},
                      shape=bs, device=device)
     obs = Composite(
-        observation=Bounded(s_low.to(f32).expand(*bs, -1), s_high.to(f32).expand(*bs, -1), (*bs, sim.state_dim),
+        observation=Bounded(o_low.to(f32).expand(*bs, -1), o_high.to(f32).expand(*bs, -1), (*bs, o_low.numel()),
                             dtype=f32, device=device),
         state=Unbounded((*bs, sim.state_dim), dtype=torch.float64, device=device),
         grid=grid,
@@ -62,11 +74,6 @@ def make_specs(sim: GridSimulator, batch_size: torch.Size, device) -> dict:
                                terminated=Categorical(2, (*bs, 1), dtype=torch.bool, device=device),
                                shape=bs, device=device),
     }
-
-
-def observation_from_state(state: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
-    """gym-anm observation: the state clipped to its bounds, as float32."""
-    return torch.clamp(state, low, high).to(torch.float32)
 
 
 def check_action(action: torch.Tensor, low: torch.Tensor, high: torch.Tensor, clip: bool) -> torch.Tensor:
@@ -95,7 +102,3 @@ def check_action(action: torch.Tensor, low: torch.Tensor, high: torch.Tensor, cl
     return a
 
 
-def _pairs(envs: torch.Tensor, entries: torch.Tensor, limit: int = 5) -> str:
-    pairs = list(zip(envs.tolist(), entries.tolist()))
-    more = f" and {len(pairs) - limit} more" if len(pairs) > limit else ""
-    return ", ".join(map(str, pairs[:limit])) + more

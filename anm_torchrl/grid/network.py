@@ -99,6 +99,7 @@ class Network:
         dev_bus: (n_dev,) long, bus of each device; dev_type: (n_dev,) long type codes.
         dev: (n_dev, 15) device table in p.u. (MW/MVAr/MWh columns divided by ``base_mva``).
         incidence: (n_dev, n_bus) 0/1 matrix so that ``p_bus = p_dev @ incidence``.
+        base_kv: (n_bus,) base voltage (kV) of each bus (kV / kA units of observations).
     """
 
     base_mva: float
@@ -111,6 +112,7 @@ class Network:
     dev_type: torch.Tensor
     dev: torch.Tensor
     incidence: torch.Tensor
+    base_kv: torch.Tensor | None = None
 
     @property
     def n_bus(self) -> int:
@@ -160,5 +162,6 @@ def make_network(buses, branches, devices, base_mva: float, delta_t: float, devi
         dev_type=dev[:, 2].long(),
         dev=dev_pu,
         incidence=incidence,
+        base_kv=bus[:, 2].clone(),
     )
 

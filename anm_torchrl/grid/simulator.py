@@ -16,11 +16,12 @@ import torch
 from collections.abc import Callable
 
 from anm_torchrl.grid import devices as dv
-from anm_torchrl.grid.constants import TransitionConstants, build_constants
+from anm_torchrl.grid.constants import TransitionConstants, build_constants, content_key
 from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STORAGE, Network, branch_flows
 from anm_torchrl.grid.powerflow import newton_raphson
 from anm_torchrl.grid.residuals import power_injection
 from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, penalty, terminal_reward
+from anm_torchrl.grid.state import check_state, state_sizes, state_slices
 
 
 @dataclasses.dataclass
@@ -139,7 +140,7 @@ class GridSimulator:
 
         net = make_network(network["bus"], network["branch"], network["device"], float(network["baseMVA"]),
                            float(delta_t), device=device)
-        as_t = lambda x: torch.as_tensor(x, dtype=torch.float64, device=device).reshape(-1, x.shape[-1]).T  # noqa: E731
+        as_t = lambda x: torch.as_tensor(x, dtype=torch.float64, device=device).T  # noqa: E731  (T, n) -> (n, T)
         return cls(net, as_t(load_p), as_t(gen_p_max), gamma=gamma, lamb=lamb, costs_clipping=costs_clipping,
                    backend=backend, next_vars_hook=next_vars_hook)
 
@@ -163,11 +164,29 @@ class GridSimulator:
     def action_dim(self) -> int:
         return 2 * self.n_gen + 2 * self.n_des
 
+    @property
+    def state_sizes(self) -> dict[str, int]:
+        """Width of each ``GridState`` block (:mod:`anm_torchrl.grid.state`)."""
+        return state_sizes(self.net.n_dev, self.n_des, self.n_gen)
+
     def state_slices(self) -> dict[str, slice]:
         """gym-anm ``STATE_VARIABLES`` blocks of the state vector."""
-        n, d, g = self.net.n_dev, self.n_des, self.n_gen
-        return {"dev_p": slice(0, n), "dev_q": slice(n, 2 * n), "des_soc": slice(2 * n, 2 * n + d),
-                "gen_p_max": slice(2 * n + d, 2 * n + d + g), "aux": slice(2 * n + d + g, 2 * n + d + g + 1)}
+        return state_slices(self.state_sizes)
+
+    def check_state(self, state: torch.Tensor) -> None:
+        """Raise ``ValueError`` (env index, entry) on a state no transition can start from
+        (:func:`anm_torchrl.grid.state.check_state`; the time-index check applies without a ``next_vars_hook``)."""
+        d, b = self.net.dev[self._did], self.net.base_mva
+        check_state(state, self.state_sizes, d[:, dv.SOC_MIN] * b, d[:, dv.SOC_MAX] * b,
+                    None if self.next_vars_hook is not None else self.n_time)
+
+    def content_key(self) -> str:
+        """sha256 of everything that defines this simulator's transitions: network tables, profiles, Δt, γ, λ,
+        costs clipping. Models built for one network compare it to refuse another."""
+        net, br = self.net, self.net.branches
+        return content_key(net.dev, net.y_bus, net.v_min, net.v_max, br.f_bus, br.t_bus, br.y_series, br.y_shunt,
+                           br.tap, br.rate, self.load_series, self.p_max_series,
+                           [net.base_mva, net.delta_t, self.gamma, self.lamb, *self.costs_clipping])
 
     def state_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Observation bounds (state_dim,) in MW/MVAr/MWh (spec §3.1)."""
@@ -405,6 +424,38 @@ class GridSimulator:
         tr = self.transition(soc_min, t0, setpoints)
         tr.soc = soc / b
         return self.build_state(tr, t0), tr
+
+    def reset_from_states(self, state: torch.Tensor) -> Transition:
+        """gym-anm's ``Simulator.reset(init_state)`` for a batch of states (N, state_dim) MW….
+
+        Loads take the state's P (clipped), generators project the state's (P, Q) under the state's potentials,
+        storage projects its (P, Q) with the SoC at SOC_MIN (P <= 0) or SOC_MAX (P > 0), the power flow is
+        solved; then the SoC is the state's. Returns that :class:`Transition` (``build_state`` with the state's
+        aux gives gym-anm's reconstructed initial state).
+        """
+        sl, b = self.state_slices(), self.net.base_mva
+        p, q = state[:, sl["dev_p"]] / b, state[:, sl["dev_q"]] / b
+        d = self.net.dev[self._did]
+        p_des = p[:, self._did]
+        soc0 = torch.where(p_des <= 0, d[:, dv.SOC_MIN], d[:, dv.SOC_MAX])
+        setpoints = torch.cat([p[:, self._gid], q[:, self._gid], p_des, q[:, self._did]], 1)
+        tr = self.apply(soc0, p[:, self._lid], state[:, sl["gen_p_max"]] / b, setpoints)
+        tr.soc = state[:, sl["des_soc"]] / b
+        return tr
+
+    def reset_with(self, init, n: int, generator: torch.Generator | None = None, max_attempts: int = 100
+                   ) -> tuple[torch.Tensor, Transition]:
+        """``n`` initial states from a user sampler ``init(n, generator) -> (n, state_dim)`` MW…, each passed
+        through :meth:`reset_from_states`; rows whose power flow fails are re-drawn (gym-anm: 100 attempts)."""
+
+        def draw(k: int) -> tuple[torch.Tensor, Transition]:
+            s = torch.as_tensor(init(k, generator), dtype=self.net.dev.dtype, device=self.net.dev.device)
+            if tuple(s.shape) != (k, self.state_dim):
+                raise ValueError(f"init must return a ({k}, {self.state_dim}) state batch, got {tuple(s.shape)}")
+            tr = self.reset_from_states(s)
+            return self.build_state(tr, s[:, self.state_slices()["aux"]]), tr
+
+        return self._resample(draw, n, max_attempts)
 
     def reset(self, n: int, generator: torch.Generator | None = None, intended: bool = False,
               max_attempts: int = 100) -> tuple[torch.Tensor, Transition]:

@@ -1,0 +1,210 @@
+"""``ANMEnv``: gym-anm 2.0.1's generic ``ANMEnv`` on any network, natively batched and batch-locked (TorchRL)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Literal
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+
+from anm_torchrl.envs.observation import ObservationMap
+from anm_torchrl.envs.specs import GRID_KEYS, check_action, make_specs
+from anm_torchrl.grid.simulator import GridSimulator, Transition
+
+INITS = ("uniform", "gym_anm", "intended")
+
+
+def _check_reward_args(delta_t, gamma, lamb, costs_clipping) -> tuple[float, float]:
+    """gym-anm's ``check_env_args`` for the reward constants; ``None`` clipping entries mean +inf (gym-anm)."""
+    if not (isinstance(delta_t, (int, float)) and delta_t > 0):
+        raise ValueError(f"delta_t must be > 0 (h), got {delta_t!r}")
+    # gamma = 1 makes the terminal reward -c1 / (1 - gamma) a division by zero
+    if not (isinstance(gamma, (int, float)) and 0 <= gamma < 1):
+        raise ValueError(f"gamma must lie in [0, 1), got {gamma!r}")
+    if not (isinstance(lamb, (int, float)) and lamb >= 0):
+        raise ValueError(f"lamb must be >= 0, got {lamb!r}")
+    if costs_clipping is None:
+        return math.inf, math.inf
+    if len(costs_clipping) != 2:
+        raise ValueError(f"costs_clipping must be (c_energy, c_penalty), got {costs_clipping!r}")
+    c = tuple(math.inf if v is None else float(v) for v in costs_clipping)
+    if not all(v > 0 for v in c):
+        raise ValueError(f"costs_clipping entries must be > 0 (or None), got {costs_clipping!r}")
+    return c
+
+
+class ANMEnv(EnvBase):
+    """gym-anm's generic environment on ``network``, equal to it transition by transition, for N grids at once.
+
+    State (gym-anm order, float64): P of every device (MW, device-id order), Q (MVAr), SoC of each storage
+    unit (MWh), potential of each non-slack generator (MW), the time index t. Action (float32): P of the
+    non-slack generators, their Q, P of the storage units, their Q (MW / MVAr), inside gym-anm's action box
+    (``action_mode="clip"`` clips instead of raising); the simulator projects it onto each device's feasible set.
+    Reward: −(ΔE_c + Pen_c); a step whose power flow does not converge is terminal, with reward
+    −costs_clipping[1] / (1 − γ) and a zero state and observation (as gym-anm). No time limit (gym-anm has none).
+
+    Exogenous variables: a step from time index t reads row (t + 1) mod T of ``load_p`` and ``gen_p_max``
+    (ANM6-Easy's rule). ``next_vars(state) -> (load P (N, n_load) MW, potentials (N, n_gen) MW, aux (N, 1))``
+    replaces that rule with a batched user function (e.g. stochastic profiles); the aux check of states is then
+    left to it.
+
+    Args:
+        network: gym-anm network dict (validated by :func:`anm_torchrl.networks.validation.validate_network`).
+        load_p: (T, n_load) MW, loads in device-id order.
+        gen_p_max: (T, n_gen) MW, non-slack generators (classical and renewable) in device-id order.
+        num_envs: batch size N.
+        observation: ``"state"`` or gym-anm's list of ``(quantity, ids | "all", unit)``
+            (:class:`~anm_torchrl.envs.observation.ObservationMap`); float32, clipped to gym-anm's bounds.
+        delta_t, gamma, lamb, costs_clipping: as gym-anm (h; discount; penalty factor; clipping of |ΔE| and λΦ).
+        seed: seed of the reset sampler (``None``: random).
+        device: torch device of the physics and the TensorDicts.
+        backend: ``"auto"`` (numba on the CPU), ``"numba"`` or ``"torch"``; the same transitions to round-off.
+        action_mode: ``"raise"`` (as gym-anm's assert) or ``"clip"``.
+        init: reset distribution. ``"uniform"`` (default): time index uniform in [0, T), SoC uniform in
+            [SOC_MIN, SOC_MAX), set-points uniform over the action box, then one transition solved at that time
+            index (projection, SoC update, power flow); non-converging draws are re-drawn (100 attempts).
+            ``"gym_anm"`` / ``"intended"``: ANM6-Easy's ``init_state`` distribution (with / without its unit
+            quirks). A callable ``init(n, generator) -> (n, state_dim)`` MW… acts as gym-anm's ``init_state``:
+            each state goes through gym-anm's ``Simulator.reset`` (projection, power flow) and is re-drawn if
+            its power flow fails.
+        next_vars: optional batched exogenous-variable hook (see above).
+        sim: a ready :class:`GridSimulator` instead of ``network``/profiles/constants (presets, surrogates).
+
+    Reset: ``env.reset()`` samples; ``env.reset(TensorDict({"state": s}, [N]), set_state=True)`` puts each env
+    in the exact state ``s`` (validated; a state whose power flow does not converge is reported terminated);
+    partial resets follow ``"_reset"``. ``network_key`` is the content key of network + profiles + constants.
+    """
+
+    _supports_set_state = True
+
+    def __init__(self, network: dict | None = None, load_p=None, gen_p_max=None, num_envs: int = 1,
+                 observation="state", delta_t: float = 0.25, gamma: float = 0.995, lamb: float = 100,
+                 costs_clipping=(1, 100), seed: int | None = None, *, device: str | torch.device = "cpu",
+                 backend: str = "auto", action_mode: Literal["raise", "clip"] = "raise",
+                 init: str | Callable = "uniform", next_vars: Callable | None = None,
+                 sim: GridSimulator | None = None):
+        if action_mode not in ("raise", "clip"):
+            raise ValueError(f"action_mode must be 'raise' or 'clip', got {action_mode!r}")
+        if not callable(init) and init not in INITS:
+            raise ValueError(f"init must be one of {INITS} or a callable, got {init!r}")
+        if int(num_envs) < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        super().__init__(batch_size=torch.Size([int(num_envs)]), device=device, allow_done_after_reset=True)
+        if sim is None:
+            sim = self._build_sim(network, load_p, gen_p_max, delta_t, gamma, lamb, costs_clipping, backend,
+                                  next_vars)
+        elif network is not None or load_p is not None or gen_p_max is not None or next_vars is not None:
+            raise ValueError("pass either sim= or network=/load_p=/gen_p_max=/next_vars=, not both")
+        self.sim = sim
+        self.action_mode, self.init = action_mode, init
+        self.obs_map = ObservationMap(sim, observation, (0.0, float(sim.n_time - 1)))
+        for name, spec in make_specs(sim, self.batch_size, self.device, self.obs_map).items():
+            setattr(self, name, spec)
+        self._a_low, self._a_high = sim.action_bounds()
+        self.network_key = sim.content_key()
+        self.set_seed(seed)
+
+    def _build_sim(self, network, load_p, gen_p_max, delta_t, gamma, lamb, costs_clipping, backend, next_vars):
+        from anm_torchrl.networks.validation import device_ids, validate_network, validate_profile
+
+        if network is None or load_p is None or gen_p_max is None:
+            raise ValueError("ANMEnv needs network=, load_p= and gen_p_max= (or sim=)")
+        net = validate_network(network)
+        loads, gens = device_ids(net, (-1,)), device_ids(net, (1, 2))
+        load_p = validate_profile(load_p, "load_p", len(loads), f"loads {loads} in device-id order")
+        gen_p_max = validate_profile(gen_p_max, "gen_p_max", len(gens),
+                                     f"non-slack generators {gens} in device-id order")
+        if load_p.shape[0] != gen_p_max.shape[0]:
+            raise ValueError(f"load_p and gen_p_max must have the same T rows, got {load_p.shape[0]} and "
+                             f"{gen_p_max.shape[0]}")
+        clip = _check_reward_args(delta_t, gamma, lamb, costs_clipping)
+        if next_vars is not None and not callable(next_vars):
+            raise ValueError(f"next_vars must be callable, got {next_vars!r}")
+        return GridSimulator.from_tables(net, load_p, gen_p_max, float(delta_t), float(gamma), float(lamb), clip,
+                                         device=self.device, backend=backend, next_vars_hook=next_vars)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng = torch.Generator(device=self.device)
+        if seed is None:
+            self.rng.seed()
+        else:
+            self.rng.manual_seed(int(seed))
+
+    # ------------------------------------------------------------------------------------------------------
+    def _output(self, state: torch.Tensor, tr: Transition) -> TensorDict:
+        f32, b = torch.float32, self.sim.net.base_mva
+        grid = {
+            "e_loss": tr.e_loss.unsqueeze(-1), "penalty": tr.penalty.unsqueeze(-1),
+            "curtailment": (tr.curtailment * b).unsqueeze(-1), "v_magn": tr.v.abs(),
+            "branch_s": tr.s_apparent_max * b,
+        }
+        obs = self.obs_map.observe(state, tr.v if self.obs_map.needs_grid else None, ~tr.converged)
+        return TensorDict({"state": state, "observation": obs, "grid": {k: grid[k].to(f32) for k in GRID_KEYS}},
+                          batch_size=self.batch_size, device=self.device)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = check_action(tensordict.get("action"), self._a_low, self._a_high, clip=self.action_mode == "clip")
+        state = self.validate_state(tensordict.get("state"))
+        next_state, tr = self.sim.step(state, action)
+        out = self._output(next_state, tr)
+        terminated = (~tr.converged).unsqueeze(-1)
+        out.set("reward", tr.reward.to(torch.float32).unsqueeze(-1))
+        out.set("terminated", terminated)
+        out.set("done", terminated.clone())
+        return out
+
+    def _sample(self, rows: int) -> tuple[torch.Tensor, Transition]:
+        if callable(self.init):
+            return self.sim.reset_with(self.init, rows, self.rng)
+        if self.init == "uniform":
+            return self.sim.random_state(rows, self.rng)
+        return self.sim.reset(rows, self.rng, intended=self.init == "intended")
+
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
+        n = self.batch_size[0]
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(n)
+        terminated = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
+        if kwargs.get("set_state"):
+            if tensordict is None or "state" not in tensordict.keys():
+                raise ValueError("reset(..., set_state=True) needs a TensorDict with a 'state' entry (N, "
+                                 f"{self.sim.state_dim}); got {None if tensordict is None else list(tensordict.keys())}")
+            state = self.validate_state(tensordict.get("state"))
+            tr = self.sim.operating_point(state)
+            terminated = (~tr.converged).unsqueeze(-1)  # no power-flow solution: a terminal state
+        else:
+            rows = n if mask is None else int(mask.sum())
+            state_rows, tr_rows = self._sample(rows)
+            if mask is None:
+                state, tr = state_rows, tr_rows
+            else:  # values of rows not reset are discarded by TorchRL; only the masked rows are solved
+                state, tr = self._scatter_rows(mask, state_rows, tr_rows)
+                tr.converged = tr.converged | ~mask  # rows left alone are not made terminal by the fill
+        out = self._output(state, tr)
+        out.set("terminated", terminated)
+        out.set("done", terminated.clone())
+        return out
+
+    def _scatter_rows(self, mask: torch.Tensor, state_rows: torch.Tensor, tr_rows: Transition):
+        idx = mask.nonzero().squeeze(1)
+        n = self.batch_size[0]
+
+        def full(x: torch.Tensor) -> torch.Tensor:
+            return x.new_zeros((n, *x.shape[1:])).index_copy(0, idx, x)
+
+        tr = Transition(**{k: full(v) for k, v in vars(tr_rows).items()})
+        return full(state_rows), tr
+
+    def validate_state(self, state: torch.Tensor) -> torch.Tensor:
+        """The one state check of ``set_state`` and ``step`` (:meth:`GridSimulator.check_state`): shape, finite
+        entries, SoC within [SOC_MIN, SOC_MAX], integer time index in [0, T - 1]. Returns it as float64."""
+        n = self.batch_size[0]
+        if state.ndim != 2 or state.shape[0] != n:
+            raise ValueError(f"state must have shape ({n}, {self.sim.state_dim}), got {tuple(state.shape)}")
+        state = state.to(self.device, torch.float64)
+        self.sim.check_state(state)
+        return state
