@@ -29,9 +29,24 @@ def evaluate_baseline(name: str, kwargs: dict[str, Any], states, max_steps: int,
     return {**res.metrics(), "episodes": res.num_episodes, "seconds": time.perf_counter() - t0}
 
 
+def reused_baselines(path: str, protocol: dict[str, Any]) -> list[dict[str, Any]]:
+    """The baseline rows of an earlier ``test_returns`` record at ``path`` (not evaluated again), each marked with
+    that record's git commit; its protocol (states, T, γ) must equal ``protocol``."""
+    from anm_torchrl.experiments.io import read_json
+
+    rec = read_json(path)
+    if rec["data"].get("protocol") != protocol:
+        raise ValueError(f"reuse_baselines={path}: its protocol {rec['data'].get('protocol')} differs from this "
+                         f"run's {protocol}")
+    commit = (rec["meta"].get("versions") or {}).get("git_commit")
+    return [{**r, "reused_from": {"file": str(path), "git_commit": commit}} for r in rec["data"]["rows"]
+            if not r.get("trained_on")]
+
+
 def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path) -> dict:
     """cfg keys: ``test_episodes``, ``test_seed``, ``max_steps``, ``gamma`` (the protocol, shared by every row);
-    ``baselines`` (list of ``{name, kwargs}``); ``ppo`` (``envs``: env labels, ``seeds``, ``base``: Hydra overrides
+    ``baselines`` (list of ``{name, kwargs}``); ``reuse_baselines`` (an earlier record of the same protocol whose
+    baseline rows are taken instead of evaluating them again); ``ppo`` (``envs``: env labels, ``seeds``, ``base``: Hydra overrides
     of every run, ``per_env``: label -> extra overrides, ``timeout_s``). Surrogate envs take their spec (e.g. a
     PINN ``path``) from ``surrogates``; ``none`` is the true simulator."""
     n, seed = int(cfg["test_episodes"]), int(cfg["test_seed"])
@@ -40,7 +55,9 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path) -> dic
     from anm_torchrl.training.evaluation import draw_initial_states
 
     states = draw_initial_states(n, seed)
-    rows, not_available = [], {}
+    protocol_rec = {"test_episodes": n, "test_seed": seed, "max_steps": max_steps, "gamma": gamma}
+    rows, not_available = (reused_baselines(cfg["reuse_baselines"], protocol_rec) if cfg.get("reuse_baselines")
+                           else []), {}
     for b in cfg.get("baselines", []):
         b = {"name": b} if isinstance(b, str) else dict(b)
         lab = b.get("label", b["name"])
@@ -75,6 +92,5 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path) -> dic
                          "seconds": aggregate([(r["summary"] or {}).get("wall_time") for r in recs])["mean"]})
     status = "ok" if not not_available else ("partial" if rows else "not available")
     return result("test_returns", status, {"rows": rows, "runs": runs, "not_available": not_available,
-                                           "protocol": {"test_episodes": n, "test_seed": seed,
-                                                        "max_steps": max_steps, "gamma": gamma}},
+                                           "protocol": protocol_rec},
                   reason=None if rows else str(not_available), config=cfg)
