@@ -24,6 +24,11 @@ from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, pe
 from anm_torchrl.grid.state import check_state, state_sizes, state_slices
 
 
+def _stack(parts: list[torch.Tensor], empty: torch.Tensor) -> torch.Tensor:
+    """``torch.stack(parts, 1)``, or ``empty`` (the (N, 0, ...) result) for a network without such devices."""
+    return torch.stack(parts, 1) if parts else empty
+
+
 @dataclasses.dataclass
 class Transition:
     """Everything one batched transition computes (p.u. unless noted); N = batch size.
@@ -95,8 +100,9 @@ class GridSimulator:
             raise ValueError(f"series need the same T >= 1 columns, got {self.n_time} and {self.p_max_series.shape[1]}")
         self.gen_g, self.gen_h0 = dv.generator_polygon(net, self.gen_ids)
         polys = [dv.storage_polygon(net, d) for d in self.des_ids]
-        self.des_g = torch.stack([p[0] for p in polys]) if polys else None
-        self.des_h0 = torch.stack([p[1] for p in polys]) if polys else None
+        kw = dict(dtype=net.dev.dtype, device=net.dev.device)
+        self.des_g = torch.stack([p[0] for p in polys]) if polys else torch.zeros(0, dv.DES_ROWS, 2, **kw)
+        self.des_h0 = torch.stack([p[1] for p in polys]) if polys else torch.zeros(0, dv.DES_ROWS, **kw)
         self._gen_poly = [dv.Polygon(g) for g in self.gen_g]
         self._des_poly = [dv.Polygon(g) for g in self.des_g] if polys else []
         gid, did, lid = (torch.tensor(ix, dtype=torch.long, device=net.dev.device)
@@ -257,7 +263,7 @@ class GridSimulator:
     def project_generators(self, target: torch.Tensor, p_pot: torch.Tensor) -> torch.Tensor:
         """Feasible (P, Q) (N, n_gen, 2) p.u. for set-points ``target`` (N, n_gen, 2) and ``p_pot`` (N, n_gen)."""
         h = self.generator_h(p_pot)
-        return torch.stack([poly.project(target[:, k], h[:, k]) for k, poly in enumerate(self._gen_poly)], 1)
+        return _stack([poly.project(target[:, k], h[:, k]) for k, poly in enumerate(self._gen_poly)], target)
 
     def generator_h(self, p_pot: torch.Tensor) -> torch.Tensor:
         """Generator right-hand sides (N, n_gen, 7) for ``p_pot`` (N, n_gen) p.u."""
@@ -265,13 +271,13 @@ class GridSimulator:
 
     def storage_h(self, soc: torch.Tensor) -> torch.Tensor:
         """Storage right-hand sides (N, n_des, 10) for ``soc`` (N, n_des) p.u.·h."""
-        return torch.stack([dv.storage_h(self.net, d, self.des_h0[k], soc[:, k])
-                            for k, d in enumerate(self.des_ids)], 1)
+        return _stack([dv.storage_h(self.net, d, self.des_h0[k], soc[:, k]) for k, d in enumerate(self.des_ids)],
+                      soc.new_zeros(soc.shape[0], 0, dv.DES_ROWS))
 
     def project_storage(self, target: torch.Tensor, soc: torch.Tensor) -> torch.Tensor:
         """Feasible (P, Q) (N, n_des, 2) p.u. for set-points (N, n_des, 2) and SoC (N, n_des) p.u.·h."""
         h = self.storage_h(soc)
-        return torch.stack([poly.project(target[:, k], h[:, k]) for k, poly in enumerate(self._des_poly)], 1)
+        return _stack([poly.project(target[:, k], h[:, k]) for k, poly in enumerate(self._des_poly)], target)
 
     def soc_update(self, soc: torch.Tensor, p_des: torch.Tensor) -> torch.Tensor:
         """SoC after applying ``p_des`` (N, n_des) p.u. for Δt; one-way efficiency both ways, then clipped."""
