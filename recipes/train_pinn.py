@@ -59,7 +59,7 @@ def main(cfg: DictConfig) -> dict:
         out["train"] = report
     if cfg.eval.enabled:
         chain = load_pinn(sim, path=file, train_if_missing=False,
-                          residual_threshold=float(cfg.eval.residual_threshold))
+                          residual_threshold=cfg.eval.residual_threshold)
         results = evaluate_sets(chain, sim, n_random=int(cfg.eval.n_random), n_expert_envs=int(cfg.eval.expert_envs),
                                 expert_steps=int(cfg.eval.expert_steps), seed=int(cfg.eval.seed))
         table = format_table(results)

@@ -61,7 +61,8 @@ def load_datasets(cfg: DictConfig, sim) -> dict:
 
 
 def fit_terminal(cfg: DictConfig, dataset: str, data: dict, sim):
-    """The terminal classifier for ``dataset``: cached one if ``terminal.reuse`` and the options match, else trained."""
+    """The terminal classifier for ``dataset``: the cached one for this dataset checksum, options and seed if
+    ``terminal.reuse``, else trained (and cached under that key)."""
     from anm_torchrl.data import split
     from anm_torchrl.paths import surrogate_dir
     from anm_torchrl.artifacts import ArtifactError
@@ -72,7 +73,7 @@ def fit_terminal(cfg: DictConfig, dataset: str, data: dict, sim):
     options.pop("reuse", None)
     key = hashlib.sha256(json.dumps([meta["checksum"], options, bool(cfg.foresight), int(cfg.seed)],
                                     sort_keys=True).encode()).hexdigest()[:16]
-    cache = surrogate_dir("terminal", dataset)
+    cache = surrogate_dir("terminal", dataset) / key  # one folder per (data, options): runs never evict each other
     if cfg.terminal.reuse and (cache / "terminal.json").is_file():
         try:
             clf = TerminalClassifier.load(cache, sim=sim, n_jobs=int(cfg.n_jobs))

@@ -456,3 +456,24 @@ def test_default_structure_options(sim):
         pq, lam = gen(target, p_pot)
     assert torch.equal(pq, target)
     assert float(lam.max()) < 1e-6  # every row inactive: multipliers gated to ~0
+
+
+def test_nan_weight_in_a_pinn_file_is_refused(smoke_file, tmp_path):
+    """A PINN file whose hash is right but which holds a NaN weight (issue 11: it made every step terminal)."""
+    import json
+
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    from anm_torchrl.artifacts import tensors_sha256
+
+    tensors = load_file(str(smoke_file))
+    with safe_open(str(smoke_file), framework="pt") as f:
+        meta = f.metadata()
+    name = sorted(tensors)[0]
+    tensors[name].view(-1)[0] = float("nan")
+    header = json.loads(meta["anm_torchrl"])
+    bad = tmp_path / "nan.safetensors"
+    save_file(tensors, str(bad), metadata={**meta, "sha256": tensors_sha256(tensors, header)})
+    with pytest.raises(ArtifactError, match=rf"nan\.safetensors is corrupted: tensor '{name}'.*NaN"):
+        load_pinn(path=bad)

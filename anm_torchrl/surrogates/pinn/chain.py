@@ -247,7 +247,7 @@ def build_chain(sim: GridSimulator, generator: GeneratorKKT, storage: StorageKKT
 
 def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | None = None,
               terminal: str = "physics", classifier_path: str | Path | None = None,
-              residual_threshold: float = DEFAULT_RESIDUAL_THRESHOLD, v_range: tuple[float, float] = DEFAULT_V_RANGE,
+              residual_threshold: float | None = None, v_range: tuple[float, float] | None = None,
               train_if_missing: bool | None = None, preset: str = "default", overwrite_cache: bool = False,
               progress: bool = True, log_dir: str | Path | None = None, seed: int = 0) -> TensorDictSequential:
     """The PINN surrogate chain on ``sim``, loaded from ``path`` or trained (and cached) on first use.
@@ -263,7 +263,8 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
             (:func:`.cache.default_path`).
         terminal: ``"physics"`` (default, needs no data) or ``"classifier"`` (needs ``classifier_path``).
         classifier_path: folder of a ``TerminalClassifier`` (``anm_torchrl.surrogates.terminal``), loaded on ``sim``.
-        residual_threshold, v_range: of the physics terminal check (validated: finite, threshold > 0).
+        residual_threshold, v_range: of the physics terminal check (validated: finite, threshold > 0); None:
+            :data:`DEFAULT_RESIDUAL_THRESHOLD` (p.u.) and :data:`DEFAULT_V_RANGE` (p.u.), their one home.
         train_if_missing: train when nothing is saved there; default True for the default cache and False for
             an explicit ``path`` (a mistyped path is an error, not a multi-minute training).
         preset: training preset used when training (``default``, ``paper``, ``smoke``).
@@ -283,6 +284,8 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
 
     if terminal not in TERMINALS:
         raise ValueError(f"terminal must be one of {TERMINALS}, got {terminal!r}")
+    residual_threshold = DEFAULT_RESIDUAL_THRESHOLD if residual_threshold is None else residual_threshold
+    v_range = DEFAULT_V_RANGE if v_range is None else v_range
     PhysicsTerminal(residual_threshold, v_range)  # validate before any work
     if sim is None:
         sim = anm6_easy_simulator(device if device is not None else "cpu")
