@@ -4,16 +4,23 @@
     python recipes/evaluate.py checkpoint=... env=gym_anm episodes=2 steps=3000
     python recipes/evaluate.py policy=do_nothing
     python recipes/evaluate.py policy=mpc_perfect policy_kwargs.horizon=32 episodes=4
+    python recipes/evaluate.py checkpoint=... render=true steps=96   # + episode/ppo.png and episode/ppo.gif
 
-Options are ``key=value`` pairs checked against ``recipes/conf/evaluate.yaml`` (an unknown key fails). Both envs
-run the same episodes: ``episodes`` initial states drawn from gym-anm's reset distribution with ``seed``
+Options are ``key=value`` pairs checked against ``recipes/conf/evaluate.yaml`` (an unknown key or a value out of
+range fails before anything runs; ``--help`` lists them). By default the episodes start from the **test** states
+(``seed=0``, the PPO recipe's ``eval.test_seed``), never from the validation states its model selection used. Both
+envs run the same episodes: ``episodes`` initial states drawn from gym-anm's reset distribution with ``seed``
 (:func:`anm_torchrl.training.evaluation.draw_initial_states`), set into ``ANM6Env`` with
 ``reset(..., set_state=True)`` and into gym-anm through its ``init_state`` hook. The policy acts
 deterministically; an episode ends at ``steps`` or at its first termination.
 
-The LAST line of stdout is one JSON object: ``return``, ``discounted_return``, ``e_loss``, ``penalty``, ``steps``,
+The LAST line of stdout is one JSON object, printed before ``output=`` is written (so a failed write loses
+nothing; it is then an error, exit status 1): ``return``, ``discounted_return``, ``e_loss``, ``penalty``, ``steps``,
 ``terminated`` (means over episodes; ``terminated`` is the fraction that terminated), plus ``episodes``, ``env``,
 ``policy``, ``checkpoint``, ``seed``, ``max_steps``, ``gamma``, ``wall_time`` (s) and ``per_episode`` lists.
+With ``render=true`` the first episode is then replayed on the true simulator and drawn
+(:func:`anm_torchrl.render.render_episode`): ``<render_dir>/<policy>.png`` (network at chosen times + time series)
+and ``<render_dir>/<policy>.gif`` (the network over the episode); their paths go to stderr.
 """
 
 from __future__ import annotations
@@ -28,12 +35,22 @@ from omegaconf import OmegaConf
 from omegaconf.errors import ConfigKeyError
 
 CONFIG = Path(__file__).parent / "conf" / "evaluate.yaml"
-BASELINES = ("do_nothing", "random", "mpc_perfect", "mpc_constant")
-ENVS = ("anm6", "gym_anm")
+
+
+def usage() -> str:
+    """``--help``: the docstring's examples and every option with its comment from ``evaluate.yaml``."""
+    return (f"{__doc__.strip()}\n\nOptions (key=value; defaults and meanings from {CONFIG.name}):\n\n"
+            + CONFIG.read_text())
 
 
 def parse_args(argv: list[str]):
     """The config of ``evaluate.yaml`` overridden by ``key=value`` arguments; raises SystemExit with a message."""
+    from anm_torchrl.baselines.simple import BASELINES
+    from anm_torchrl.training.config_checks import check_evaluate_config
+
+    if any(a in ("-h", "--help") for a in argv):
+        print(usage())
+        raise SystemExit(0)
     cfg = OmegaConf.load(CONFIG)
     OmegaConf.set_struct(cfg, True)
     bad = [a for a in argv if "=" not in a]
@@ -45,8 +62,10 @@ def parse_args(argv: list[str]):
     except ConfigKeyError as err:
         key = str(err).splitlines()[0]
         raise SystemExit(f"evaluate.py: unknown option ({key}); valid keys: {sorted(cfg.keys())}") from None
-    if cfg.env not in ENVS:
-        raise SystemExit(f"evaluate.py: env must be one of {ENVS}, got {cfg.env!r}")
+    try:
+        check_evaluate_config(cfg)
+    except ValueError as err:
+        raise SystemExit(f"evaluate.py: {err}") from None
     if cfg.policy is None and cfg.checkpoint is None:
         raise SystemExit("evaluate.py: give checkpoint=<path> or policy=<baseline> "
                          f"(baselines: {', '.join(BASELINES)})")
@@ -93,11 +112,29 @@ def main(argv: list[str] | None = None) -> dict:
            "per_episode": {"return": result.returns.tolist(), "discounted_return": result.discounted_returns.tolist(),
                            "steps": result.steps.tolist(), "terminated": result.terminated.tolist()}}
     line = json.dumps(out)
-    if cfg.output:
-        Path(cfg.output).write_text(line + "\n")
     sys.stderr.flush()
-    print(line, flush=True)
+    print(line, flush=True)  # first: a failed write below must not lose a (possibly long) evaluation
+    if cfg.output:
+        write_output(Path(cfg.output), line)
+    if cfg.render:
+        from anm_torchrl.envs import ANM6Env
+        from anm_torchrl.render import render_episode
+
+        paths = render_episode(policy, ANM6Env(1, sim=sim), states[0], int(cfg.steps), cfg.render_dir, stem=name,
+                               title=f"{name}, initial state 0 of seed {int(cfg.seed)}")
+        print("episode figure: " + ", ".join(str(p) for p in paths.values()), file=sys.stderr, flush=True)
     return out
+
+
+def write_output(path: Path, line: str) -> None:
+    """Write the JSON line to ``path`` (atomically, creating its folder); raises SystemExit naming the file."""
+    from anm_torchrl.artifacts import atomic_write
+
+    try:
+        atomic_write(path, (line + "\n").encode())
+    except OSError as err:
+        raise SystemExit(f"evaluate.py: the result is printed above but could not be written to output={path}: "
+                         f"{err}") from None
 
 
 if __name__ == "__main__":

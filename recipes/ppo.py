@@ -21,15 +21,26 @@ import hydra
 from omegaconf import DictConfig
 
 from anm_torchrl.training.ppo_loop import train_ppo
+from anm_torchrl.training.recipe_help import register as register_help
+
+register_help()  # --help lists only this recipe's config groups
 
 
 @hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     """Train into the Hydra run directory (the working directory, ``hydra.job.chdir``); the loop is
-    :func:`anm_torchrl.training.ppo_loop.train_ppo`, which the experiments call too."""
+    :func:`anm_torchrl.training.ppo_loop.train_ppo`, which the experiments call too. Prints the run directory when
+    the run ends (finished, failed or interrupted); Ctrl-C exits with status 130 after ``summary.json`` is written
+    with ``"interrupted": true``."""
     if cfg.checkpoint.resume:  # relative to where the command was typed, not to the run directory
         cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
-    return train_ppo(cfg, Path.cwd())
+    run_dir = Path.cwd()
+    try:
+        return train_ppo(cfg, run_dir)
+    except KeyboardInterrupt:
+        raise SystemExit(130) from None
+    finally:
+        print(f"run directory: {run_dir}", flush=True)
 
 
 if __name__ == "__main__":

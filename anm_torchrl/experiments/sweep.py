@@ -58,6 +58,8 @@ def run(cfg: dict[str, Any], out_dir: str | Path, seed: int = 0) -> dict:
     for n in cfg.get("n_envs", [10, 100]):
         for b in cfg.get("buffer", [30, 300]):
             over = {**cfg.get("base", {}), "env.num_envs": int(n), "collector.frames_per_batch": int(n) * int(b)}
+            if "loss.mini_batch_size" in over:  # at most one batch (the recipe refuses more; it used to cap it)
+                over["loss.mini_batch_size"] = min(int(over["loss.mini_batch_size"]), int(n) * int(b))
             if cfg.get("eval_every_frames"):
                 over["eval.interval"] = max(1, round(int(cfg["eval_every_frames"]) / (int(n) * int(b))))
             recs = [run_ppo(ppo_overrides(spec, s, over), Path(out_dir) / "runs" / "sweep" / f"n{n}_b{b}_s{s}",

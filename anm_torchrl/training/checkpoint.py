@@ -1,8 +1,8 @@
-"""PPO checkpoints: one ``torch.save``'d dict with a kind marker, written atomically.
+"""PPO checkpoints: one ``torch.save``'d dict with a kind marker and a content hash, written atomically.
 
-Layout (format version 1)::
+Layout (format version 2)::
 
-    {"kind": "anm_torchrl.ppo", "format_version": 1,
+    {"kind": "anm_torchrl.ppo", "format_version": 2, "sha256": str,
      "config": {...},                      # resolved Hydra config (plain containers)
      "actor": state_dict, "critic": state_dict, "optimizer": state_dict,
      "obs_norm": {"loc": (obs_dim,), "scale": (obs_dim,)},
@@ -10,32 +10,58 @@ Layout (format version 1)::
      "best_eval": {metric: float, "frames": int, "update": int} | None,
      "evals_since_best": int, "wall_time": float}
 
-:func:`load_checkpoint` loads with ``weights_only=True`` and raises ``ValueError`` naming what it found when the
-file is not a PPO checkpoint of a supported version (a surrogate file, a random ``torch.save``'d dict, …).
+``sha256`` is :func:`anm_torchrl.artifacts.tensors_sha256` of every tensor of the payload (named by its path,
+e.g. ``actor.module.0.module.1.0.weight``) and of the JSON of everything else, so one flipped byte in a weight or
+in the config fails the load. :func:`load_checkpoint` loads with ``torch.load(weights_only=True)`` (no code can
+run), then checks the kind, the version, the hash and that every float tensor is finite; every failure is a
+``ValueError`` naming the file. Version 1 files (no hash) are refused: they cannot be checked.
 """
 
 from __future__ import annotations
 
+import json
 import os
-import pickle
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from anm_torchrl.artifacts import tensors_sha256
 from anm_torchrl.paths import atomic_torch_save
 
 CHECKPOINT_KIND = "anm_torchrl.ppo"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 REQUIRED_KEYS = ("config", "actor", "critic", "obs_norm", "frames", "update")
+# config keys that define the networks' shapes and functions: resuming with other values is an error
+ARCHITECTURE_KEYS = ("model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip")
+
+
+def _split(obj: Any, prefix: str, tensors: dict[str, torch.Tensor]) -> Any:
+    """``obj`` with every tensor replaced by its path (collected into ``tensors``); containers become JSON-able."""
+    if isinstance(obj, torch.Tensor):
+        tensors[prefix] = obj
+        return f"<tensor {prefix}>"
+    if isinstance(obj, dict):
+        return {str(k): _split(v, f"{prefix}.{k}" if prefix else str(k), tensors) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_split(v, f"{prefix}.{i}", tensors) for i, v in enumerate(obj)]
+    return obj
+
+
+def content_hash(payload: dict[str, Any]) -> str:
+    """SHA-256 (hex) of a checkpoint payload (without its ``sha256`` entry): its tensors and the JSON of the rest."""
+    tensors: dict[str, torch.Tensor] = {}
+    rest = _split({k: v for k, v in payload.items() if k != "sha256"}, "", tensors)
+    return tensors_sha256(tensors, json.loads(json.dumps(rest, sort_keys=True, default=float)))
 
 
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
-    """Write ``payload`` plus the kind marker and format version to ``path`` atomically (tmp file + ``os.replace``).
+    """Write ``payload`` plus the kind marker, format version and content hash to ``path`` atomically.
 
     An interrupted write leaves the previous file at ``path`` intact. Returns the path.
     """
     data = {"kind": CHECKPOINT_KIND, "format_version": FORMAT_VERSION, **payload}
+    data["sha256"] = content_hash(data)
     return atomic_torch_save(data, path)
 
 
@@ -53,7 +79,8 @@ def validate_checkpoint(ckpt: Any, source: str = "checkpoint") -> dict[str, Any]
     """Check a loaded object is a PPO checkpoint this code can read; returns it.
 
     Raises:
-        ValueError: wrong kind, unsupported version or missing entries; the message names what was found.
+        ValueError: wrong kind, unsupported version, missing entries, a content hash that does not match or
+            non-finite weights; the message names what was found.
     """
     if not isinstance(ckpt, dict) or ckpt.get("kind") != CHECKPOINT_KIND:
         raise ValueError(f"{source} is not an anm_torchrl PPO checkpoint (expected a dict with "
@@ -62,9 +89,25 @@ def validate_checkpoint(ckpt: Any, source: str = "checkpoint") -> dict[str, Any]
     if version != FORMAT_VERSION:
         raise ValueError(f"{source}: unsupported PPO checkpoint format_version {version!r} "
                          f"(this code reads version {FORMAT_VERSION})")
-    missing = [k for k in REQUIRED_KEYS if k not in ckpt]
+    missing = [k for k in REQUIRED_KEYS + ("sha256",) if k not in ckpt]
     if missing:
         raise ValueError(f"{source}: PPO checkpoint is missing entries {missing}; found {describe(ckpt)}")
+    types = {"config": dict, "actor": dict, "critic": dict, "obs_norm": dict, "frames": int, "update": int,
+             "sha256": str}
+    wrong = [f"{k} is {type(ckpt[k]).__name__} (expected {t.__name__})" for k, t in types.items()
+             if not isinstance(ckpt[k], t)]
+    wrong += [f"{name}[{k!r}] is {type(v).__name__} (expected Tensor)" for name in ("actor", "critic", "obs_norm")
+              if isinstance(ckpt[name], dict) for k, v in ckpt[name].items() if not isinstance(v, torch.Tensor)]
+    if wrong:
+        raise ValueError(f"{source}: malformed PPO checkpoint: {'; '.join(wrong)}")
+    got = content_hash(ckpt)
+    if got != ckpt["sha256"]:
+        raise ValueError(f"{source} is corrupted: content hash {got[:12]}… does not match the recorded "
+                         f"{str(ckpt['sha256'])[:12]}…")
+    for name in ("actor", "critic"):
+        bad = [k for k, t in ckpt[name].items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+        if bad:
+            raise ValueError(f"{source} is corrupted: {name} tensors {bad} hold NaN or inf values")
     return ckpt
 
 
@@ -81,7 +124,7 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError, ValueError, AttributeError, TypeError) as err:
+    except Exception as err:  # noqa: BLE001 - arbitrary bytes make the unpickler raise anything (KeyError, ...)
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ValueError(f"{path} is not an anm_torchrl PPO checkpoint (expected a torch.save'd dict with "
                          f"kind={CHECKPOINT_KIND!r}); torch.load(weights_only=True) failed: {first}") from err
@@ -106,3 +149,40 @@ def load_actor(checkpoint: str | os.PathLike | dict[str, Any], env=None, map_loc
     actor, _, _ = make_ppo_models(env, obs_stats=ckpt["obs_norm"], **model)
     actor.load_state_dict(ckpt["actor"])
     return actor.eval()
+
+
+def config_diff(old: dict, new: dict, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two nested config dicts (a key missing on one side differs)."""
+    out = []
+    for key in sorted(set(old) | set(new)):
+        name = f"{prefix}{key}"
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += config_diff(a, b, name + ".")
+        elif a != b:
+            out.append(name)
+    return out
+
+
+def check_resume_config(saved: dict, config: dict, source: str = "checkpoint") -> list[str]:
+    """Compare the config saved in a checkpoint with the config of the run that resumes from it.
+
+    Returns:
+        The dotted keys that differ (the caller decides what to ignore and what to warn about).
+
+    Raises:
+        ValueError: an :data:`ARCHITECTURE_KEYS` entry differs (the saved weights belong to another network); the
+            message gives both values.
+    """
+    changed = config_diff(saved, config)
+    arch = [k for k in changed if k in ARCHITECTURE_KEYS]
+    if arch:
+        def value(cfg: dict, key: str):
+            for part in key.split("."):
+                cfg = cfg.get(part) if isinstance(cfg, dict) else None
+            return cfg
+
+        details = "; ".join(f"{k}: checkpoint {value(saved, k)!r}, this run {value(config, k)!r}" for k in arch)
+        raise ValueError(f"cannot resume from {source}: its networks were built with another architecture "
+                         f"({details}); pass the checkpoint's values or start a new run")
+    return changed

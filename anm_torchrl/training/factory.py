@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 from torchrl.envs import DoubleToFloat, EnvBase, SerialEnv, StepCounter, TransformedEnv
 
 from anm_torchrl.envs import ANM6Env, SurrogateEnv
+from anm_torchrl.paths import artifact_home
 from anm_torchrl.surrogates.registry import load_surrogate
 
 GYM_ANM_ID = "gym_anm:ANM6Easy-v0"
@@ -28,6 +31,24 @@ def make_gym_anm_env(num_envs: int = 1, device="cpu", seed: int | None = None) -
     if seed is not None:
         env.set_seed(seed)
     return env
+
+
+def load_surrogate_in_home(name: str, **kwargs):
+    """:func:`load_surrogate`, with a file-system error under the artifact home re-raised naming
+    ``ANM_TORCHRL_HOME`` (a surrogate trained on first use is cached there).
+
+    Raises:
+        OSError: of the original type, saying which variable to set; other errors pass unchanged.
+    """
+    try:
+        return load_surrogate(name, **kwargs)
+    except OSError as err:
+        home = artifact_home()
+        where = Path(str(err.filename)) if err.filename else None
+        if where is None or not (where == home or home in where.parents):
+            raise
+        raise type(err)(f"cannot write the artifact cache {home} ({err.strerror or err}: {where}); "
+                        f"set ANM_TORCHRL_HOME to a writable folder, or pass path=") from err
 
 
 def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None = None, device="cpu",
@@ -54,7 +75,7 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
     elif surrogate == "gym_anm":
         env = make_gym_anm_env(num_envs, device=device, seed=seed)
     else:
-        model = load_surrogate(surrogate, device=device, **surrogate_kwargs)
+        model = load_surrogate_in_home(surrogate, device=device, **surrogate_kwargs)
         env = SurrogateEnv(model, num_envs, device=device, seed=seed, action_mode=action_mode,
                            init=init or "uniform")
     if surrogate in (None, "none", "gym_anm") and surrogate_kwargs:

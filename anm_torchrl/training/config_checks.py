@@ -1,0 +1,154 @@
+"""Range checks of the PPO and evaluation configs, run before any work starts (one function per recipe).
+
+Hydra checks key names and types; these functions check what it cannot: numeric ranges, choices and relations
+between keys. Every failure is a ``ValueError`` naming the dotted key, what was expected and what was received,
+so ``collector.total_frames=-5`` fails in a second instead of exiting 0 with an untrained checkpoint.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+LOGGER_BACKENDS = ("tensorboard", "csv", None)
+ACTION_MODES = ("raise", "clip")
+ENV_INITS = (None, "gym_anm", "intended", "uniform")
+EVALUATE_ENVS = ("anm6", "gym_anm")
+
+
+def _get(cfg: Mapping, key: str) -> Any:
+    node = cfg
+    for part in key.split("."):
+        node = node[part]
+    return node
+
+
+def _number(cfg: Mapping, key: str) -> float | None:
+    value = _get(cfg, key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{key} must be a finite number, got {value!r}")
+    return value
+
+
+def _int(cfg: Mapping, key: str, low: int = 1, optional: bool = False) -> int | None:
+    value = _get(cfg, key)
+    if value is None and optional:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        expected = f"an integer >= {low}" + (" or null" if optional else "")
+        raise ValueError(f"{key} must be {expected}, got {value!r}")
+    return value
+
+
+def _in_range(cfg: Mapping, key: str, low: float, high: float, low_open: bool, high_open: bool,
+              optional: bool = False) -> float | None:
+    value = _number(cfg, key)
+    if value is None:
+        if optional:
+            return None
+        raise ValueError(f"{key} must be a number, got None")
+    ok = (low < value if low_open else low <= value) and (value < high if high_open else value <= high)
+    if not ok:
+        interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+        raise ValueError(f"{key} must be in {interval}" + (" or null" if optional else "") + f", got {value!r}")
+    return value
+
+
+def _choice(cfg: Mapping, key: str, choices: tuple) -> Any:
+    value = _get(cfg, key)
+    if value not in choices:
+        shown = ", ".join("null" if c is None else str(c) for c in choices)
+        raise ValueError(f"{key} must be one of {shown}; got {value!r}")
+    return value
+
+
+def _cells(cfg: Mapping, key: str) -> None:
+    value = _get(cfg, key)
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__") or any(
+            isinstance(c, bool) or not isinstance(c, int) or c < 1 for c in value):
+        raise ValueError(f"{key} must be a list of positive layer widths, got {value!r}")
+
+
+def check_ppo_config(cfg: Mapping) -> None:
+    """Check every numeric range and choice of ``recipes/conf/config.yaml`` (``recipes/ppo.py``).
+
+    Raises:
+        ValueError: the first offending key, with the expected range and the value received.
+    """
+    from anm_torchrl.training.ppo_models import ACTIVATIONS
+
+    _int(cfg, "seed", low=0)
+    _int(cfg, "threads")
+    # env
+    n = _int(cfg, "env.num_envs")
+    _int(cfg, "env.max_steps", optional=True)
+    _choice(cfg, "env.action_mode", ACTION_MODES)
+    _choice(cfg, "env.init", ENV_INITS)
+    # model
+    _cells(cfg, "model.actor_cells")
+    _cells(cfg, "model.critic_cells")
+    _choice(cfg, "model.activation", tuple(sorted(ACTIVATIONS)))
+    _in_range(cfg, "model.max_obs_scale", 0, math.inf, True, True, optional=True)
+    _in_range(cfg, "model.obs_clip", 0, math.inf, True, True)
+    _number(cfg, "model.init_log_std")
+    # collector
+    fpb, total = _int(cfg, "collector.frames_per_batch"), _int(cfg, "collector.total_frames")
+    workers = _int(cfg, "collector.num_workers")
+    if n % workers:
+        raise ValueError(f"env.num_envs ({n}) must be a positive multiple of collector.num_workers ({workers})")
+    if fpb < n or fpb % n:
+        raise ValueError(f"collector.frames_per_batch ({fpb}) must be a positive multiple of env.num_envs ({n}): "
+                         f"frames_per_batch = num_envs x steps per env")
+    _in_range(cfg, "collector.max_minutes", 0, math.inf, True, True, optional=True)
+    # loss
+    _in_range(cfg, "loss.gamma", 0, 1, True, False)
+    _in_range(cfg, "loss.gae_lambda", 0, 1, False, False)
+    _in_range(cfg, "loss.clip_epsilon", 0, math.inf, True, True)
+    _int(cfg, "loss.ppo_epochs")
+    mini = _int(cfg, "loss.mini_batch_size")
+    if mini > fpb:
+        raise ValueError(f"loss.mini_batch_size ({mini}) must be <= collector.frames_per_batch ({fpb})")
+    _in_range(cfg, "loss.critic_coeff", 0, math.inf, False, True)
+    _in_range(cfg, "loss.entropy_coeff", 0, math.inf, False, True)
+    _choice(cfg, "loss.loss_critic_type", ("l2", "l1", "smooth_l1"))
+    _in_range(cfg, "loss.reward_scale", 0, math.inf, True, True)
+    # optim
+    _in_range(cfg, "optim.lr", 0, math.inf, True, True)
+    _in_range(cfg, "optim.eps", 0, math.inf, True, True)
+    _in_range(cfg, "optim.weight_decay", 0, math.inf, False, True)
+    _in_range(cfg, "optim.max_grad_norm", 0, math.inf, True, True, optional=True)
+    # logger
+    _choice(cfg, "logger.backend", LOGGER_BACKENDS)
+    _int(cfg, "logger.interval")
+    # eval: validation states (model selection) and test states (reported figures) must differ
+    _int(cfg, "eval.interval", optional=True)
+    _int(cfg, "eval.patience", optional=True)
+    _int(cfg, "eval.num_episodes")
+    _int(cfg, "eval.test_episodes")
+    _int(cfg, "eval.max_steps")
+    _in_range(cfg, "eval.gamma", 0, 1, True, False)
+    if _int(cfg, "eval.render_interval", low=0) and _get(cfg, "logger.backend") != "tensorboard":
+        raise ValueError(f"eval.render_interval > 0 logs figures to TensorBoard: it needs logger.backend=tensorboard, "
+                         f"got {_get(cfg, 'logger.backend')!r}")
+    if _int(cfg, "eval.seed", low=0) == _int(cfg, "eval.test_seed", low=0):
+        raise ValueError(f"eval.seed (validation states) and eval.test_seed (test states) must differ, both are "
+                         f"{_get(cfg, 'eval.seed')}: model selection on the reported states biases the figures")
+    # checkpoint
+    _int(cfg, "checkpoint.interval")
+
+
+def check_evaluate_config(cfg: Mapping) -> None:
+    """Check the ranges of ``recipes/conf/evaluate.yaml`` (``recipes/evaluate.py``).
+
+    Raises:
+        ValueError: the first offending key, with the expected range and the value received.
+    """
+    _choice(cfg, "env", EVALUATE_ENVS)
+    _int(cfg, "seed", low=0)
+    _int(cfg, "steps")
+    _int(cfg, "episodes", optional=True)
+    _in_range(cfg, "gamma", 0, 1, True, False)
+    _int(cfg, "threads")

@@ -1,0 +1,154 @@
+"""Bad configs and bad files fail before any work, with errors that name what was wrong (issue 11 items 1, 6).
+
+Every case here was reproduced before the fix: the value was accepted (``loss.gamma=1.5``), crashed after the first
+update (``eval.max_steps=0``), exited 0 with an untrained checkpoint (``collector.total_frames=-5``), raised a raw
+``KeyError``/``AttributeError`` (a text file as a checkpoint), only warned (another activation on resume) or
+loaded silently (flipped bytes in the actor's weights).
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from anm_torchrl.training.checkpoint import (check_resume_config, load_actor, load_checkpoint, save_checkpoint,
+                                             validate_checkpoint)
+from anm_torchrl.training.config_checks import check_evaluate_config, check_ppo_config
+
+CONF = Path(__file__).resolve().parents[1] / "recipes" / "conf"
+torch.set_num_threads(1)
+
+
+def ppo_config(*overrides: str):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+def test_default_configs_pass():
+    check_ppo_config(ppo_config())
+    check_evaluate_config(OmegaConf.load(CONF / "evaluate.yaml"))
+
+
+@pytest.mark.parametrize("override, message", [
+    ("collector.total_frames=-5", "collector.total_frames must be an integer >= 1, got -5"),
+    ("collector.frames_per_batch=0", "collector.frames_per_batch must be an integer >= 1, got 0"),
+    ("loss.gamma=1.5", "loss.gamma must be in (0, 1], got 1.5"),
+    ("loss.gamma=0", "loss.gamma must be in (0, 1], got 0"),
+    ("eval.gamma=-0.1", "eval.gamma must be in (0, 1], got -0.1"),
+    ("loss.gae_lambda=1.1", "loss.gae_lambda must be in [0, 1], got 1.1"),
+    ("eval.max_steps=0", "eval.max_steps must be an integer >= 1, got 0"),
+    ("eval.num_episodes=0", "eval.num_episodes must be an integer >= 1, got 0"),
+    ("eval.interval=0", "eval.interval must be an integer >= 1 or null, got 0"),
+    ("checkpoint.interval=0", "checkpoint.interval must be an integer >= 1, got 0"),
+    ("loss.mini_batch_size=0", "loss.mini_batch_size must be an integer >= 1, got 0"),
+    ("loss.mini_batch_size=99999", "loss.mini_batch_size (99999) must be <= collector.frames_per_batch (16384)"),
+    ("loss.ppo_epochs=0", "loss.ppo_epochs must be an integer >= 1, got 0"),
+    ("env.max_steps=0", "env.max_steps must be an integer >= 1 or null, got 0"),
+    ("env.num_envs=-1", "env.num_envs must be an integer >= 1, got -1"),
+    ("optim.lr=0", "optim.lr must be in (0, inf), got 0"),
+    ("optim.max_grad_norm=-1", "optim.max_grad_norm must be in (0, inf) or null, got -1"),
+    ("collector.max_minutes=0", "collector.max_minutes must be in (0, inf) or null, got 0"),
+    ("model.activation=gelu", "model.activation must be one of elu, leaky_relu, relu, silu, tanh; got 'gelu'"),
+    ("model.actor_cells=[64,0]", "model.actor_cells must be a list of positive layer widths"),
+    ("logger.backend=foo", "logger.backend must be one of tensorboard, csv, null; got 'foo'"),
+    ("eval.test_seed=1", "eval.seed (validation states) and eval.test_seed (test states) must differ"),
+    ("eval.render_interval=-1", "eval.render_interval must be an integer >= 0, got -1"),
+    ("collector.frames_per_batch=16383", "must be a positive multiple of env.num_envs (256)"),
+])
+def test_ppo_config_ranges(override, message):
+    with pytest.raises(ValueError) as err:
+        check_ppo_config(ppo_config(override))
+    assert message in str(err.value)
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("gamma", 1.5, "gamma must be in (0, 1], got 1.5"),
+    ("steps", 0, "steps must be an integer >= 1, got 0"),
+    ("episodes", 0, "episodes must be an integer >= 1 or null, got 0"),
+    ("env", "gym", "env must be one of anm6, gym_anm; got 'gym'"),
+])
+def test_evaluate_config_ranges(key, value, message):
+    cfg = OmegaConf.load(CONF / "evaluate.yaml")
+    cfg[key] = value
+    with pytest.raises(ValueError) as err:
+        check_evaluate_config(cfg)
+    assert message in str(err.value)
+
+
+def test_evaluate_defaults_to_the_recipes_test_states():
+    """evaluate.py's default seed is the PPO recipe's test seed, not its validation seed (model selection)."""
+    cfg = ppo_config()
+    assert OmegaConf.load(CONF / "evaluate.yaml").seed == cfg.eval.test_seed != cfg.eval.seed
+
+
+# ------------------------------------------------------------------------------------------------ checkpoints
+def test_flipped_bytes_in_actor_weights_fail_the_load(ppo_checkpoint, tmp_path):
+    weight = load_checkpoint(ppo_checkpoint)["actor"]["module.0.module.1.2.weight"]  # the actor's 64x64 hidden layer
+    raw = ppo_checkpoint.read_bytes()
+    at = raw.find(weight.numpy().tobytes())
+    assert at > 0, "the tensor's bytes are stored uncompressed in torch.save's zip"
+    bad = bytearray(raw)
+    bad[at + 400:at + 404] = bytes(b ^ 0xFF for b in bad[at + 400:at + 404])
+    corrupted = tmp_path / "corrupted.pt"
+    corrupted.write_bytes(bytes(bad))
+    with pytest.raises(ValueError, match=r"corrupted\.pt is corrupted: content hash"):
+        load_checkpoint(corrupted)
+
+
+def test_nan_weights_and_malformed_checkpoints_are_refused(ppo_checkpoint, tmp_path):
+    ckpt = load_checkpoint(ppo_checkpoint)
+    nan = copy.deepcopy(ckpt)
+    nan["actor"]["module.0.module.1.0.bias"][3] = float("nan")
+    path = save_checkpoint(tmp_path / "nan.pt", {k: v for k, v in nan.items() if k != "sha256"})  # hash of NaNs
+    with pytest.raises(ValueError, match=r"actor tensors \['module.0.module.1.0.bias'\] hold NaN"):
+        load_checkpoint(path)
+    stringy = {k: v for k, v in ckpt.items() if k != "sha256"} | {"config": "model: tanh"}
+    path = save_checkpoint(tmp_path / "string_config.pt", stringy)
+    with pytest.raises(ValueError, match="malformed PPO checkpoint: config is str"):
+        load_actor(path)
+    (tmp_path / "notes.txt").write_text("not a checkpoint\n")
+    with pytest.raises(ValueError, match="notes.txt is not an anm_torchrl PPO checkpoint"):
+        load_checkpoint(tmp_path / "notes.txt")
+    old = {k: v for k, v in ckpt.items() if k != "sha256"} | {"format_version": 1}
+    with pytest.raises(ValueError, match="unsupported PPO checkpoint format_version 1"):
+        validate_checkpoint(old)
+
+
+def test_resume_with_another_architecture_is_an_error(ppo_checkpoint):
+    saved = load_checkpoint(ppo_checkpoint)["config"]
+    for override, key in (("model.activation=relu", "model.activation: checkpoint 'tanh', this run 'relu'"),
+                          ("model.actor_cells=[32,32]", "model.actor_cells: checkpoint [64, 64], this run [32, 32]")):
+        new = OmegaConf.to_container(ppo_config(override), resolve=True)
+        with pytest.raises(ValueError, match="another architecture") as err:
+            check_resume_config(saved, new)
+        assert key in str(err.value)
+    new = OmegaConf.to_container(ppo_config("optim.lr=1e-3"), resolve=True)
+    assert check_resume_config(saved, new) == ["optim.lr"]  # other changes are the caller's to warn about
+
+
+def test_unwritable_artifact_home_names_the_variable(monkeypatch, tmp_path):
+    """A surrogate's cache write failing under ANM_TORCHRL_HOME says which variable to change; other errors pass."""
+    from anm_torchrl.training import factory
+
+    home = tmp_path / "home"
+    monkeypatch.setenv("ANM_TORCHRL_HOME", str(home))
+
+    def denied(name, **kwargs):
+        raise PermissionError(13, "Permission denied", str(home / "surrogates" / name))
+
+    monkeypatch.setattr(factory, "load_surrogate", denied)
+    with pytest.raises(PermissionError, match=r"surrogates/pinn\); set ANM_TORCHRL_HOME to a writable folder"):
+        factory.make_env("pinn", num_envs=1)
+
+    def elsewhere(name, **kwargs):
+        raise PermissionError(13, "Permission denied", "/somewhere/else")
+
+    monkeypatch.setattr(factory, "load_surrogate", elsewhere)
+    with pytest.raises(PermissionError) as err:
+        factory.make_env("pinn", num_envs=1)
+    assert "ANM_TORCHRL_HOME" not in str(err.value)

@@ -1,0 +1,151 @@
+"""recipes/evaluate.py (run in-process through its ``main(argv)``) and the evaluation helpers behind it.
+
+What it must do: print one JSON line first and only then write ``output=`` (creating the folder; a failed write
+is an error after the JSON is out), start from the test states by default, refuse bad values and files with a
+message, take its baseline names from the baselines registry.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+EVAL_KEYS = ("return", "discounted_return", "e_loss", "penalty", "steps", "terminated")
+RESULT_KEYS = EVAL_KEYS + ("episodes", "env", "policy", "wall_time", "seed")
+
+
+@pytest.fixture(scope="module")
+def evaluate():
+    spec = importlib.util.spec_from_file_location("evaluate_recipe", ROOT / "recipes" / "evaluate.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def printed_json(capsys) -> dict:
+    lines = [line for line in capsys.readouterr().out.strip().splitlines() if line.strip()]
+    assert lines, "nothing printed"
+    return json.loads(lines[-1])
+
+
+def fails(evaluate, *argv: str) -> str:
+    """The message of the SystemExit that ``evaluate.py argv`` ends with."""
+    with pytest.raises(SystemExit) as err:
+        evaluate.main(list(argv))
+    assert err.value.code not in (0, None)
+    return str(err.value.code)
+
+
+# ------------------------------------------------------------------------------------------- evaluate.py
+def test_evaluate_checkpoint_json_on_test_states(evaluate, ppo_checkpoint, capsys):
+    out = evaluate.main([f"checkpoint={ppo_checkpoint}", "steps=20", "episodes=2"])
+    assert printed_json(capsys) == json.loads(json.dumps(out))
+    assert set(RESULT_KEYS) <= set(out) and out["policy"] == "ppo" and out["env"] == "anm6"
+    assert out["episodes"] == 2 and 0 < out["steps"] <= 20 and math.isfinite(out["discounted_return"])
+    assert out["seed"] == 0  # the PPO recipe's eval.test_seed (tests/test_config_checks.py keeps them equal)
+
+
+def test_evaluate_baseline_json_and_output_folder(evaluate, tmp_path, capsys):
+    target = tmp_path / "new" / "folder" / "result.json"
+    out = evaluate.main(["policy=do_nothing", "steps=20", "episodes=2", f"output={target}"])
+    assert printed_json(capsys)["discounted_return"] == out["discounted_return"]
+    assert json.loads(target.read_text()) == json.loads(json.dumps(out))
+    assert set(RESULT_KEYS) <= set(out) and out["policy"] == "do_nothing" and out["steps"] == 20
+    assert out["terminated"] == 0.0 and out["return"] <= out["discounted_return"] < 0
+
+
+def test_failed_output_write_keeps_the_printed_result(evaluate, tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    message = fails(evaluate, "policy=do_nothing", "steps=5", "episodes=1", f"output={blocker}/result.json")
+    assert "printed above but could not be written" in message and "a_file/result.json" in message
+    assert printed_json(capsys)["policy"] == "do_nothing"  # the evaluation is not lost
+
+
+def test_bad_options_and_files_fail_clearly(evaluate, tmp_path):
+    bogus = tmp_path / "surrogate.pt"
+    torch.save({"kind": "anm_torchrl.surrogate.xgb", "model": torch.zeros(2)}, bogus)
+    assert "kind='anm_torchrl.surrogate.xgb'" in fails(evaluate, f"checkpoint={bogus}", "steps=5")
+    (tmp_path / "notes.txt").write_text("hello\n")
+    assert "is not an anm_torchrl PPO checkpoint" in fails(evaluate, f"checkpoint={tmp_path / 'notes.txt'}")
+    assert "checkpoint not found" in fails(evaluate, f"checkpoint={tmp_path / 'missing.pt'}")
+    assert "unknown option" in fails(evaluate, "policy=do_nothing", "no_such_option=1")
+    assert "gamma must be in (0, 1], got 1.5" in fails(evaluate, "policy=do_nothing", "gamma=1.5")
+    assert "steps must be an integer >= 1, got 0" in fails(evaluate, "policy=do_nothing", "steps=0")
+    from anm_torchrl.baselines.simple import BASELINES
+
+    message = fails(evaluate, "policy=nope")
+    assert all(name in message for name in BASELINES), message
+
+
+def test_help_lists_the_options(evaluate, capsys):
+    with pytest.raises(SystemExit) as err:
+        evaluate.main(["--help"])
+    assert err.value.code == 0
+    text = capsys.readouterr().out
+    for key in ("checkpoint:", "policy:", "env:", "seed:", "steps:", "episodes:", "gamma:", "output:"):
+        assert key in text, key
+
+
+def test_evaluate_gym_anm_json(evaluate, ppo_checkpoint, capsys):
+    pytest.importorskip("gym_anm")
+    out = evaluate.main([f"checkpoint={ppo_checkpoint}", "env=gym_anm", "steps=5", "episodes=1", "progress=false"])
+    assert set(RESULT_KEYS) <= set(out) and out["env"] == "gym_anm" and out["steps"] == 5
+
+
+# ------------------------------------------------------------------------------------------- helpers
+def test_gym_anm_and_anm6_evaluations_agree():
+    pytest.importorskip("gym_anm")
+    torch.set_num_threads(1)
+    from anm_torchrl.baselines import make_baseline
+    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy, evaluate_policy_gym_anm
+
+    states = draw_initial_states(2, seed=11)
+    policy = make_baseline("do_nothing")
+    ours = evaluate_policy(policy, states, max_steps=6)
+    ref = evaluate_policy_gym_anm(policy, states, max_steps=6)
+    torch.testing.assert_close(ours.discounted_returns, ref.discounted_returns, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(ours.penalty, ref.penalty, rtol=1e-5, atol=1e-5)
+
+
+def test_episode_metrics_stop_at_first_termination():
+    from anm_torchrl.training.evaluation import episode_metrics
+
+    reward = torch.tensor([[-1.0, -2.0, -20000.0, -5.0], [-1.0, -1.0, -1.0, -1.0]])
+    terminated = torch.tensor([[False, False, True, False], [False, False, False, False]])
+    e_loss = torch.tensor([[0.5, 0.5, float("nan"), 9.0], [0.25, 0.25, 0.25, 0.25]])
+    penalty = torch.tensor([[0.5, 1.5, float("nan"), 9.0], [0.75, 0.75, 0.75, 0.75]])
+    res = episode_metrics(reward, e_loss, penalty, terminated, gamma=0.5)
+    assert res.steps.tolist() == [3, 4] and res.terminated.tolist() == [True, False]
+    assert res.returns.tolist() == [-20003.0, -4.0]
+    assert res.discounted_returns.tolist() == [-1.0 - 1.0 - 5000.0, -1.0 - 0.5 - 0.25 - 0.125]
+    assert res.e_loss.tolist() == [2.0, 1.0] and res.penalty.tolist() == [102.0, 3.0]  # terminal: clipping values
+
+
+def test_load_checkpoint_rejects_other_files(tmp_path):
+    from anm_torchrl.training.checkpoint import FORMAT_VERSION, CHECKPOINT_KIND, load_checkpoint, save_checkpoint
+
+    torch.save({"state_dict": {}}, tmp_path / "plain.pt")
+    with pytest.raises(ValueError, match=r"not an anm_torchrl PPO checkpoint.*keys \[state_dict\]"):
+        load_checkpoint(tmp_path / "plain.pt")
+    (tmp_path / "model.json").write_text('{"learner": {}}')
+    with pytest.raises(ValueError, match="torch.load"):
+        load_checkpoint(tmp_path / "model.json")
+    torch.save([1, 2], tmp_path / "list.pt")
+    with pytest.raises(ValueError, match="type builtins.list"):
+        load_checkpoint(tmp_path / "list.pt")
+    path = save_checkpoint(tmp_path / "c" / "x.pt", {"config": {}, "actor": {}, "critic": {}, "obs_norm": {},
+                                                     "frames": 1, "update": 1})
+    assert load_checkpoint(path)["format_version"] == FORMAT_VERSION
+    assert [p.name for p in path.parent.iterdir()] == ["x.pt"]  # no temporary left behind
+    torch.save({"kind": CHECKPOINT_KIND, "format_version": 99}, tmp_path / "future.pt")
+    with pytest.raises(ValueError, match="format_version 99"):
+        load_checkpoint(tmp_path / "future.pt")
+
+
