@@ -1,0 +1,37 @@
+"""Render one ANM6-Easy episode of a baseline policy: ``python -m anm_torchrl.render --policy mpc_perfect``.
+
+Writes ``episode_<policy>.png`` and ``.gif`` into ``--out`` (the committed example figure
+``docs/figures/episode_mpc_perfect.png`` is ``--policy mpc_perfect --seed 0 --steps 96 --out docs/figures``).
+The initial state is the first of gym-anm's reset distribution drawn by ``ANM6Env(1, seed=--seed)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+import torch
+
+from anm_torchrl.baselines import make_baseline
+from anm_torchrl.envs import ANM6Env
+from anm_torchrl.render.episode import render_episode
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--policy", default="mpc_perfect", help="do_nothing, random, mpc_perfect, mpc_constant")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the initial state")
+    parser.add_argument("--steps", type=int, default=96, help="episode length (96 = one day)")
+    parser.add_argument("--out", default="outputs/render", help="output directory")
+    parser.add_argument("--gif", action=argparse.BooleanOptionalAction, default=True, help="write the GIF too")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO)
+    torch.set_num_threads(1)
+    env = ANM6Env(1, seed=args.seed)
+    state = env.reset()["state"][0]
+    render_episode(make_baseline(args.policy, env.sim), env, state, args.steps, args.out, stem=f"episode_{args.policy}",
+                   title=f"ANM6-Easy, {args.policy} policy, seed {args.seed}", gif=args.gif)
+
+
+if __name__ == "__main__":
+    main()
