@@ -70,12 +70,15 @@ def _stages(tr, sim):
     }
 
 
+@pytest.mark.parametrize("solver", ["dense", "band"])
 @pytest.mark.parametrize("seed", range(12))
-def test_backends_agree_stage_by_stage(seed):
+def test_backends_agree_stage_by_stage(seed, solver):
+    """torch vs numba with the dense LU or the RCM-ordered band LU of the Newton step."""
     rng = np.random.default_rng(seed)
     net, load_p, gen_p_max = random_network(rng)
-    sims = [GridSimulator.from_tables(net, load_p, gen_p_max, 0.25, 0.99, 100.0, (1.0, 100.0), backend=b)
-            for b in ("torch", "numba")]
+    sims = [GridSimulator.from_tables(net, load_p, gen_p_max, 0.25, 0.99, 100.0, (1.0, 100.0), backend=b,
+                                      linear_solver=solver) for b in ("torch", "numba")]
+    assert (sims[1].constants.kl < 2 * sims[1].net.n_bus - 3) == (solver == "band")
     lo, hi = sims[0].action_bounds()
     n = 400
     action = lo + torch.as_tensor(rng.random((n, lo.numel()))) * (hi - lo)

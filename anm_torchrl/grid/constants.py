@@ -32,6 +32,8 @@ class TransitionConstants(NamedTuple):
         gen_h0, des_h0: (n_gen, 7), (n_des, 10) constant right-hand sides (+inf in state-dependent rows).
         gen_ppot_row, des_soc_rows: rows of ``h`` filled from P_pot and from the SoC.
         y: (n_bus, n_bus) Y-bus.  lu0, piv0, ok0: LU factors of the flat-start Jacobian (shared by all envs).
+        ix: (2 n_bus - 2,) position of each Newton–Raphson variable / equation ([θ, |V|] of the non-slack
+            buses) in the Jacobian; kl, ku: its lower / upper bandwidth (see :func:`jacobian_ordering`).
         f_bus, t_bus: (n_br,) branch ends.  y_ff, y_ft, y_tf, y_tt: π-model coefficients
             (i_from = y_ff v_f - y_ft v_t, i_to = y_tt v_t - y_tf v_f).  rate: (n_br,) p.u.
         v_min, v_max: (n_bus,) p.u.  delta_t (h), lamb, c0, c1 (costs clipping), term_reward.
@@ -56,6 +58,9 @@ class TransitionConstants(NamedTuple):
     lu0: np.ndarray
     piv0: np.ndarray
     ok0: bool
+    ix: np.ndarray
+    kl: int
+    ku: int
     f_bus: np.ndarray
     t_bus: np.ndarray
     y_ff: np.ndarray
@@ -78,8 +83,44 @@ def _npy(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().cpu().numpy())
 
 
-def build_constants(sim) -> TransitionConstants:
-    """The :class:`TransitionConstants` of a :class:`~anm_torchrl.grid.simulator.GridSimulator`."""
+# Buses from which the banded solve (RCM ordering) replaces the dense LU; measured crossover, see
+# results/bench_env_networks.md (``python -m anm_torchrl.benchmarks.env --solver-sweep``).
+BANDED_MIN_BUS = 16
+
+
+def jacobian_ordering(y_bus: np.ndarray, solver: str = "auto") -> tuple[np.ndarray, int, int]:
+    """Where each Newton–Raphson unknown goes in the Jacobian, and the resulting bandwidths.
+
+    ``"dense"``: gym-anm's layout [θ_1..θ_k, |V|_1..|V|_k] with full bandwidth (plain dense LU).
+    ``"band"``: non-slack buses in reverse Cuthill–McKee order of Y's pattern, θ and |V| of a bus interleaved,
+    so that the Jacobian is banded with kl = ku = 2·(bus bandwidth) + 1; the LU then costs O(n·kl·(kl+ku))
+    instead of O(n³). ``"auto"``: ``"band"`` from :data:`BANDED_MIN_BUS` buses on.
+
+    Returns:
+        ix (2k,) int64, kl, ku.
+    """
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    if solver not in ("auto", "dense", "band"):
+        raise ValueError(f"solver must be 'auto', 'dense' or 'band', got {solver!r}")
+    k = y_bus.shape[0] - 1
+    if solver == "dense" or (solver == "auto" and y_bus.shape[0] < BANDED_MIN_BUS):
+        return np.arange(2 * k, dtype=np.int64), 2 * k - 1, 2 * k - 1
+    pattern = csr_matrix((y_bus[1:, 1:] != 0).astype(np.int8))
+    order = np.asarray(reverse_cuthill_mckee(pattern, symmetric_mode=True), dtype=np.int64)
+    pos = np.empty(k, dtype=np.int64)
+    pos[order] = np.arange(k)
+    rows, cols = pattern.nonzero()
+    bw = int(np.abs(pos[rows] - pos[cols]).max()) if rows.size else 0
+    ix = np.concatenate([2 * pos, 2 * pos + 1]).astype(np.int64)
+    band = min(2 * bw + 1, 2 * k - 1)
+    return ix, band, band
+
+
+def build_constants(sim, solver: str = "auto") -> TransitionConstants:
+    """The :class:`TransitionConstants` of a :class:`~anm_torchrl.grid.simulator.GridSimulator` (``solver``: the
+    Jacobian layout of :func:`jacobian_ordering`)."""
     from anm_torchrl.grid.kernel import _flat_start_lu, _polygon_arrays
 
     net, br = sim.net, sim.net.branches
@@ -87,12 +128,13 @@ def build_constants(sim) -> TransitionConstants:
     des_poly, des_h0 = _polygon_arrays(sim._des_poly, sim.des_h0)
     ys, ysh, tp = (_npy(x) for x in (br.y_series, br.y_shunt, br.tap))
     y_bus = _npy(net.y_bus)
+    ix, kl, ku = jacobian_ordering(y_bus, solver)
     return TransitionConstants(
         dev=_npy(net.dev).astype(np.float64), lid=_npy(sim._lid), gid=_npy(sim._gid), did=_npy(sim._did),
         renewable=_npy(sim.renewable).astype(np.float64), slack=int(sim.slack_ids[0]), dev_bus=_npy(net.dev_bus),
         counted=_npy(sim.counted).astype(np.float64), gen_poly=gen_poly, des_poly=des_poly, gen_h0=gen_h0,
         des_h0=des_h0, gen_ppot_row=GEN_PPOT_ROW, des_soc_rows=np.array(DES_SOC_ROWS, dtype=np.int64), y=y_bus,
-        **dict(zip(("lu0", "piv0", "ok0"), _flat_start_lu(y_bus))),
+        **dict(zip(("lu0", "piv0", "ok0"), _flat_start_lu(y_bus, ix, kl, ku))), ix=ix, kl=kl, ku=ku,
         f_bus=_npy(br.f_bus), t_bus=_npy(br.t_bus),
         y_ff=np.ascontiguousarray((ys + ysh) / np.abs(tp) ** 2), y_ft=np.ascontiguousarray(ys / tp.conj()),
         y_tf=np.ascontiguousarray(ys / tp), y_tt=np.ascontiguousarray(ys + ysh), rate=_npy(br.rate),

@@ -69,6 +69,8 @@ class GridSimulator:
         p_max_series: (n_gen, T) raw potentials (MW) of the non-slack generators (classical and renewable, in
             device-id order); clipped to [PMIN, PMAX] when used.
         gamma, lamb, costs_clipping: reward constants.
+        linear_solver: the numba kernel's Newton step: ``"dense"`` LU, ``"band"`` (RCM-ordered banded LU, for
+            large feeders) or ``"auto"`` (:func:`anm_torchrl.grid.constants.jacobian_ordering`).
         backend: ``"torch"`` (batched tensor ops, any device), ``"numba"`` (one compiled loop over the batch,
             float64 CPU only, several times faster; :mod:`anm_torchrl.grid.kernel`) or ``"auto"`` (numba when
             it is installed and the network is on the CPU). Both give the same transitions to round-off.
@@ -76,8 +78,9 @@ class GridSimulator:
 
     def __init__(self, net: Network, load_series: torch.Tensor, p_max_series: torch.Tensor, gamma: float,
                  lamb: float, costs_clipping: tuple[float, float], backend: str = "auto",
-                 next_vars_hook: Callable | None = None):
+                 next_vars_hook: Callable | None = None, linear_solver: str = "auto"):
         self.net = net
+        self.linear_solver = linear_solver
         kind = net.dev_type.tolist()
         self.slack_ids = [i for i, k in enumerate(kind) if k == SLACK]
         self.load_ids = [i for i, k in enumerate(kind) if k == LOAD]
@@ -118,7 +121,7 @@ class GridSimulator:
     def constants(self) -> TransitionConstants:
         """The network tables as one :class:`TransitionConstants` (built on first use)."""
         if self._constants is None:
-            self._constants = build_constants(self)
+            self._constants = build_constants(self, self.linear_solver)
         return self._constants
 
     def _pick_backend(self, backend: str) -> str:
@@ -139,7 +142,7 @@ class GridSimulator:
     @classmethod
     def from_tables(cls, network: dict, load_p, gen_p_max, delta_t: float, gamma: float, lamb: float,
                     costs_clipping: tuple[float, float], device=None, backend: str = "auto",
-                    next_vars_hook: Callable | None = None) -> "GridSimulator":
+                    next_vars_hook: Callable | None = None, linear_solver: str = "auto") -> "GridSimulator":
         """A simulator from a validated network dict (:func:`anm_torchrl.networks.validation.validate_network`)
         and profiles ``load_p`` (T, n_load), ``gen_p_max`` (T, n_gen) MW in device-id order."""
         from anm_torchrl.grid.network import make_network
@@ -148,7 +151,7 @@ class GridSimulator:
                            float(delta_t), device=device)
         as_t = lambda x: torch.as_tensor(x, dtype=torch.float64, device=device).T  # noqa: E731  (T, n) -> (n, T)
         return cls(net, as_t(load_p), as_t(gen_p_max), gamma=gamma, lamb=lamb, costs_clipping=costs_clipping,
-                   backend=backend, next_vars_hook=next_vars_hook)
+                   backend=backend, next_vars_hook=next_vars_hook, linear_solver=linear_solver)
 
     @property
     def n_load(self) -> int:
