@@ -1,0 +1,281 @@
+"""The perfect-foresight optimum of an episode: the best achievable discounted return from one initial state.
+
+A gym-anm episode is deterministic once its initial state is fixed (loads and potentials follow the profiles), so
+its best return is the optimum of one NLP over all T steps (:class:`~anm_torchrl.baselines.nlp_model.ACHorizonNLP`,
+CasADi + IPOPT). :func:`solve_optimal` solves it in rounds, each warm-started from the previous one:
+
+1. from a warm start (the DC-OPF MPC's closed-loop trajectory by default; do-nothing or random set-points to
+   test that the local optimum does not depend on it), with the exact power flow and a free storage split;
+2. with each step's storage direction pinned (charge or discharge, from round 1), which makes the SoC chain
+   gym-anm's exactly — the **exact-physics optimum**;
+3. and on, with the env's power-flow error as offsets (:class:`~anm_torchrl.baselines.nlp_model.PowerFlowOffsets`,
+   measured by replaying the set-points), until the replayed return agrees with the NLP's to ``rtol`` — the
+   **env optimum**, the bound a policy evaluated on ``ANM6Env`` is measured against.
+
+:class:`OptimalPolicy` wraps it as a TorchRL policy usable by
+:func:`~anm_torchrl.training.evaluation.evaluate_policy`: it solves the horizon when it meets a state that is on
+none of its plans (an episode's first state) and then replays the plan step by step.
+
+The gap table (``python -m anm_torchrl.baselines.optimal --help``) lives in :mod:`anm_torchrl.baselines.gap`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from anm_torchrl.baselines.nlp_model import (ACHorizonNLP, NLPResult, PowerFlowOffsets, exogenous, rollout,
+                                             time_indices)
+from anm_torchrl.grid.simulator import GridSimulator
+
+log = logging.getLogger(__name__)
+
+WARM_STARTS = ("mpc", "do_nothing", "random")
+EVAL_GAMMA = 0.995  # the gym-anm paper's discount (training.evaluation.EVAL_GAMMA; not imported: layer order)
+EVAL_MAX_STEPS = 3000
+WARM_MPC_HORIZON = 16  # DC-OPF MPC warm start: perfect forecast, N = 16, β = 0.92 (cheap and close enough)
+WARM_MPC_MARGIN = 0.92
+
+
+def warm_start_actions(sim: GridSimulator, state: np.ndarray, n: int, kind: str = "mpc",
+                       seed: int = 0) -> np.ndarray:
+    """Set-points (n, action_dim) MW/MVAr to start the NLP from.
+
+    ``"mpc"``: gym-anm's DC-OPF MPC (perfect forecast, N = 16, β = 0.92) run in closed loop on ``sim``;
+    ``"do_nothing"``: renewables at PMAX, everything else 0; ``"random"``: uniform over the action box (seeded).
+    """
+    lo, hi = (b.cpu().numpy() for b in sim.action_bounds())
+    if kind == "mpc":
+        from anm_torchrl.baselines.mpc import MPCPolicy
+
+        mpc = MPCPolicy(sim, horizon=WARM_MPC_HORIZON, forecast="perfect", safety_margin=WARM_MPC_MARGIN,
+                        gamma=EVAL_GAMMA)
+        acts: list[np.ndarray] = []
+
+        def act(s: np.ndarray) -> np.ndarray:
+            acts.append(mpc.solve(s)["action"])
+            return acts[-1]
+
+        rollout(sim, state, act, n=n)
+        return np.stack(acts)
+    if kind == "do_nothing":
+        a = np.zeros(sim.action_dim)
+        a[:sim.n_gen] = hi[:sim.n_gen]
+        return np.tile(a, (n, 1))
+    if kind == "random":
+        return lo + np.random.default_rng(seed).random((n, sim.action_dim)) * (hi - lo)
+    raise ValueError(f"warm_start must be one of {WARM_STARTS}, got {kind!r}")
+
+
+@dataclasses.dataclass
+class OptimalResult:
+    """The optimum of one episode.
+
+    Attributes:
+        setpoints: (T, action_dim) MW/MVAr, the env optimum's set-points (inside every device's polygon).
+        states: (T + 1, state_dim) the states their float64 replay on the simulator visits (row 0 the start).
+        discounted_return: the env optimum's return as the NLP reports it (exact physics + the env's power-flow
+            offsets).
+        exact_return: the exact-physics optimum's return (round 2).
+        replay_return: Σ γ^t r_t of the float64 replay on the simulator; ``replay_gap`` its relative difference
+            to ``discounted_return``.
+        warm_start: the warm start's name; ``warm_return`` its own replayed return.
+        rounds: :meth:`NLPResult.summary` of every round (with ``replay_return`` and ``replay_gap``).
+        wall_time: s, warm start and all rounds.  warm_time: s, the warm start alone.
+        result: the last round's :class:`NLPResult`.
+    """
+
+    setpoints: np.ndarray
+    states: np.ndarray
+    discounted_return: float
+    exact_return: float
+    replay_return: float
+    replay_gap: float
+    warm_start: str
+    warm_return: float
+    rounds: list[dict]
+    wall_time: float
+    warm_time: float
+    result: NLPResult
+
+    def summary(self) -> dict:
+        """JSON-ready record (no arrays)."""
+        return {k: getattr(self, k) for k in ("discounted_return", "exact_return", "replay_return", "replay_gap",
+                                              "warm_start", "warm_return", "rounds", "wall_time", "warm_time")}
+
+
+def _discounted(reward: np.ndarray, gamma: float) -> float:
+    return float(np.dot(gamma ** np.arange(len(reward)), reward))
+
+
+def solve_optimal(sim: GridSimulator, state: np.ndarray, horizon: int = EVAL_MAX_STEPS, gamma: float = EVAL_GAMMA,
+                  warm_start: str = "mpc", seed: int = 0, formulation: str = "polar",
+                  nlp: ACHorizonNLP | None = None, rtol: float = 1e-7, max_rounds: int = 6,
+                  ipopt: dict | None = None) -> OptimalResult:
+    """The perfect-foresight optimum of the episode from ``state`` (state_dim,) MW/MVAr/MWh over ``horizon`` steps.
+
+    Args:
+        warm_start: one of :data:`WARM_STARTS` (``seed`` for ``"random"``).
+        formulation: ``"polar"`` or ``"rectangular"`` voltages.
+        nlp: a built :class:`ACHorizonNLP` of this ``horizon`` and ``gamma`` to reuse (building costs seconds).
+        rtol: stop once the replayed return agrees with the NLP's to this relative difference.
+        max_rounds: at most this many solves (rounds 1 and 2 plus offset rounds).
+        ipopt: IPOPT option overrides (only when ``nlp`` is not given).
+
+    Raises:
+        RuntimeError: a round's IPOPT solve failed, or the replay left the power flow's convergence region.
+    """
+    state = np.asarray(torch.as_tensor(state, dtype=torch.float64).cpu().numpy()).reshape(-1)
+    if state.shape != (sim.state_dim,):
+        raise ValueError(f"state must have shape ({sim.state_dim},), got {state.shape}")
+    if nlp is None:
+        nlp = ACHorizonNLP(sim, horizon, gamma, formulation, ipopt)
+    elif (nlp.horizon, nlp.gamma) != (int(horizon), float(gamma)):
+        raise ValueError(f"nlp has horizon {nlp.horizon} and gamma {nlp.gamma}, expected {horizon} and {gamma}")
+    t0 = time.perf_counter()
+    soc0 = state[sim.state_slices()["des_soc"]] / sim.net.base_mva
+    p_load, p_pot = exogenous(sim, time_indices(sim, state, horizon))
+    warm = rollout(sim, state, warm_start_actions(sim, state, horizon, warm_start, seed))
+    warm_time = time.perf_counter() - t0
+    res = nlp.solve(soc0, p_load, p_pot, nlp.guess(warm.p_dev, warm.q_dev, warm.v, warm.soc))
+    rounds = [_round(res, "free split, exact power flow")]
+    _check(res, 1)
+    pdes = res.setpoints[:, 2 * sim.n_gen:2 * sim.n_gen + sim.n_des]
+    direction = np.where(pdes >= 0, 1, -1)
+    offsets, exact_return = None, float("nan")
+    for k in range(2, max_rounds + 1):
+        res = nlp.solve(soc0, p_load, p_pot, res.x, direction=direction, offsets=offsets, lam_x0=res.lam_x,
+                        lam_g0=res.lam_g)
+        _check(res, k)
+        replay = rollout(sim, state, res.setpoints)
+        if not replay.converged.all():
+            raise RuntimeError(f"round {k}: the replay's power flow did not converge at steps "
+                               f"{np.flatnonzero(~replay.converged)[:5].tolist()}")
+        ret = _discounted(replay.reward, gamma)
+        gap = abs(ret - res.discounted_return) / abs(res.discounted_return)
+        rounds.append({**_round(res, "pinned split, " + ("exact power flow" if offsets is None else "env offsets")),
+                       "replay_return": ret, "replay_gap": gap})
+        log.info("optimum round %d: NLP %.9f, replay %.9f (gap %.2e), %d iterations, %.1f s", k,
+                 res.discounted_return, ret, gap, res.iterations, res.solve_time)
+        if offsets is None:
+            exact_return = res.discounted_return
+        elif gap <= rtol:
+            break
+        offsets = PowerFlowOffsets.measure(sim, replay.v, res.points.v)
+    return OptimalResult(setpoints=res.setpoints, states=replay.states, discounted_return=res.discounted_return,
+                         exact_return=exact_return, replay_return=ret, replay_gap=gap, warm_start=warm_start,
+                         warm_return=_discounted(warm.reward * warm.converged, gamma), rounds=rounds,
+                         wall_time=time.perf_counter() - t0, warm_time=warm_time, result=res)
+
+
+def _round(res: NLPResult, what: str) -> dict:
+    return {"round": what, **res.summary()}
+
+
+def _check(res: NLPResult, k: int) -> None:
+    if not res.success:
+        raise RuntimeError(f"optimum round {k}: IPOPT returned {res.status} after {res.iterations} iterations "
+                           f"(primal infeasibility {res.inf_pr:.2e}, dual {res.inf_du:.2e})")
+
+
+def replay_in_env(setpoints: np.ndarray, state: np.ndarray, gamma: float = EVAL_GAMMA,
+                  sim: GridSimulator | None = None) -> dict:
+    """Step set-points (T, action_dim) MW/MVAr (float64) through ``ANM6Env`` from ``state`` (set with
+    ``reset(..., set_state=True)``); returns the ``discounted_return``, the ``rewards`` (T,) and ``terminated``.
+    """
+    from tensordict import TensorDict
+
+    from anm_torchrl.envs import ANM6Env
+
+    env = ANM6Env(1, seed=0, sim=sim)
+    td = env.reset(TensorDict({"state": torch.as_tensor(state, dtype=torch.float64).reshape(1, -1)}, [1]),
+                   set_state=True)
+    rewards, terminated = [], False
+    for a in np.asarray(setpoints, dtype=np.float64):
+        td.set("action", torch.as_tensor(a).reshape(1, -1))
+        td = env.step(td)
+        rewards.append(float(td["next", "reward"]))
+        terminated = bool(td["next", "terminated"])
+        if terminated:
+            break
+        td = td["next"]
+    r = np.asarray(rewards)
+    return {"discounted_return": _discounted(r, gamma), "rewards": r, "terminated": terminated}
+
+
+class OptimalPolicy(TensorDictModuleBase):
+    """The perfect-foresight optimum as a policy: plan at an episode's first state, then replay the plan.
+
+    A state is *on a plan* at step k when its time index equals the plan's and its SoC is within ``soc_tol``
+    MWh of the plan's (float32 actions move the SoC by ~1e-6 MWh a step). Any other state — an episode's first,
+    or one off its plan — gets a new plan solved from it (:func:`solve_optimal`, ``horizon`` steps; minutes for
+    3,000), and the plan is followed from there. Each solve is logged and kept in ``plans``.
+
+    Args:
+        sim: the :class:`GridSimulator`.
+        horizon: planning horizon T (the evaluation's episode length).
+        gamma: discount.
+        in_key: TensorDict key of the gym-anm state (..., state_dim).
+        soc_tol: MWh.
+        **solve_kw: passed to :func:`solve_optimal` (``warm_start``, ``formulation``, ``rtol``…).
+    """
+
+    def __init__(self, sim: GridSimulator, horizon: int = EVAL_MAX_STEPS, gamma: float = EVAL_GAMMA,
+                 in_key: str = "state", soc_tol: float = 1e-2, **solve_kw):
+        super().__init__()
+        self.in_keys, self.out_keys = [in_key], ["action"]
+        self.sim, self.horizon, self.gamma, self.soc_tol, self.solve_kw = sim, int(horizon), float(gamma), \
+            float(soc_tol), solve_kw
+        self.plans: list[OptimalResult] = []
+        self._cursor: list[int] = []
+        self._nlp: ACHorizonNLP | None = None
+        sl = sim.state_slices()
+        self._aux, self._soc = sl["aux"], sl["des_soc"]
+        lo, hi = sim.action_bounds()
+        self._lo, self._hi = lo.cpu().numpy(), hi.cpu().numpy()
+
+    def _on_plan(self, s: np.ndarray, plan: OptimalResult, k: int) -> bool:
+        ref = plan.states[k]
+        return (k < len(plan.setpoints) and s[self._aux][0] == ref[self._aux][0]
+                and bool(np.all(np.abs(s[self._soc] - ref[self._soc]) <= self.soc_tol)))
+
+    def _new_plan(self, s: np.ndarray) -> int:
+        if self._nlp is None:
+            self._nlp = ACHorizonNLP(self.sim, self.horizon, self.gamma, self.solve_kw.get("formulation", "polar"),
+                                     self.solve_kw.get("ipopt"))
+        kw = {k: v for k, v in self.solve_kw.items() if k not in ("formulation", "ipopt")}
+        plan = solve_optimal(self.sim, s, self.horizon, self.gamma, nlp=self._nlp, **kw)
+        log.info("optimal policy: new plan from t = %d, return %.6f (%.0f s)", int(s[self._aux][0]),
+                 plan.discounted_return, plan.wall_time)
+        self.plans.append(plan)
+        self._cursor.append(0)
+        return len(self.plans) - 1
+
+    def act(self, states: torch.Tensor) -> torch.Tensor:
+        """Actions (..., action_dim) float32 MW/MVAr for states (..., state_dim)."""
+        flat = states.detach().reshape(-1, states.shape[-1]).cpu().double().numpy()
+        out = np.empty((flat.shape[0], self.sim.action_dim))
+        cursor = list(self._cursor)  # rows matched against the cursors at the start of this call
+        advance: dict[int, int] = {}
+        for i, s in enumerate(flat):
+            j = next((j for j, p in enumerate(self.plans) if self._on_plan(s, p, cursor[j])), None)
+            if j is None:
+                j = self._new_plan(s)
+                cursor.append(0)
+            out[i] = self.plans[j].setpoints[cursor[j]]
+            advance[j] = cursor[j] + 1
+        for j, k in advance.items():
+            self._cursor[j] = k
+        out = np.clip(out, self._lo, self._hi)  # inside the polygons up to round-off; the env raises outside
+        return torch.as_tensor(out, dtype=torch.float32, device=states.device).reshape(
+            *states.shape[:-1], self.sim.action_dim)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict.set(self.out_keys[0], self.act(tensordict.get(self.in_keys[0])))
+        return tensordict
