@@ -35,6 +35,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
+from anm_torchrl.training.recipe_help import register as register_help
+
 log = logging.getLogger("train_surrogate")
 CONF = Path(__file__).parent / "conf"
 
@@ -109,13 +111,13 @@ def check_request(name: str, dataset: str | None) -> None:
         raise ValueError(f"surrogate.dataset must be one of {list(DATASETS)}, got {dataset!r}")
 
 
-def check_default_slot(cfg: DictConfig, path: str | None) -> None:
-    """Raise ``ValueError`` if a model trained on fewer rows than the default would land in the default folder."""
+def check_default_slot(size: int, path: str | None, overwrite_cache: bool) -> None:
+    """Raise ``ValueError`` if a model trained on ``size`` rows, fewer than the default ``data.size``, would land
+    in its default folder (``path`` None) without ``overwrite_cache``."""
     default_size = int(OmegaConf.load(CONF / "train_surrogate.yaml").data.size)
-    if not path and int(cfg.data.size) < default_size and not cfg.overwrite_cache and not any(
-            cfg.data.get(k) for k in ("generative", "agent")):
-        raise ValueError(f"data.size={cfg.data.size} is below the default {default_size}: a model trained on it would "
-                         f"replace the default one in its default folder; give surrogate.path=... or "
+    if not path and int(size) < default_size and not overwrite_cache:
+        raise ValueError(f"a dataset of {size} rows is below the default data.size={default_size}: a model trained on "
+                         f"it would replace the default one in its default folder; give surrogate.path=... or "
                          f"overwrite_cache=true")
 
 
@@ -128,8 +130,9 @@ def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: 
     check_request(name, dataset)
     out = Path(path) if path else surrogate_dir(name, dataset)
     total = time.perf_counter()
-    clf = fit_terminal(cfg, dataset, data, sim)
     td, meta = data[dataset]
+    check_default_slot(meta["size"], path, bool(cfg.overwrite_cache))  # an explicit data folder may be small too
+    clf = fit_terminal(cfg, dataset, data, sim)
     params = OmegaConf.to_container(cfg.models[name], resolve=True) if name in cfg.models else {}
     log.info("training %s on the %s dataset -> %s", name, dataset, out)
     tb = Path(tempfile.mkdtemp(prefix=f"{name}_tb_")) if name == "dnn" else None
@@ -186,7 +189,9 @@ def run(cfg: DictConfig) -> list[dict]:
     torch.set_num_threads(int(cfg.threads))
     if not cfg.all:  # fail before loading or generating data
         check_request(cfg.surrogate.name, cfg.surrogate.get("dataset"))
-    check_default_slot(cfg, None if cfg.all else cfg.surrogate.get("path"))
+    if not any(cfg.data.get(k) for k in DATASETS):  # before generating or loading anything
+        check_default_slot(int(cfg.data.size), None if cfg.all else cfg.surrogate.get("path"),
+                           bool(cfg.overwrite_cache))
     start = time.perf_counter()
     sim = anm6_easy_simulator()
     data = load_datasets(cfg, sim)
@@ -205,6 +210,9 @@ def run(cfg: DictConfig) -> list[dict]:
         return results
     dataset = cfg.surrogate.get("dataset")
     return [train_one(cfg, cfg.surrogate.name, dataset, cfg.surrogate.get("path"), data, sim)]
+
+
+register_help()  # --help lists only this recipe's config groups (recipes/conf/hydra/help/recipe.yaml)
 
 
 @hydra.main(config_path="conf", config_name="train_surrogate", version_base="1.3")

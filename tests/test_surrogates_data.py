@@ -204,9 +204,15 @@ def test_training_end_to_end(trained, home):
     assert any((surrogate_dir("dnn", "generative") / "tb").iterdir())  # TensorBoard curves
 
 
-def test_small_training_never_replaces_the_default_model(home):
+def test_small_training_never_replaces_the_default_model(trained, home):
     cfg = _compose("train_surrogate", ["surrogate=lr", f"data.size={SIZE}", "progress=false"])
-    with pytest.raises(ValueError, match="below the default 100000.*overwrite_cache=true"):
+    with pytest.raises(ValueError, match="800 rows is below the default data.size=100000.*overwrite_cache=true"):
+        _recipe("train_surrogate").run(cfg)
+    # an explicit small dataset folder is caught too, after loading it
+    cfg = _compose("train_surrogate", ["surrogate=lr", "progress=false",
+                                       f"data.generative={dataset_dir('generative', SIZE, 0)}",
+                                       f"data.agent={dataset_dir('agent', SIZE, 0)}"])
+    with pytest.raises(ValueError, match="800 rows is below the default"):
         _recipe("train_surrogate").run(cfg)
 
 

@@ -48,7 +48,7 @@ from anm_torchrl.data.registry import available_datasets
 from anm_torchrl.grid.simulator import GridSimulator
 
 LAYOUT = "anm_torchrl.transitions"
-LAYOUT_VERSION = 1
+LAYOUT_VERSION = 2  # 2: manifest.json (atomic, hash-checked saves)
 META_FILE = "dataset.json"
 DATA_DIR = "data"
 KINDS = available_datasets()
@@ -216,7 +216,7 @@ def load_dataset(path: str | os.PathLike, kind: str | None = None, size: int | N
         kind, size, seed: when given, the metadata must match them.
         sim: when given, the dataset must come from a simulator with the same settings and fingerprint.
         verify: check every file against the manifest and recompute the checksum (reads every byte twice;
-            ~0.2 s per 100,000 rows).
+            0.23 s for 50,000 generative rows, 22 MB, measured on the shared 2-core machine).
 
     Returns:
         ``(td, meta)``: the rows (memory-mapped TensorDict, batch size [size]) and the metadata.

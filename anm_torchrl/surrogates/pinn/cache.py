@@ -67,9 +67,9 @@ def train_and_save(cfg: PINNTrainConfig, sim: GridSimulator, path: str | Path | 
         where = ""
         if reject_path is not None:
             where = f"; it was saved to {save_pinn(reject_path, modules, cfg, report, sim)}"
-        raise CacheRejectedError(f"the trained PINN failed its acceptance bar ({'; '.join(report['acceptance_failures'])})"
-                                 f" and was not written to the default cache {file}{where}; pass overwrite_cache=true "
-                                 f"to store it there anyway")
+        failed = "; ".join(report["acceptance_failures"])
+        raise CacheRejectedError(f"the trained PINN failed its acceptance bar ({failed}) and was not written to the "
+                                 f"default cache {file}{where}; pass overwrite_cache=true to store it there anyway")
     if not report["accepted"]:
         log.warning("PINN saved to %s although it failed its acceptance bar: %s", file, report["acceptance_failures"])
     return save_pinn(file, modules, cfg, report, sim), report

@@ -93,6 +93,6 @@ def load_modules(path: str | Path, sim: GridSimulator) -> tuple[dict[str, nn.Mod
         try:
             m.load_state_dict(payload["state_dict"][k])
         except RuntimeError as err:
-            raise ArtifactError(f"{resolve_path(path)}: the {k} weights do not fit its recorded config ({err})") from err
+            raise ArtifactError(f"{resolve_path(path)}: the {k} weights do not fit its config ({err})") from err
         m.eval()
     return modules, cfg, payload.get("report", {})
