@@ -20,6 +20,8 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
+from anm_torchrl.training.recipe_help import register as register_help
+
 log = logging.getLogger("make_dataset")
 
 
@@ -37,6 +39,9 @@ def run(cfg: DictConfig) -> str:
     log.info("%s dataset (%d rows, seed %d) written to %s in %.1f s", cfg.dataset, cfg.size, cfg.seed, path,
              time.perf_counter() - start)
     return str(path)
+
+
+register_help()  # --help lists only this recipe's config groups (recipes/conf/hydra/help/recipe.yaml)
 
 
 @hydra.main(config_path="conf", config_name="make_dataset", version_base="1.3")

@@ -30,7 +30,12 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 
+from anm_torchrl.training.recipe_help import register as register_help
+
 log = logging.getLogger("train_pinn")
+
+
+register_help()  # --help lists only this recipe's config groups (recipes/conf/hydra/help/recipe.yaml)
 
 
 @hydra.main(config_path="conf", config_name="train_pinn", version_base="1.3")

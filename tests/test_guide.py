@@ -84,3 +84,31 @@ def test_documented_command_options_exist(page, argv):
     with initialize_config_dir(config_dir=str(script.parent / "conf"), version_base="1.3"):
         cfg = compose(config_name=config_name, overrides=first_of_sweeps(args), return_hydra_config=True)
     assert OmegaConf.select(cfg, "hydra.runtime.choices") is not None
+
+
+RECIPE_GROUPS = {"ppo": {"checkpoint", "collector", "env", "eval", "logger", "loss", "model", "optim", "surrogate"},
+                 "train_pinn": {"pinn_preset"}, "train_surrogate": {"models", "surrogate", "terminal"},
+                 "make_dataset": set(), "reproduce": {"preset"}}
+
+
+@pytest.mark.parametrize("recipe", sorted(RECIPE_GROUPS))
+def test_help_lists_only_the_recipes_groups(recipe):
+    """``--help`` shows the groups of the recipe's own defaults list (Hydra's default lists every folder of
+    recipes/conf/, other recipes' too), each with its options."""
+    from hydra import compose, initialize_config_dir
+
+    from anm_torchrl.training.recipe_help import recipe_groups, register
+
+    register()
+    script = ROOT / "recipes" / f"{recipe}.py"
+    assert "register_help()" in script.read_text()
+    config_name = re.search(r'config_name="(\w+)"', script.read_text()).group(1)
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
+        cfg = compose(config_name=config_name, return_hydra_config=True)
+    template = OmegaConf.to_container(cfg.hydra.help, resolve=False)["template"]
+    assert "${recipe_groups:}" in template, "the recipe does not use hydra/help=recipe"
+    text = recipe_groups(cfg)
+    listed = {line.split(":")[0] for line in text.splitlines() if "(now: " in line}
+    assert listed == RECIPE_GROUPS[recipe], text
+    if recipe == "ppo":
+        assert "surrogate: dnn, dt, gym_anm, lr, none, pinn, rf, xgb (now: none)" in text

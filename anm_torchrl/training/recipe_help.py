@@ -7,6 +7,7 @@ selects ``hydra/help: recipe`` (``recipes/conf/hydra/help/recipe.yaml``) and cal
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -14,18 +15,29 @@ from omegaconf import DictConfig, OmegaConf
 RESOLVER = "recipe_groups"
 
 
+def _source_dir(schema: str, path: str) -> Path | None:
+    """The folder of a Hydra config source (schema ``file`` or ``pkg``), or None (structured configs)."""
+    if schema == "file":
+        return Path(path)
+    if schema == "pkg":
+        spec = importlib.util.find_spec(path)
+        return Path(next(iter(spec.submodule_search_locations))) if spec and spec.submodule_search_locations else None
+    return None
+
+
 def recipe_groups(_root_: DictConfig) -> str:
-    """One line per config group of the composed config: ``group: option, option (now: option)``."""
+    """One line per config group of the composed config: ``group: option, option (now: option)``; the options are
+    the YAML files of that group in every config source (the recipe's folder and its search path)."""
     runtime = _root_.hydra.runtime
-    main = [s for s in runtime.config_sources if s.provider == "main"]
-    conf = Path(str(main[0].path).removeprefix("file://")) if main else None
+    folders = [d for d in (_source_dir(str(s.schema), str(s.path)) for s in runtime.config_sources
+                           if s.provider != "hydra") if d]
     lines = []
     for group, chosen in runtime.choices.items():
         if group == "hydra" or group.startswith("hydra/"):
             continue
-        options = sorted(p.stem for p in (conf / group).glob("*.yaml")) if conf is not None else []
+        options = sorted({p.stem for d in folders for p in (d / group).glob("*.yaml")})
         lines.append(f"{group}: {', '.join(options) or chosen} (now: {chosen})")
-    return "\n".join(sorted(lines))
+    return "\n".join(sorted(lines)) or "(none: every option is a key of the config below)"
 
 
 def register() -> None:
