@@ -59,8 +59,8 @@ def block_test_returns(res: dict[str, Any]) -> str:
                                        "frames": ",.0f", "seconds": ".0f"})
     reused = sorted({str(r["reused_from"].get("git_commit"))[:7] for r in d["rows"] if r.get("reused_from")})
     if reused:
-        table += (f"\n\nBaseline rows evaluated by an earlier run of this experiment on the same states and protocol "
-                  f"(git commit {', '.join(f'`{c}`' for c in reused)}), not evaluated again.")
+        table += (f"\n\nRows measured by earlier runs of this experiment on the same states and protocol (git "
+                  f"commit {', '.join(f'`{c}`' for c in reused)}) and merged into this record.")
     na = "; ".join(f"`{k}`: {str(v)[:120]}" for k, v in d.get("not_available", {}).items())
     return f"{head}\n\n{table}\n\n" + (f"Not available: {na}\n\n" if na else "") + _source(rec, res.get("run"))
 

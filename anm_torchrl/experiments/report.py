@@ -338,7 +338,8 @@ training time grows with both.
                   "(collection, updates, evaluations) to the first evaluation at or above it, a run that never reaches it counted "
                   "as censored at its run length (empty when fewer than half reached it); `_mean` is the mean of "
                   "those times, a lower bound when a run is censored; `with_training` adds the surrogate's "
-                  "training time (`surrogate_train_s`, measured in the same reproduction).")
+                  "training time (`surrogate_train_s`: CPU seconds of the PINN's training in this reproduction, one "
+                  "thread, i.e. its wall time on an idle machine; a loaded machine stretches wall time).")
     out.append(f"""## PPO training curves (paper Fig. 12 and training time)
 
 **Paper.** PPO on the PINN surrogate reaches a score comparable to PPO on the original env in ≈50 % less time;

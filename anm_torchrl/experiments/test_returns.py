@@ -29,24 +29,28 @@ def evaluate_baseline(name: str, kwargs: dict[str, Any], states, max_steps: int,
     return {**res.metrics(), "episodes": res.num_episodes, "seconds": time.perf_counter() - t0}
 
 
-def reused_baselines(path: str, protocol: dict[str, Any]) -> list[dict[str, Any]]:
-    """The baseline rows of an earlier ``test_returns`` record at ``path`` (not evaluated again), each marked with
-    that record's git commit; its protocol (states, T, γ) must equal ``protocol``."""
+def reused_rows(paths: list[str], protocol: dict[str, Any]) -> tuple[list[dict], dict[str, list[dict]]]:
+    """The rows (baselines and PPO) and PPO runs of earlier ``test_returns`` records at ``paths``, not measured
+    again, each row marked with its record's git commit; every record's protocol (states, T, γ) must equal
+    ``protocol``."""
     from anm_torchrl.experiments.io import read_json
 
-    rec = read_json(path)
-    if rec["data"].get("protocol") != protocol:
-        raise ValueError(f"reuse_baselines={path}: its protocol {rec['data'].get('protocol')} differs from this "
-                         f"run's {protocol}")
-    commit = (rec["meta"].get("versions") or {}).get("git_commit")
-    return [{**r, "reused_from": {"file": str(path), "git_commit": commit}} for r in rec["data"]["rows"]
-            if not r.get("trained_on")]
+    rows, runs = [], {}
+    for path in paths:
+        rec = read_json(path)
+        if rec["data"].get("protocol") != protocol:
+            raise ValueError(f"reuse: {path} was measured with protocol {rec['data'].get('protocol')}, this run "
+                             f"with {protocol}")
+        origin = {"file": str(path), "git_commit": (rec["meta"].get("versions") or {}).get("git_commit")}
+        rows += [{**r, "reused_from": origin} for r in rec["data"]["rows"]]
+        runs.update(rec["data"].get("runs", {}))
+    return rows, runs
 
 
 def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path) -> dict:
     """cfg keys: ``test_episodes``, ``test_seed``, ``max_steps``, ``gamma`` (the protocol, shared by every row);
-    ``baselines`` (list of ``{name, kwargs}``); ``reuse_baselines`` (an earlier record of the same protocol whose
-    baseline rows are taken instead of evaluating them again); ``ppo`` (``envs``: env labels, ``seeds``, ``base``: Hydra overrides
+    ``baselines`` (list of ``{name, kwargs}``); ``reuse`` (earlier records of the same protocol whose rows are
+    taken instead of measuring them again, e.g. the MPC's slow episodes); ``ppo`` (``envs``: env labels, ``seeds``, ``base``: Hydra overrides
     of every run, ``per_env``: label -> extra overrides, ``timeout_s``). Surrogate envs take their spec (e.g. a
     PINN ``path``) from ``surrogates``; ``none`` is the true simulator."""
     n, seed = int(cfg["test_episodes"]), int(cfg["test_seed"])
@@ -56,8 +60,8 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path) -> dic
 
     states = draw_initial_states(n, seed)
     protocol_rec = {"test_episodes": n, "test_seed": seed, "max_steps": max_steps, "gamma": gamma}
-    rows, not_available = (reused_baselines(cfg["reuse_baselines"], protocol_rec) if cfg.get("reuse_baselines")
-                           else []), {}
+    rows, runs = reused_rows(list(cfg.get("reuse") or []), protocol_rec)
+    not_available: dict[str, str] = {}
     for b in cfg.get("baselines", []):
         b = {"name": b} if isinstance(b, str) else dict(b)
         lab = b.get("label", b["name"])
@@ -68,7 +72,6 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path) -> dic
             not_available[lab] = f"{type(err).__name__}: {err}"
     p = cfg.get("ppo") or {}
     by_label = {label(s): s for s in surrogates}
-    runs: dict[str, list[dict]] = {}
     for env_label in p.get("envs", []):
         spec = by_label.get(env_label, {"name": env_label})
         over = {**p.get("base", {}), **protocol, **p.get("per_env", {}).get(env_label, {})}
