@@ -251,3 +251,25 @@ def test_scaled_simulator_drives_the_true_env():
     sim = _default_sim()
     shifted = scaled_simulator(shift=24)
     torch.testing.assert_close(shifted.load_series[:, 24:], sim.load_series[:, :-24], rtol=0.0, atol=0.0)
+
+
+def test_reused_measurements_must_share_states(tmp_path: Path):
+    """Runs or rows taken from an earlier record are refused when it was measured on other states (another
+    threshold / protocol), and are marked with that record's commit when accepted."""
+    from anm_torchrl.experiments.io import write_json
+    from anm_torchrl.experiments.ppo_curves import reused_runs
+    from anm_torchrl.experiments.test_returns import reused_rows
+
+    meta = {"versions": {"git_commit": "abc1234"}}
+    curves = write_json(tmp_path / "ppo_curves.json", {"name": "ppo_curves", "meta": meta, "data": {
+        "threshold": -430.0, "runs": {"none": [{"seed": 0, "curve": []}]}}})
+    assert reused_runs({"from": curves, "envs": ["none"]}, -430.0)["none"][0]["reused_from"]["git_commit"] == "abc1234"
+    with pytest.raises(ValueError, match="differs"):
+        reused_runs({"from": curves, "envs": ["none"]}, -431.0)  # 0.2 % apart: other states
+    protocol = {"test_episodes": 8, "test_seed": 0, "max_steps": 3000, "gamma": 0.995}
+    rec = write_json(tmp_path / "test_returns.json", {"name": "test_returns", "meta": meta, "data": {
+        "protocol": protocol, "rows": [{"policy": "do_nothing", "discounted_return": -800.0}], "runs": {}}})
+    rows, _ = reused_rows([rec], protocol)
+    assert rows[0]["discounted_return"] == -800.0 and rows[0]["reused_from"]["git_commit"] == "abc1234"
+    with pytest.raises(ValueError, match="protocol"):
+        reused_rows([rec], {**protocol, "test_seed": 1})
