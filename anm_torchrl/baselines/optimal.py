@@ -279,3 +279,9 @@ class OptimalPolicy(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         tensordict.set(self.out_keys[0], self.act(tensordict.get(self.in_keys[0])))
         return tensordict
+
+
+if __name__ == "__main__":
+    from anm_torchrl.baselines.gap import main
+
+    main()

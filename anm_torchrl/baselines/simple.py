@@ -76,22 +76,38 @@ class RandomPolicy(TensorDictModuleBase):
         return tensordict
 
 
-BASELINES = ("do_nothing", "random", "mpc_perfect", "mpc_constant")
+BASELINES = ("do_nothing", "random", "mpc_perfect", "mpc_constant", "optimal", "acmpc")
+
+
+def available_baselines() -> tuple[str, ...]:
+    """Names :func:`make_baseline` accepts (the registry's list; do not re-type it)."""
+    return BASELINES
 
 
 def make_baseline(name: str, sim: GridSimulator | None = None, **kw) -> TensorDictModuleBase:
     """Build a baseline by name: ``do_nothing``, ``random`` (kw: ``seed``), ``mpc_perfect`` / ``mpc_constant``
-    (kw: ``horizon``, ``safety_margin``, ``gamma``, ``backend``…, see :class:`MPCPolicy`).
+    (kw: ``horizon``, ``safety_margin``, ``gamma``, ``backend``…, see :class:`MPCPolicy`), ``optimal`` (the
+    perfect-foresight AC optimum, kw: ``horizon`` = episode length, ``warm_start``…, see
+    :class:`~anm_torchrl.baselines.optimal.OptimalPolicy`) and ``acmpc`` (AC-MPC, kw: ``horizon``, ``forecast``…,
+    see :class:`~anm_torchrl.baselines.acmpc.ACMPCPolicy`).
 
     ``sim`` defaults to the ANM6-Easy simulator; with an env, pass ``env.sim``.
     """
-    from anm_torchrl.baselines.mpc import MPCPolicy
-
     if name == "do_nothing":
         return DoNothingPolicy(sim, **kw)
     if name == "random":
         return RandomPolicy(sim=sim, **kw)
+    sim = anm6_easy_simulator() if sim is None else sim
     if name in ("mpc_perfect", "mpc_constant"):
-        sim = anm6_easy_simulator() if sim is None else sim
+        from anm_torchrl.baselines.mpc import MPCPolicy
+
         return MPCPolicy(sim, forecast=name.split("_")[1], **kw)
+    if name == "optimal":
+        from anm_torchrl.baselines.optimal import OptimalPolicy
+
+        return OptimalPolicy(sim, **kw)
+    if name == "acmpc":
+        from anm_torchrl.baselines.acmpc import ACMPCPolicy
+
+        return ACMPCPolicy(sim, **kw)
     raise ValueError(f"unknown baseline {name!r}; expected one of {BASELINES}")
