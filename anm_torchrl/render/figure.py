@@ -218,7 +218,9 @@ def _time_series(axes: list[Axes], ep: Episode, tb: NetworkTables) -> None:
     _envelope(ax, x, load, [f"branch {f}-{t}" for f, t in zip(tb.f_bus, tb.t_bus)], "loading")
     ax.axhline(100, color="red", lw=1, ls="--")
     ax.set_ylabel("% of rating")
-    ax.set_title("branch loading |S| / rating")
+    rated = np.isfinite(tb.rate_mva)
+    ax.set_title("branch loading |S| / rating" + ("" if rated.all() else f" ({int(rated.sum())} of "
+                                                  f"{rated.size} branches rated)"))
 
     ax = axes[6]
     e_loss, pen = ep.e_loss.copy(), ep.penalty.copy()

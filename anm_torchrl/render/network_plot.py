@@ -50,7 +50,7 @@ class NetworkArtist:
 
     Buses are coloured by |V| against their limits (a thick black ring outside them), branches by |S| / rating
     (thicker above 100 %, grey when unrated); the marker of a bus is its most notable device (:data:`MARKERS`).
-    Bus ids, |V| and loadings are written on networks of at most 40 buses (``labels``).
+    Bus ids and loadings are written on networks of at most 40 buses (``labels``), |V| too up to 12 buses.
     """
 
     def __init__(self, ax: Axes, tables: NetworkTables, pos: np.ndarray, labels: bool | None = None):
@@ -60,14 +60,16 @@ class NetworkArtist:
         self.lines = LineCollection(np.stack([pos[tables.f_bus], pos[tables.t_bus]], 1), cmap=cmap,
                                     norm=loading_norm(), zorder=1)
         ax.add_collection(self.lines)
-        size = 260 if tables.n_bus <= 40 else max(20, 4000 / tables.n_bus)
+        size = 260 if tables.n_bus <= 12 else 110 if tables.n_bus <= 40 else max(15, 4000 / tables.n_bus)
+        self.values = tables.n_bus <= 12  # room to print |V| under each bus
         kind = tables.bus_kind()
         self.groups = [(np.flatnonzero(kind == k), m) for k, (m, _) in MARKERS.items() if (kind == k).any()]
         self.buses = [ax.scatter(pos[idx, 0], pos[idx, 1], c=np.ones(idx.size), cmap=V_CMAP,
                                  norm=voltage_norm(tables), s=size, marker=m, zorder=2) for idx, m in self.groups]
         self.bus_text, self.branch_text = [], []
         if self.labels:
-            self.bus_text = [ax.annotate("", pos[b], xytext=(0, -18), textcoords="offset points", ha="center",
+            offset = -18 if self.values else -10
+            self.bus_text = [ax.annotate("", pos[b], xytext=(0, offset), textcoords="offset points", ha="center",
                                          va="top", fontsize=7, zorder=3) for b in range(tables.n_bus)]
             self.branch_text = [ax.annotate("", (pos[f] + pos[t]) / 2, xytext=(0, 6), textcoords="offset points",
                                             ha="center", fontsize=7, color="0.2", zorder=3)
@@ -90,7 +92,7 @@ class NetworkArtist:
             sc.set_edgecolors(np.where(bad_v[idx], "black", "0.35"))
             sc.set_linewidths(np.where(bad_v[idx], 3.0, 0.8))
         for b, txt in enumerate(self.bus_text):
-            txt.set_text(f"{b}\n{v_magn[b]:.3f}")
+            txt.set_text(f"{b}\n{v_magn[b]:.3f}" if self.values else str(b))
         for j, txt in enumerate(self.branch_text):
             txt.set_text(f"{loading[j]:.0f}%" if np.isfinite(loading[j]) else "")
         self.ax.set_title(title, fontsize=10)
