@@ -123,6 +123,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--rows", default=",".join(DEFAULT_ROWS), help="comma-separated rows (default: all)")
     ap.add_argument("--stability", type=int, default=0,
                     help="re-solve the optimum of this many first states from every warm start (default 0)")
+    ap.add_argument("--merge", nargs="*", default=[],
+                    help="records of the same protocol (e.g. rows measured in parallel runs) whose rows are merged "
+                         "into --out")
     ap.add_argument("--out", required=True, help="JSON record (rows of an existing record are kept)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
@@ -140,7 +143,15 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(f"{out} holds protocol {rec.get('protocol')}, this run {protocol}: use another --out")
     rec.setdefault("rows", {})
     rec["protocol"] = protocol
-    for name in [r for r in args.rows.split(",") if r]:
+    for path in args.merge:
+        other = json.loads(Path(path).read_text())
+        if other.get("protocol") != protocol:
+            raise SystemExit(f"--merge: {path} holds protocol {other.get('protocol')}, this run {protocol}")
+        rec["rows"].update(other["rows"])
+        if "stability" in other:
+            rec["stability"] = other["stability"]
+        rec.setdefault("commands", []).extend(other.get("commands", []))
+    for name in [r for r in args.rows.split(",") if r and not args.merge]:
         log.info("row %s ...", name)
         rec["rows"][name] = {**evaluate_row(name, sim, states, args.steps), "machine": _machine()}
         log.info("row %s: %s", name, rec["rows"][name]["discounted_return"])
