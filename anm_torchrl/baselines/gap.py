@@ -101,6 +101,24 @@ def stability(sim, states: torch.Tensor, steps: int, n: int, seed: int) -> list[
     return out
 
 
+def compare_formulations(sim, state: torch.Tensor, steps: int) -> dict:
+    """Polar vs rectangular voltages: the optimum of one state over ``steps`` (build, iterations, CPU and wall s)."""
+    from anm_torchrl.baselines.nlp_model import ACHorizonNLP
+    from anm_torchrl.baselines.optimal import solve_optimal
+
+    out = {"steps": steps}
+    for form in ("polar", "rectangular"):
+        c0, t0 = time.process_time(), time.perf_counter()
+        nlp = ACHorizonNLP(sim, steps, GAMMA, form)
+        build = time.perf_counter() - t0
+        r = solve_optimal(sim, state.numpy(), steps, GAMMA, warm_start="do_nothing", nlp=nlp)
+        out[form] = {"discounted_return": r.discounted_return, "build_s": build,
+                     "iterations": [x["iterations"] for x in r.rounds],
+                     "solve_s": [x["solve_time_s"] for x in r.rounds], "cpu_s": time.process_time() - c0,
+                     "wall_s": time.perf_counter() - t0, "load_avg_1min": os.getloadavg()[0]}
+    return out
+
+
 def table(rows: dict) -> list[dict]:
     """Mean return and loss as % of the optimum's per row (empty percentages without an ``optimal`` row)."""
     opt = np.asarray(rows["optimal"]["discounted_return"]) if "optimal" in rows else None
@@ -123,6 +141,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--rows", default=",".join(DEFAULT_ROWS), help="comma-separated rows (default: all)")
     ap.add_argument("--stability", type=int, default=0,
                     help="re-solve the optimum of this many first states from every warm start (default 0)")
+    ap.add_argument("--formulations", type=int, default=0,
+                    help="time polar vs rectangular voltages on the first state over this many steps (default 0: no)")
     ap.add_argument("--merge", nargs="*", default=[],
                     help="records of the same protocol (e.g. rows measured in parallel runs) whose rows are merged "
                          "into --out")
@@ -148,14 +168,15 @@ def main(argv: list[str] | None = None) -> dict:
         if other.get("protocol") != protocol:
             raise SystemExit(f"--merge: {path} holds protocol {other.get('protocol')}, this run {protocol}")
         rec["rows"].update(other["rows"])
-        if "stability" in other:
-            rec["stability"] = other["stability"]
+        rec.update({k: other[k] for k in ("stability", "formulations") if k in other})
         rec.setdefault("commands", []).extend(other.get("commands", []))
     for name in [r for r in args.rows.split(",") if r and not args.merge]:
         log.info("row %s ...", name)
         rec["rows"][name] = {**evaluate_row(name, sim, states, args.steps), "machine": _machine()}
         log.info("row %s: %s", name, rec["rows"][name]["discounted_return"])
         _write(out, rec)
+    if args.formulations:
+        rec["formulations"] = {**compare_formulations(sim, states[0], args.formulations), "machine": _machine()}
     if args.stability:
         rec["stability"] = {"episodes": stability(sim, states, args.steps, args.stability, args.seed),
                             "machine": _machine()}
