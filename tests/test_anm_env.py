@@ -306,3 +306,39 @@ def test_set_state_validation_and_nonconverging_state_is_terminal():
     collapse[0, 9 + 5] = -1e4  # -10 GVAr at a generator: no power-flow solution
     out = env.reset(TensorDict({"state": collapse}, [2]), set_state=True)
     assert out["terminated"].squeeze(1).tolist() == [True, False]
+
+
+def test_grid_state_round_trip_and_names():
+    from anm_torchrl.grid.state import from_vector, to_vector
+
+    env = make_env(3, observation="state")
+    s = env.reset()["state"]
+    gs = from_vector(s, env.sim.state_sizes)
+    assert gs["dev_p"].shape == (3, 9) and gs["des_soc"].shape == (3, 2) and gs["gen_p_max"].shape == (3, 3)
+    assert torch.equal(gs["aux"].squeeze(1), s[:, 23]) and torch.equal(to_vector(gs), s)
+    with pytest.raises(ValueError, match=r"shape \(N, 24\)"):
+        from_vector(s[:, :20], env.sim.state_sizes)
+
+
+def test_surrogate_env_on_this_network_checks_the_content_key():
+    from tensordict.nn import TensorDictModule
+
+    from anm_torchrl.envs import SurrogateEnv
+
+    class Persist(torch.nn.Module):  # next state = state, reward 0, never terminal
+        def forward(self, state, action):
+            return state, torch.zeros(state.shape[0], 1), torch.zeros(state.shape[0], 1, dtype=torch.bool)
+
+    model = TensorDictModule(Persist(), ["state", "action"], ["next_state", "reward", "terminated"])
+    kw = dict(network=NETWORK, load_p=LOAD_P, gen_p_max=GEN_P_MAX, **KW)
+    env = SurrogateEnv(model, num_envs=2, seed=0, observation="state", **kw)
+    check_env_specs(env)
+    assert env.network_key == make_env(1).network_key  # the content key ignores the observation choice
+    model.network_key = env.network_key
+    SurrogateEnv(model, num_envs=2, **kw)
+    other = dict(kw, load_p=LOAD_P * 0.5)
+    with pytest.raises(ValueError, match="built for another network"):
+        SurrogateEnv(model, num_envs=2, **other)
+    with pytest.raises(ValueError, match="observation must come from the state alone"):
+        SurrogateEnv(TensorDictModule(Persist(), ["state", "action"], ["next_state", "reward", "terminated"]),
+                     num_envs=2, observation=OBSERVATION, **kw)

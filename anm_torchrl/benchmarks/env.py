@@ -1,10 +1,14 @@
-"""Transitions per second of ``ANM6Env`` and ``GridSimulator.step`` against batch size, and of gym-anm.
+"""Transitions per second of the true simulator against batch size (and network size), and of gym-anm.
 
 Usage::
 
     python -m anm_torchrl.benchmarks.env [--batch-sizes 1,16,256,1024,4096,16384] [--gym-steps 200]
                                          [--min-time 2.0] [--device cpu] [--threads 1] [--no-gym]
                                          [--backends auto|numba|torch|numba,torch]
+    python -m anm_torchrl.benchmarks.env --network <name|all> [...]   # any network: see env_networks.py
+    python -m anm_torchrl.benchmarks.env --solver-sweep [...]          # dense vs band LU crossover
+
+Without ``--network``: the ANM6-Easy table below.
 
 Prints one markdown table. Every row separates the warm-up (construction, first reset and first step, where
 lazy initialisation happens) from the steady state (further steps, timed until ``--min-time`` seconds and at
@@ -149,6 +153,18 @@ def markdown_table(rows: list[dict], gym_rate: float | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> str:
+    """ANM6-Easy table, or the network / solver-sweep tables of :mod:`anm_torchrl.benchmarks.env_networks`."""
+    import sys
+
+    argv = sys.argv[1:] if argv is None else argv
+    if any(a.startswith(("--network", "--solver-sweep")) for a in argv):
+        from anm_torchrl.benchmarks.env_networks import main as networks_main
+
+        return networks_main(argv)
+    return anm6_main(argv)
+
+
+def anm6_main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description="ANM6Env / GridSimulator throughput vs gym-anm")
     parser.add_argument("--batch-sizes", default=",".join(map(str, DEFAULT_BATCH_SIZES)),
                         help="comma-separated batch sizes")

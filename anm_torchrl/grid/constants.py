@@ -85,7 +85,7 @@ def _npy(x: torch.Tensor) -> np.ndarray:
 
 # Buses from which the banded solve (RCM ordering) replaces the dense LU; measured crossover, see
 # results/bench_env_networks.md (``python -m anm_torchrl.benchmarks.env --solver-sweep``).
-BANDED_MIN_BUS = 16
+BANDED_MIN_BUS = 7
 
 
 def jacobian_ordering(y_bus: np.ndarray, solver: str = "auto") -> tuple[np.ndarray, int, int]:

@@ -1,9 +1,11 @@
 """The transition of :class:`~anm_torchrl.grid.simulator.GridSimulator` as one compiled CPU loop (numba).
 
 The torch implementation spends its time in dispatch and in memory traffic: at batch 16,384 every one of
-its ~400 small ops streams (N, 10, 10) tensors through memory. Here each env runs the same maths start to end
-in registers and L1 — edge-clamp projections, SoC update, Newton–Raphson with a 10×10 LU, slack, branch flows,
-reward. With ``torch.get_num_threads() > 1`` and a large batch, the batch is split into that many slices run
+its ~400 small ops streams (N, 2n-2, 2n-2) tensors through memory. Here each env runs the same maths start to
+end in registers and cache — edge-clamp projections, SoC update, Newton–Raphson, slack, branch flows, reward —
+on any network, whose tables arrive as one :class:`~anm_torchrl.grid.constants.TransitionConstants`. The
+Newton step is a dense LU on small networks and a band LU after an RCM ordering on larger ones
+(:func:`~anm_torchrl.grid.constants.jacobian_ordering`; O(n·kl²) instead of O(n³)). With ``torch.get_num_threads() > 1`` and a large batch, the batch is split into that many slices run
 by Python threads (the kernel releases the GIL). Not numba's ``parallel=True``: its OpenMP layer resets torch's
 thread count and its own pool hangs a process forked after first use (TorchRL's multi-process collectors);
 the pool here is per process. Same algorithms, same stopping rule and order of operations as the torch code,
