@@ -80,6 +80,8 @@ def tensors_sha256(tensors: Mapping[str, torch.Tensor], header: Mapping[str, Any
 
 # ---------------------------------------------------------------------------------------- temporary names
 _HOST = socket.gethostname().replace("-", "_") or "host"
+_UMASK = os.umask(0)  # read once at import (os.umask can only be read by setting it) ...
+os.umask(_UMASK)  # ... and restored at once
 
 
 def _tmp_name(path: Path, tag: str) -> Path:
@@ -155,6 +157,7 @@ def atomic_write(path: str | os.PathLike, data: bytes | Callable[[Path], Any]) -
                 f.write(data)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_UMASK)  # the usual mode: some writers (safetensors) create files 0600
         os.replace(tmp, path)
     except BaseException:
         _remove(tmp)

@@ -38,6 +38,9 @@ def test_tensors_round_trip(tmp_path):
     f = A.save_tensors(tmp_path / "m.safetensors", _tensors(), {"arch": [3, 4], "note": "x"}, KIND)
     got, meta = A.load_tensors(f, KIND)
     assert meta == {"arch": [3, 4], "note": "x"}
+    umask = os.umask(0)
+    os.umask(umask)
+    assert f.stat().st_mode & 0o777 == 0o666 & ~umask  # safetensors alone would create it 0600
     for k, v in _tensors().items():
         assert torch.equal(got[k], v) and got[k].dtype == v.dtype
 
