@@ -180,3 +180,19 @@ def test_sb3_ppo_learns_on_the_batched_env():
     # after 16k frames, improving monotonically with more. An update that did not follow the advantage would
     # move the policy at random and is as likely to lose reward as to gain it; 1 % of the loss is the margin.
     assert after > before + 0.01 * abs(before), (before, after)
+
+
+def test_float32_rounding_keeps_actions_on_the_bound_inside_the_box():
+    from gymnasium import spaces
+
+    from anm_torchrl.gym.batch import NumpyBatch
+
+    batch = NumpyBatch(ANM6Env(2, seed=0))
+    low, high = np.zeros(6), np.array([0.754, 1.1, 1.071, 0.4524, 0.66, 0.6426])  # case33bw-like bounds (MW)
+    batch.action_space = spaces.Box(low, high, dtype=np.float64)
+    assert (high.astype(np.float32) > high).any()  # the plain cast would leave the box
+    a32 = batch._to_float32(np.stack([high, low]))
+    assert a32.dtype == np.float32 and (a32 <= high).all() and (a32 >= low).all()
+    assert np.abs(a32[0] - high).max() < 1e-7  # one float32 step at most
+    with pytest.raises(ValueError, match=r"outside the box at \(env, entry\) \[\(1, 0\)\]"):
+        batch._to_float32(np.stack([high, low - np.r_[1e-9, np.zeros(5)]]))

@@ -103,13 +103,35 @@ class NumpyBatch:
         if action.shape != expected:
             raise ValueError(f"action must have shape {expected}, got {action.shape}")
         td = TensorDict({"state": self._state,
-                         "action": torch.as_tensor(action, dtype=torch.float32, device=self.env.device)},
+                         "action": torch.as_tensor(self._to_float32(action), device=self.env.device)},
                         self.env.batch_size, device=self.env.device)
         nxt = self.env.step(td).get("next")
         self._state = nxt.get("state")
         reward = nxt.get("reward").squeeze(-1).to(torch.float64).cpu().numpy()
         terminated = nxt.get("terminated").squeeze(-1).cpu().numpy()
         return self.observe(self._state), reward, terminated
+
+    def _to_float32(self, action: np.ndarray) -> np.ndarray:
+        """The env's float32 actions: a float64 action inside the box stays inside it after rounding.
+
+        Rounding to float32 can move a bound (e.g. 0.754 MW) one float32 step outside the box, which the env
+        would reject; such entries are moved one step back in. Actions outside the float64 box raise (unless
+        the env clips), as they would in gym-anm.
+        """
+        low, high = self.action_space.low, self.action_space.high
+        if getattr(self.env, "action_mode", "raise") == "raise" and np.isfinite(action).all():
+            out = (action < low) | (action > high)
+            if out.any():
+                envs, entries = np.nonzero(out)
+                pairs = list(zip(envs.tolist(), entries.tolist()))[:5]
+                raise ValueError(f"action outside the box at (env, entry) {pairs}; values "
+                                 f"{action[envs[:5], entries[:5]].tolist()}; box low {low.tolist()} high "
+                                 f"{high.tolist()} (MW/MVAr)")
+        a32 = action.astype(np.float32)
+        up, down = a32 > high, a32 < low
+        a32[up] = np.nextafter(a32[up], np.float32(-np.inf))
+        a32[down] = np.nextafter(a32[down], np.float32(np.inf))
+        return a32
 
     def _check_mask(self, mask: np.ndarray) -> np.ndarray:
         mask = np.asarray(mask)
