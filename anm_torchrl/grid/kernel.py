@@ -106,16 +106,19 @@ def _project(tx, ty, h_raw, c, poly, h):
 
 # ---------------------------------------------------------------------------------------- power flow
 @_njit(inline="always")
-def _injection(vm, va, y, s, v):
-    """V (into ``v``) and S = V ⊙ conj(Y V) (into ``s``), both (n,), for magnitudes/angles (n,)."""
+def _injection(vm, va, ycsr, s, v):
+    """V (into ``v``) and S = V ⊙ conj(Y V) (into ``s``), both (n,), for magnitudes/angles (n,).
+
+    ``ycsr`` = (row pointers, column indices ascending, values) of Y's non-zeros: the same sum in the same order
+    as a dense row loop that skips exact zeros, in O(nnz)."""
+    ptr, col, val = ycsr
     n = vm.shape[0]
     for i in range(n):
         v[i] = complex(vm[i] * math.cos(va[i]), vm[i] * math.sin(va[i]))
     for i in range(n):
         acc = 0j
-        for k in range(n):
-            if y[i, k] != 0:  # distribution grids are sparse; adding exact zeros would change nothing
-                acc += y[i, k] * v[k]
+        for e in range(ptr[i], ptr[i + 1]):
+            acc += val[e] * v[col[e]]
         s[i] = v[i] * acc.conjugate()
 
 
@@ -183,19 +186,25 @@ def _lu_solve(a, piv, b, kl, ku):
 
 
 @_njit(inline="always")
-def _jacobian(y, v, vm, s, jac, ix):
+def _jacobian(ycsr, v, vm, s, jac, ix, kl, ku):
     """Polar Jacobian (2n-2, 2n-2) into ``jac``, as :func:`anm_torchrl.grid.powerflow._jacobian`, with variable /
-    equation ``j`` at row / column ``ix[j]`` (an ordering that makes it banded for large feeders)."""
+    equation ``j`` at row / column ``ix[j]`` (an ordering that makes it banded for large feeders). Only the band
+    the LU reads (columns r - kl .. r + kl + ku of row r) is cleared, then Y's non-zeros are written."""
+    ptr, col, val = ycsr
     k = v.shape[0] - 1
+    nv = 2 * k
+    for r in range(nv):
+        for q in range(max(0, r - kl), min(nv - 1, r + kl + ku) + 1):
+            jac[r, q] = 0.0
     for i in range(k):
         vi = v[i + 1]
         ri, rk = ix[i], ix[k + i]
-        for q in range(k):
-            cq, ck = ix[q], ix[k + q]
-            if y[i + 1, q + 1] == 0:  # A_iq = 0 exactly
-                jac[ri, cq], jac[rk, cq], jac[ri, ck], jac[rk, ck] = 0.0, 0.0, 0.0, 0.0
+        for e in range(ptr[i + 1], ptr[i + 2]):
+            q = col[e] - 1
+            if q < 0:  # the slack bus column
                 continue
-            a = vi * (y[i + 1, q + 1] * v[q + 1]).conjugate()  # A_iq = V_i conj(Y_iq V_q)
+            cq, ck = ix[q], ix[k + q]
+            a = vi * (val[e] * v[q + 1]).conjugate()  # A_iq = V_i conj(Y_iq V_q)
             b = a / vm[q + 1]
             jac[ri, cq], jac[rk, cq] = a.imag, -a.real
             jac[ri, ck], jac[rk, ck] = b.real, b.imag
@@ -207,20 +216,20 @@ def _jacobian(y, v, vm, s, jac, ix):
 
 
 @_njit()
-def _flat_start_lu(y, ix, kl, ku):
+def _flat_start_lu(ycsr, ix, kl, ku):
     """LU factors of the Jacobian at the flat start (the same for every env): (lu, piv, non-singular)."""
-    n = y.shape[0]
+    n = ycsr[0].shape[0] - 1
     vm, va = np.ones(n), np.zeros(n)
     s, v = np.empty(n, dtype=np.complex128), np.empty(n, dtype=np.complex128)
-    _injection(vm, va, y, s, v)
+    _injection(vm, va, ycsr, s, v)
     lu, piv = np.zeros((2 * n - 2, 2 * n - 2)), np.empty(2 * n - 2, dtype=np.int64)
-    _jacobian(y, v, vm, s, lu, ix)
+    _jacobian(ycsr, v, vm, s, lu, ix, kl, ku)
     ok = _lu_factor(lu, piv, kl, ku)
     return lu, piv, ok
 
 
 @_njit(inline="always")
-def _newton_raphson(y, lu0, piv0, ok0, ix, kl, ku, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv):
+def _newton_raphson(ycsr, lu0, piv0, ok0, ix, kl, ku, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv):
     """Flat-start NR (spec §4.1) for one env; fills vm, va, s, v (n,) (``f``, ``jac``, ``piv``: scratch).
 
     The first iteration reuses the flat-start factors ``lu0``, ``piv0`` (``ok0`` False: singular). A singular
@@ -230,7 +239,7 @@ def _newton_raphson(y, lu0, piv0, ok0, ix, kl, ku, s_bus, tol, max_iter, vm, va,
     k = n - 1
     for i in range(n):
         vm[i], va[i] = 1.0, 0.0
-    _injection(vm, va, y, s, v)
+    _injection(vm, va, ycsr, s, v)
     diff = _mismatch_inf(s, s_bus, f, ix)
     it = 0
     while diff > tol and it < max_iter:
@@ -238,7 +247,7 @@ def _newton_raphson(y, lu0, piv0, ok0, ix, kl, ku, s_bus, tol, max_iter, vm, va,
         if it == 1:
             lu, pv, ok = lu0, piv0, ok0
         else:
-            _jacobian(y, v, vm, s, jac, ix)
+            _jacobian(ycsr, v, vm, s, jac, ix, kl, ku)
             lu, pv, ok = jac, piv, _lu_factor(jac, piv, kl, ku)
         if ok:
             _lu_solve(lu, pv, f, kl, ku)
@@ -247,7 +256,7 @@ def _newton_raphson(y, lu0, piv0, ok0, ix, kl, ku, s_bus, tol, max_iter, vm, va,
         for i in range(k):
             va[i + 1] -= f[ix[i]]
             vm[i + 1] -= f[ix[k + i]]
-        _injection(vm, va, y, s, v)
+        _injection(vm, va, ycsr, s, v)
         diff = _mismatch_inf(s, s_bus, f, ix)
     return it, diff
 
@@ -258,7 +267,7 @@ def _env_steps(c, soc, p_load, p_pot_raw, setpoints, out, scratch):
     """The loop of :func:`_transition` over the envs, with its scratch arrays passed in (measured ~8 % faster
     than allocating them in the same function). ``c`` is a :class:`TransitionConstants`, unpacked here once."""
     (dev, lid, gid, did, renewable, slack, dev_bus, counted, gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row,
-     des_soc_rows, y, lu0, piv0, ok0, ix, kl, ku, f_bus, t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max,
+     des_soc_rows, y, ycsr, lu0, piv0, ok0, ix, kl, ku, f_bus, t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max,
      delta_t, lamb, c0, c1, term_reward, tol, max_iter) = c
     p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward = out
     hp, h_gen, h_des, s_bus, s, vm, va, f, jac, piv = scratch
@@ -295,7 +304,7 @@ def _env_steps(c, soc, p_load, p_pot_raw, setpoints, out, scratch):
         s_bus[:] = 0.0
         for r in range(pd.shape[0]):
             s_bus[dev_bus[r]] += complex(pd[r], qd[r])
-        it, diff = _newton_raphson(y, lu0, piv0, ok0, ix, kl, ku, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv)
+        it, diff = _newton_raphson(ycsr, lu0, piv0, ok0, ix, kl, ku, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv)
         ok = diff == diff and diff <= tol
         converged[e], n_iter[e] = ok, it
         # 5. slack injection (+inf when NaN) and branch flows
