@@ -54,17 +54,13 @@ def _timed(first: Callable[[], None], step: Callable[[], None], min_time: float,
             return warm, elapsed, n
 
 
-def bench_gym_anm(n_steps: int, seed: int = 0) -> dict:
-    """gym-anm single-env steps/s (``n_steps`` steady-state steps after reset + 1 warm-up step)."""
-    import warnings
-
-    from gym_anm.envs import ANM6Easy
-
-    warnings.filterwarnings("ignore", module="gym_anm")
+def time_gym_steps(make: Callable[[], object], n_steps: int, seed: int = 0) -> tuple[float, float]:
+    """Warm-up seconds (construction + seeded reset + first step) and steady-state steps/s over ``n_steps``
+    ``action_space.sample()`` steps of the gym-anm env ``make()`` builds (reset on termination)."""
     box = {}
 
     def first():
-        env = ANM6Easy()
+        env = make()
         env.reset(seed=seed)
         env.action_space.seed(seed)
         env.step(env.action_space.sample())
@@ -73,12 +69,22 @@ def bench_gym_anm(n_steps: int, seed: int = 0) -> dict:
     def run():
         env = box["env"]
         for _ in range(n_steps):
-            _, _, term, _, _ = env.step(env.action_space.sample())
-            if term:
+            if env.step(env.action_space.sample())[2]:
                 env.reset()
 
     warm, elapsed, _ = _timed(first, run, 0.0, 1)
-    return {"impl": "gym-anm 2.0.1 (`ANM6Easy.step`)", "batch": 1, "warm": warm, "rate": n_steps / elapsed}
+    return warm, n_steps / elapsed
+
+
+def bench_gym_anm(n_steps: int, seed: int = 0) -> dict:
+    """gym-anm single-env steps/s (``n_steps`` steady-state steps after reset + 1 warm-up step)."""
+    import warnings
+
+    from gym_anm.envs import ANM6Easy
+
+    warnings.filterwarnings("ignore", module="gym_anm")
+    warm, rate = time_gym_steps(ANM6Easy, n_steps, seed)
+    return {"impl": "gym-anm 2.0.1 (`ANM6Easy.step`)", "batch": 1, "warm": warm, "rate": rate}
 
 
 def time_env_steps(make: Callable[[], object], min_time: float, min_steps: int, seed: int = 0

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from anm_torchrl.benchmarks.env import _timed, time_env_steps
+from anm_torchrl.benchmarks.env import _timed, time_env_steps, time_gym_steps
 
 log = logging.getLogger(__name__)
 N_ = np.nan
@@ -134,25 +134,10 @@ def bench_gym_generic(case: dict, n_steps: int, seed: int = 0) -> dict:
             t = (int(round(s_t[-1])) + 1) % T
             return np.concatenate([load_p[t], gen_p_max[t], [t]])
 
-    box = {}
-
-    def first():
-        env = Generic()
-        env.reset(seed=seed)
-        env.action_space.seed(seed)
-        env.step(env.action_space.sample())
-        box["env"] = env
-
-    def run():
-        env = box["env"]
-        for _ in range(n_steps):
-            if env.step(env.action_space.sample())[2]:
-                env.reset()
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        warm, elapsed, _ = _timed(first, run, 0.0, 1)
-    return {"impl": "gym-anm 2.0.1 generic `ANMEnv`", "batch": 1, "warm": warm, "rate": n_steps / elapsed}
+        warm, rate = time_gym_steps(Generic, n_steps, seed)
+    return {"impl": "gym-anm 2.0.1 generic `ANMEnv`", "batch": 1, "warm": warm, "rate": rate}
 
 
 def _pandapower_net(case: dict):

@@ -84,9 +84,10 @@ def _npy(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().cpu().numpy())
 
 
-# Buses from which the banded solve (RCM ordering) replaces the dense LU; measured crossover, see
-# results/bench_env_networks.md (``python -m anm_torchrl.benchmarks.env --solver-sweep``).
-BANDED_MIN_BUS = 7
+# Buses from which the banded solve (RCM ordering) replaces the dense LU: the measured crossover lies between 10
+# buses (band 0.81x dense) and 16 (1.60x); 33 buses 2.4x, 120 buses 10x (results/bench_env_solver.md, made by
+# ``python -m anm_torchrl.benchmarks.env --solver-sweep --out results/bench_env_solver``).
+BANDED_MIN_BUS = 13
 
 
 def jacobian_ordering(y_bus: np.ndarray, solver: str = "auto") -> tuple[np.ndarray, int, int]:
