@@ -1,0 +1,350 @@
+"""pandapower net -> gym-anm network dict and profiles; re-runs a registered import from the command line.
+
+Re-make a committed case (needs the ``feeders`` extra: pandapower, simbench)::
+
+    python -m anm_torchrl.networks.pandapower_import --name case33bw   # or cigre_mv, simbench_mv_semiurb, all
+
+What gym-anm can represent, and the defaults used where pandapower has no value (:class:`ImportDefaults`):
+
+* **Topology** through pandapower's own ``pd2ppc`` (``to_ppc``): closed bus-bus switches fuse buses, tap
+  positions become ratios, transformers become pi branches with the tap on the high-voltage (from) side —
+  gym-anm's TAP/SHIFT (SHIFT taken modulo 360°, gym-anm wants [0, 360]). Phase shifts that close no loop
+  are set to 0 (they only rotate the angles behind them; gym-anm's flat-start Newton–Raphson fails behind a
+  150° shift); so bus angles are pandapower's minus the shifts upstream. Lines and transformers behind an
+  open switch, and every out-of-service element, are dropped; isolated buses are dropped.
+* **Unsupported physics is refused or removed, and the removal is applied to the pandapower net the checks
+  run on** (:func:`prepare`): gym-anm branches have no shunt conductance and B >= 0, so transformer
+  magnetising currents (``i0_percent``, ``pfe_kw``) and line conductance ``g_us_per_km`` are set to 0; bus
+  shunts, wards, impedances, DC lines, 3-winding transformers and voltage-dependent loads raise ``ValueError``.
+* **Parallel branches** (gym-anm forbids them) are merged into one pi branch (admittances and charging add,
+  ratings add); parallel branches with different taps raise.
+* **Slack**: the in-service ``ext_grid`` bus becomes bus 0 (gym-anm's power flow fixes V = 1∠0 at bus 0; other
+  buses keep pandapower's order). Its set-point ``vm_pu∠va`` is folded exactly into the branches at bus 0
+  (TAP / vm_pu, SHIFT − va; lines at bus 0 are oriented away from it), and the slack bus's BASE_KV is
+  ``vn_kv · vm_pu`` so kV observations stay true. Slack VMIN = VMAX = 1 (no penalty on a fixed voltage).
+* **Buses**: VMIN/VMAX from ``min_vm_pu``/``max_vm_pu``, else ``ImportDefaults.vmin/vmax`` (0.9/1.1, EN 50160).
+* **Loads** (DEV_TYPE −1): Q/P = q_mvar / p_mw of the nominal load (0 when p_mw = 0), PMAX 0, PMIN = −(peak of
+  its profile and nominal P).
+* **Static generators**: renewable (DEV_TYPE 2) when ``type`` names PV, wind, hydro or aggregated LV RES,
+  else classical (1, e.g. CHP, fuel cell, biomass). Rating S = max(p_mw·scaling, sn_mva). Renewables get an
+  inverter polygon (QMAX = −QMIN = 0.6 S, corners P+ = 0.8 S, Q+ = Q− = 0: a linearised S circle through
+  (0.8, ±0.6) and (1, 0)); classical ones Q within ±0.62·PMAX (power factor 0.85), no corners.
+* **Storage** (3): PMAX = −min_p_mw, PMIN = −max_p_mw (pandapower counts charging positive), the same
+  inverter polygon on both sides, SOC_MAX = max_e_mwh or 4 h × PMAX, SOC_MIN = min_e_mwh or 0, EFF 0.95.
+* **Branch RATE**: lines max_i_ka·df·parallel·√3·vn_kv, transformers sn_mva·df·parallel (MVA); ratings above
+  10⁴ MVA (pandapower's "unlimited" 99999 kA) become NaN = no limit.
+* The slack device's P/Q bounds are ext_grid's min/max if given, else ±2× the installed load and generation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import logging
+import re
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import pandas as pd
+
+logger = logging.getLogger(__name__)
+
+RENEWABLE_TYPE = re.compile(r"(^|[^a-z])(pv|wp|res)([^a-z]|$)|wind|hydro|solar", re.IGNORECASE)
+UNSUPPORTED = ("shunt", "ward", "xward", "impedance", "dcline", "trafo3w", "svc", "tcsc", "ssc", "vsc",
+               "asymmetric_load", "asymmetric_sgen", "motor")
+NAN = float("nan")
+
+
+@dataclass(frozen=True)
+class ImportDefaults:
+    """Values used where pandapower has none (units: p.u. of voltage, fractions of rating S, hours)."""
+
+    vmin: float = 0.9
+    vmax: float = 1.1
+    inverter_q: float = 0.6  # QMAX = -QMIN = 0.6 S
+    inverter_corner_p: float = 0.8  # P+ = 0.8 S (and P- = -0.8 S for storage); Q+ = Q- = 0 at |P| = S
+    classical_q: float = 0.62  # |Q| <= 0.62 PMAX: power factor 0.85
+    storage_hours: float = 4.0  # SOC_MAX = 4 h x PMAX when max_e_mwh is not given
+    storage_eff: float = 0.95  # one-way (dis)charging efficiency (~0.90 round trip)
+    slack_margin: float = 2.0  # slack |P|, |Q| <= 2 x (installed load + generation) when ext_grid has no limits
+    unlimited_mva: float = 1e4  # ratings above this are "no limit" (NaN)
+
+
+@dataclass
+class ImportResult:
+    """A converted net: the gym-anm tables, the element of every device, and the bus map."""
+
+    network: dict
+    load_idx: list  # pandapower load index of each load device, device-ID order
+    gen_elements: list  # ("sgen" | "gen", index, renewable: bool) of each non-slack generator, ID order
+    storage_idx: list
+    bus_map: dict  # pandapower bus index -> gym-anm bus id (fused buses share an id)
+
+
+def prepare(net):
+    """A copy of ``net`` reduced to what gym-anm can represent (see module docstring); raises on the rest."""
+    net = copy.deepcopy(net)
+    for table in UNSUPPORTED:
+        if table in net and len(net[table]) and net[table]["in_service"].any():
+            raise ValueError(f"pandapower table {table!r} has in-service elements; gym-anm has no model for them")
+    const = [c for c in net.load.columns if c.startswith("const_")]
+    bad = net.load.index[(net.load[const].fillna(0).abs() > 0).any(axis=1) & net.load.in_service]
+    if len(bad):
+        raise ValueError(f"pandapower loads {list(bad)} are voltage dependent ({const}); gym-anm loads are "
+                         "constant power")
+    sw = net.switch[~net.switch.closed.astype(bool)]
+    net.line.loc[sw.element[sw.et == "l"].unique(), "in_service"] = False
+    net.trafo.loc[sw.element[sw.et == "t"].unique(), "in_service"] = False
+    net.switch = net.switch[net.switch.closed.astype(bool) | (net.switch.et == "b")]
+    net.trafo["i0_percent"] = 0.0
+    net.trafo["pfe_kw"] = 0.0
+    net.line["g_us_per_km"] = 0.0
+    return net
+
+
+def _ratings(net, ppc, lookup, defaults: ImportDefaults) -> np.ndarray:
+    """MVA rating of every row of ``ppc["branch"]`` (``to_ppc`` keeps the in-service rows of its lookup)."""
+    total = max(e for _, e in lookup.values())
+    rate, status = np.full(total, np.inf), np.zeros(total, dtype=bool)
+    for table, (s, e) in lookup.items():
+        if table not in ("line", "trafo"):
+            raise ValueError(f"pandapower branch element {table!r} is not supported")
+        df = net[table]
+        status[s:e] = df.in_service.to_numpy(dtype=bool)
+        if table == "line":
+            vn = net.bus.vn_kv.loc[df.from_bus].to_numpy()
+            rate[s:e] = df.max_i_ka.to_numpy() * df.df.to_numpy() * df.parallel.to_numpy() * np.sqrt(3) * vn
+        else:
+            rate[s:e] = df.sn_mva.to_numpy() * df.df.to_numpy() * df.parallel.to_numpy()
+    rate = rate[status]
+    if rate.size != ppc["branch"].shape[0]:
+        raise ValueError(f"pandapower's ppc has {ppc['branch'].shape[0]} branches, expected {rate.size} in service")
+    return np.where(rate > defaults.unlimited_mva, NAN, rate)
+
+
+def _merge_parallel(rows: list[np.ndarray]) -> np.ndarray:
+    """One pi branch equal to parallel pi branches of the same (from, to, tap, shift)."""
+    first = rows[0]
+    for r in rows[1:]:
+        if not np.allclose(r[[0, 1, 6, 7]], first[[0, 1, 6, 7]]):
+            raise ValueError(f"parallel branches between buses {int(first[0])} and {int(first[1])} differ in "
+                             f"orientation, tap or shift ({first[[0, 1, 6, 7]]} vs {r[[0, 1, 6, 7]]})")
+    y = sum(1.0 / (r[2] + 1j * r[3]) for r in rows)
+    z = 1.0 / y
+    out = first.copy()
+    out[2], out[3] = z.real, z.imag
+    out[4] = sum(r[4] for r in rows)
+    out[5] = sum(r[5] for r in rows)  # NaN (no limit) if any is unlimited
+    return out
+
+
+def _branches(ppc, keep_bus, new_id, rate, vm, va_deg) -> np.ndarray:
+    from pandapower.pypower.idx_brch import BR_B, BR_R, BR_STATUS, BR_X, F_BUS, SHIFT, T_BUS, TAP
+
+    br = ppc["branch"]
+    if np.iscomplexobj(br):
+        if np.abs(br.imag).max() > 0:
+            raise ValueError("pandapower's branch table has complex entries (shunt conductance); not supported")
+        br = br.real
+    groups: dict[tuple[int, int], list[np.ndarray]] = {}
+    for k in range(br.shape[0]):
+        f, t = int(br[k, F_BUS]), int(br[k, T_BUS])
+        if br[k, BR_STATUS] == 0 or not (keep_bus[f] and keep_bus[t]):
+            continue
+        f, t = new_id[f], new_id[t]
+        if f == t:
+            raise ValueError(f"branch {k} of pandapower's ppc connects fused bus {f} to itself")
+        tap = br[k, TAP] if br[k, TAP] != 0 else 1.0
+        row = np.array([f, t, br[k, BR_R], br[k, BR_X], br[k, BR_B], rate[k], tap, br[k, SHIFT]])
+        if row[3] < 0 or row[4] < 0:
+            raise ValueError(f"branch {f}-{t}: X = {row[3]} and B = {row[4]} must be >= 0 for gym-anm")
+        if t == 0 and tap == 1.0 and row[7] == 0.0:
+            row[[0, 1]] = [t, f]  # a plain line into the slack bus: orient it away so the fold below applies
+        elif t == 0:
+            raise ValueError(f"transformer {f}-{t} has the slack bus on its tapped side's far end")
+        if row[0] == 0:
+            row[6] /= vm
+            row[7] -= va_deg
+        row[7] = row[7] % 360.0
+        groups.setdefault((min(f, t), max(f, t)), []).append(row)
+    return np.array([_merge_parallel(g) if len(g) > 1 else g[0] for g in groups.values()], dtype=np.float64)
+
+
+def _drop_loop_free_shifts(branch: np.ndarray, n_bus: int) -> np.ndarray:
+    """SHIFT = 0 everywhere when no loop has a net phase shift (e.g. radial feeders, parallel Dyn5 units).
+
+    A shift that closes no loop only rotates the angles of the buses behind it: |V|, P, Q and the reward are
+    unchanged. Removing it matters because gym-anm's Newton-Raphson starts flat (all angles 0) and does not
+    converge behind SimBench's 150 deg HV/MV transformers. Shifts on a loop are physical and are kept.
+    """
+    theta = np.full(n_bus, np.nan)
+    theta[0] = 0.0
+    adj: dict[int, list[tuple[int, float]]] = {}
+    for f, t, *_, shift in branch:
+        adj.setdefault(int(f), []).append((int(t), -shift))
+        adj.setdefault(int(t), []).append((int(f), shift))
+    stack = [0]
+    while stack:
+        b = stack.pop()
+        for nb, d in adj.get(b, []):
+            if np.isnan(theta[nb]):
+                theta[nb] = theta[b] + d
+                stack.append(nb)
+    mismatch = (theta[branch[:, 0].astype(int)] - theta[branch[:, 1].astype(int)] - branch[:, 7]) % 360.0
+    if np.all(np.minimum(mismatch, 360.0 - mismatch) < 1e-9):
+        branch = branch.copy()
+        branch[:, 7] = 0.0
+    else:
+        logger.info("phase shifts close a loop; kept as gym-anm SHIFT")
+    return branch
+
+
+def _sgen_rating(row) -> float:
+    s = row.p_mw * row.scaling
+    sn = row.get("sn_mva", NAN)
+    return float(max(s, sn)) if np.isfinite(sn) else float(s)
+
+
+def _inverter(s: float, d: ImportDefaults) -> list[float]:
+    """QMAX, QMIN, P+, P-, Q+, Q- of an inverter of rating s (MVA); P- is set by the caller for storage."""
+    return [d.inverter_q * s, -d.inverter_q * s, d.inverter_corner_p * s, NAN, 0.0, 0.0]
+
+
+def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefaults()) -> ImportResult:
+    """Convert a :func:`prepare`-d pandapower net into gym-anm tables.
+
+    Args:
+        net: pandapower net returned by :func:`prepare`.
+        load_peak: (n_load_in_service,) MW, the largest P of each in-service load over its profile
+            (sets the load's PMIN = -max(peak, nominal P)).
+        defaults: values used where pandapower has none.
+    """
+    from pandapower.converter.pypower.to_ppc import to_ppc
+    from pandapower.pypower.idx_bus import BASE_KV, BUS_TYPE, NONE, REF, VA, VM
+
+    ppc = to_ppc(net, calculate_voltage_angles=True, trafo_model="pi", init="flat", check_connectivity=True)
+    lookup = net._pd2ppc_lookups
+    bus_lookup = lookup["bus"]
+    keep = ppc["bus"][:, BUS_TYPE] != NONE
+    slack = np.flatnonzero(ppc["bus"][:, BUS_TYPE] == REF)
+    if slack.size != 1:
+        raise ValueError(f"the net must have exactly one in-service ext_grid (slack), found {slack.size}")
+    slack = int(slack[0])
+    order = [slack] + [int(r) for r in np.flatnonzero(keep) if r != slack]
+    new_id = np.full(ppc["bus"].shape[0], -1)
+    new_id[order] = np.arange(len(order))
+    vm, va = float(ppc["bus"][slack, VM]), float(ppc["bus"][slack, VA])
+
+    bus_map = {int(b): int(new_id[bus_lookup[b]]) for b in net.bus.index[net.bus.in_service]
+               if new_id[bus_lookup[b]] >= 0}
+    vmax = np.full(len(order), np.inf)
+    vmin = np.full(len(order), -np.inf)
+    hi_col = net.bus.get("max_vm_pu", pd.Series(NAN, index=net.bus.index))
+    lo_col = net.bus.get("min_vm_pu", pd.Series(NAN, index=net.bus.index))
+    for b, g in bus_map.items():  # fused buses: the tightest limits of their members
+        hi, lo = hi_col.at[b], lo_col.at[b]
+        vmax[g] = min(vmax[g], hi if np.isfinite(hi) else defaults.vmax)
+        vmin[g] = max(vmin[g], lo if np.isfinite(lo) else defaults.vmin)
+    bus = np.column_stack([np.arange(len(order)), np.ones(len(order)), ppc["bus"][order, BASE_KV], vmax, vmin])
+    bus[0, 1], bus[0, 2], bus[0, 3], bus[0, 4] = 0, bus[0, 2] * vm, 1.0, 1.0
+
+    branch = _branches(ppc, keep, new_id, _ratings(net, ppc, lookup["branch"], defaults), vm, va)
+    branch = _drop_loop_free_shifts(branch, len(order))
+
+    def on_grid(table):
+        df = net[table]
+        return df[df.in_service & df.bus.map(lambda b: b in bus_map)]
+
+    devices, load_idx, gen_elements, storage_idx = [], [], [], []
+    loads = on_grid("load")
+    if len(load_peak) != len(loads):
+        raise ValueError(f"load_peak has {len(load_peak)} entries, expected {len(loads)} (in-service loads)")
+    for (i, row), peak in zip(loads.iterrows(), load_peak):
+        p = row.p_mw * row.scaling
+        if p < 0 or peak < 0:
+            raise ValueError(f"pandapower load {i}: p_mw {p} / profile peak {peak} < 0; gym-anm loads only consume")
+        qp = row.q_mvar / row.p_mw if row.p_mw != 0 else 0.0
+        devices.append([-1, bus_map[row.bus], -1, qp, 0.0, -max(peak, p), *[NAN] * 9])
+        load_idx.append(int(i))
+    for table in ("sgen", "gen"):
+        for i, row in on_grid(table).iterrows():
+            s = _sgen_rating(row) if table == "sgen" else float(np.nanmax([row.p_mw, row.get("sn_mva", NAN)]))
+            renewable = table == "sgen" and bool(RENEWABLE_TYPE.search(str(row.get("type", ""))))
+            if renewable:
+                devices.append([-1, bus_map[row.bus], 2, NAN, s, 0.0, *_inverter(s, defaults), NAN, NAN, NAN])
+            else:
+                q = defaults.classical_q * s
+                qmax = row.get("max_q_mvar", NAN) if table == "gen" else NAN
+                qmin = row.get("min_q_mvar", NAN) if table == "gen" else NAN
+                devices.append([-1, bus_map[row.bus], 1, NAN, s, 0.0, qmax if np.isfinite(qmax) else q,
+                                qmin if np.isfinite(qmin) else -q, *[NAN] * 7])
+            gen_elements.append((table, int(i), renewable))
+    for i, row in on_grid("storage").iterrows():
+        pmax = -row.min_p_mw if np.isfinite(row.get("min_p_mw", NAN)) else abs(row.p_mw)
+        pmin = -row.max_p_mw if np.isfinite(row.get("max_p_mw", NAN)) else -abs(row.p_mw)
+        s = max(pmax, -pmin)
+        inv = _inverter(s, defaults)
+        inv[3] = -defaults.inverter_corner_p * s
+        emax = row.max_e_mwh if np.isfinite(row.get("max_e_mwh", NAN)) else defaults.storage_hours * pmax
+        emin = row.min_e_mwh if np.isfinite(row.get("min_e_mwh", NAN)) else 0.0
+        devices.append([-1, bus_map[row.bus], 3, NAN, pmax, pmin, *inv, emax, emin, defaults.storage_eff])
+        storage_idx.append(int(i))
+
+    dev = np.array(devices, dtype=np.float64)
+    installed = -dev[dev[:, 2] == -1, 5].sum() + dev[dev[:, 2] > 0, 4].sum()
+    eg = net.ext_grid[net.ext_grid.in_service].iloc[0]
+    lim = defaults.slack_margin * installed
+
+    def bound(col, default):
+        v = eg.get(col, NAN)
+        return float(v) if np.isfinite(v) else default
+
+    slack_row = [-1, 0, 0, NAN, bound("max_p_mw", lim), bound("min_p_mw", -lim), bound("max_q_mvar", lim),
+                 bound("min_q_mvar", -lim), *[NAN] * 7]
+    dev = np.vstack([slack_row, dev])
+    dev[:, 0] = np.arange(dev.shape[0])
+    network = {"baseMVA": float(net.sn_mva), "bus": bus, "device": dev, "branch": branch}
+    return ImportResult(network, load_idx, gen_elements, storage_idx, bus_map)
+
+
+def profiles(res: ImportResult, load_mw, sgen_mw) -> tuple[np.ndarray, np.ndarray]:
+    """gym-anm profiles from pandapower element profiles.
+
+    Args:
+        res: the conversion.
+        load_mw: DataFrame (T, loads) MW consumption (>= 0), columns = pandapower load indices.
+        sgen_mw: DataFrame (T, sgens) MW potential output, columns = pandapower sgen indices.
+
+    Returns:
+        ``load_p`` (T, n_load) MW injections (<= 0) and ``gen_p_max`` (T, n_gen) MW potentials; classical
+        generators (dispatchable) have their PMAX at every step.
+    """
+    load_p = -load_mw[res.load_idx].to_numpy(dtype=np.float64)
+    dev = res.network["device"]
+    pmax = dev[np.isin(dev[:, 2], (1, 2)), 4]
+    cols = []
+    for (table, i, renewable), p in zip(res.gen_elements, pmax):
+        cols.append(sgen_mw[i].to_numpy(dtype=np.float64) if renewable else np.full(len(load_p), p))
+    return load_p, np.column_stack(cols) if cols else np.zeros((len(load_p), 0))
+
+
+def defaults_record(defaults: ImportDefaults) -> dict:
+    """The defaults as a JSON-serialisable dict (stored in a case's meta)."""
+    return asdict(defaults)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command line: re-import one registered feeder (or ``all``) and rewrite its case file."""
+    from anm_torchrl.networks import feeders
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--name", required=True, choices=[*feeders.BUILDERS, "all"])
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    for name in feeders.BUILDERS if args.name == "all" else [args.name]:
+        path = feeders.build_and_save(name)
+        logger.info("wrote %s", path)
+
+
+if __name__ == "__main__":
+    main()
