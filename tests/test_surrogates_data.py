@@ -422,6 +422,9 @@ def test_surrogate_env_runs_on_its_envs_profiles(surrogate_options, name, monkey
         monkeypatch.setattr(GridSimulator, method, spy)
     env.rollout(3, break_when_any_done=False)
     assert readers and all(r is sim for r in readers), {id(r) for r in readers} - {id(sim)}
+    # and a model loaded on the unscaled simulator is refused by an env on the scaled one
+    with pytest.raises(ValueError, match="another network"):
+        SurrogateEnv(load_surrogate(name, **surrogate_options[name]), num_envs=4, sim=sim)
 
 
 def test_pinn_next_state_follows_scaled_loads(surrogate_options):

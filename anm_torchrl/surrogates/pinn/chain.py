@@ -242,6 +242,7 @@ def build_chain(sim: GridSimulator, generator: GeneratorKKT, storage: StorageKKT
         out_keys=["next_state", "reward", ("grid", "e_loss"), ("grid", "penalty"), ("grid", "curtailment"),
                   ("grid", "v_magn"), ("grid", "branch_s")]))
     chain = TensorDictSequential(*mods)
+    chain.network_key = sim.content_key()  # SurrogateEnv refuses to run it on another network or other profiles
     return chain.eval()
 
 

@@ -39,6 +39,7 @@ class RegressorSurrogate(TensorDictModuleBase):
         if kind not in KINDS:
             raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
         self.kind, self.backend, self.sim, self.featurizer = kind, backend, sim, featurizer
+        self.network_key = sim.content_key()  # SurrogateEnv refuses to run it on another network or other profiles
         self.classifier, self.clip, self.meta = classifier, bool(clip), dict(meta or {})
         idx, names = target_layout(sim)
         self.target_names = names
