@@ -57,6 +57,25 @@ def test_make_vec_is_natively_batched_with_gym_anm_spaces():
     assert obs in venv.observation_space and reward.shape == term.shape == trunc.shape == (5,)
 
 
+@pytest.mark.parametrize("env_id", sorted(GYM_IDS))
+def test_every_registered_network_has_a_batched_gym_env(env_id):
+    venv = gymnasium.make_vec(env_id, num_envs=2, vectorization_mode="vector_entry_point", seed=0)
+    tenv = venv.torchrl_env
+    assert venv.single_observation_space.shape == (tenv.sim.state_dim,)
+    # the float64 boxes are the TorchRL env's float32 observation / action bounds before rounding
+    for space, spec in ((venv.single_observation_space, tenv.observation_spec["observation"]),
+                        (venv.single_action_space, tenv.action_spec)):
+        assert np.array_equal(space.low.astype(np.float32), spec.space.low[0].numpy())
+        assert np.array_equal(space.high.astype(np.float32), spec.space.high[0].numpy())
+    obs, _ = venv.reset()
+    obs, reward, *_ = venv.step(np.stack([venv.single_action_space.low, venv.single_action_space.high]))
+    assert obs in venv.observation_space and np.isfinite(reward).all()
+
+
+def test_single_env_of_a_feeder_passes_gymnasium_checker():
+    check_env(gymnasium.make("anm_torchrl/Case33bw-v0").unwrapped)
+
+
 def test_rollout_equals_torchrl_env_on_same_seed_and_actions():
     n, steps = 6, 12
     venv = ANMVectorEnv(n, seed=7)
@@ -133,7 +152,7 @@ def test_partial_reset_and_bad_input():
         venv.reset(options={"reset_mask": np.array([1, 0, 1])})
     with pytest.raises(ValueError, match="autoreset_mode"):
         ANMVectorEnv(2, autoreset_mode="Disabled")
-    with pytest.raises(ValueError, match="network must be one of"):
+    with pytest.raises(ValueError, match=r"network must be one of \['anm6_easy', 'case33bw'"):
         gymnasium.make_vec(ID, num_envs=2, network="nope")
     with pytest.raises(gymnasium.error.ResetNeeded):
         ANMGymEnv().step(np.zeros(6))

@@ -17,8 +17,12 @@ from torchrl.envs import EnvBase
 def make_torchrl_env(network: str, num_envs: int, seed: int | None = None, **kwargs) -> EnvBase:
     """The true-simulator TorchRL env of a registered network, batched over ``num_envs``.
 
+    ``anm6_easy`` is :class:`~anm_torchrl.envs.ANM6Env` (gym-anm's ``ANM6Easy``, its reset distribution); any
+    other registered network is :class:`~anm_torchrl.envs.ANMEnv` with the network's profiles and constants
+    (reset: ``init="uniform"`` unless given).
+
     Args:
-        network: registered network name (``"anm6_easy"``).
+        network: a name of :func:`anm_torchrl.networks.list_networks`.
         num_envs: batch size N.
         seed: seed of the reset sampler (``None``: random).
         **kwargs: passed to the env (``action_mode``, ``init``, ``backend``).
@@ -26,11 +30,17 @@ def make_torchrl_env(network: str, num_envs: int, seed: int | None = None, **kwa
     Raises:
         ValueError: unknown network.
     """
-    if network != "anm6_easy":
-        raise ValueError(f"network must be one of ['anm6_easy'], got {network!r}")
-    from anm_torchrl.envs import ANM6Env
+    from anm_torchrl.envs import ANM6Env, ANMEnv
+    from anm_torchrl.networks import get_network, list_networks
 
-    return ANM6Env(num_envs=num_envs, seed=seed, **kwargs)
+    if network not in list_networks():
+        raise ValueError(f"network must be one of {list_networks()}, got {network!r}")
+    if network == "anm6_easy":
+        return ANM6Env(num_envs=num_envs, seed=seed, **kwargs)
+    case = get_network(network)
+    return ANMEnv(network=case.network, load_p=case.load_p, gen_p_max=case.gen_p_max, num_envs=num_envs,
+                  delta_t=case.delta_t, gamma=case.gamma, lamb=case.lamb, costs_clipping=case.costs_clipping,
+                  seed=seed, **kwargs)
 
 
 class NumpyBatch:
