@@ -132,6 +132,16 @@ def table(rows: dict) -> list[dict]:
     return out
 
 
+def markdown(rec: dict) -> str:
+    """The gap table of a record as Markdown: per row the mean return, per-episode returns and loss vs optimum."""
+    lines = ["| policy | discounted return (mean) | per episode | loss, % of the optimum's |", "|---|---|---|---|"]
+    for t in rec["table"]:
+        per = ", ".join(f"{v:.4f}" for v in rec["rows"][t["policy"]]["discounted_return"])
+        pct = "–" if t["loss_pct_of_optimum"] is None else f"{t['loss_pct_of_optimum']:.1f} %"
+        lines.append(f"| {t['policy']} | {t['mean_discounted_return']:.4f} | {per} | {pct} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(prog="python -m anm_torchrl.baselines.optimal", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -146,8 +156,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--merge", nargs="*", default=[],
                     help="records of the same protocol (e.g. rows measured in parallel runs) whose rows are merged "
                          "into --out")
+    ap.add_argument("--markdown", action="store_true", help="print the record's table as Markdown and exit")
     ap.add_argument("--out", required=True, help="JSON record (rows of an existing record are kept)")
     args = ap.parse_args(argv)
+    if args.markdown:
+        sys.stdout.write(markdown(json.loads(Path(args.out).read_text())) + "\n")
+        return {}
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     torch.set_num_threads(1)
     from anm_torchrl.grid.simulator import anm6_easy_simulator
