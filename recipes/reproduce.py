@@ -58,7 +58,9 @@ def prepare_pinn(pcfg: dict, out_dir: Path) -> tuple[dict, list[Path], dict | No
     ``cpu_s`` is this process's CPU time: with one torch thread it is the wall time of an idle machine.
 
     Uses ``pinn.path`` (or the default cache) if the surrogate loads; otherwise trains the ``train_if_missing``
-    preset into the default cache (its TensorBoard run in ``<out_dir>/artifacts/pinn_tb``), timing it.
+    preset into the default cache — or, for a preset without acceptance bar (``smoke``), which never enters the
+    default cache, into ``<out_dir>/artifacts/pinn`` — (its TensorBoard run in ``<out_dir>/artifacts/pinn_tb``),
+    timing it.
     """
     from anm_torchrl.experiments.common import make_env_or_reason
     from anm_torchrl.paths import surrogate_dir
@@ -72,10 +74,14 @@ def prepare_pinn(pcfg: dict, out_dir: Path) -> tuple[dict, list[Path], dict | No
         return spec, logs, None
     from anm_torchrl.surrogates import load_surrogate
 
+    from anm_torchrl.surrogates.pinn.presets import preset as pinn_preset
+
+    if not pcfg.get("path") and not pinn_preset(str(pcfg["train_if_missing"])).acceptance:
+        spec["path"] = str(out_dir / "artifacts" / "pinn")  # no acceptance bar (smoke): never the default cache
     log.info("PINN not available (%s): training preset %r", why, pcfg["train_if_missing"])
     t0, c0 = time.perf_counter(), time.process_time()
     load_surrogate("pinn", train_if_missing=True, preset=str(pcfg["train_if_missing"]), log_dir=tb, progress=False,
-                   **({"path": pcfg["path"]} if pcfg.get("path") else {}))
+                   **({"path": spec["path"]} if spec.get("path") else {}))
     return spec, logs, {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
 
 
