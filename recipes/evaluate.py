@@ -81,32 +81,37 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(int(cfg.threads))
 
     from anm_torchrl.baselines import make_baseline
-    from anm_torchrl.grid.simulator import anm6_easy_simulator
-    from anm_torchrl.training.checkpoint import load_actor
+    from anm_torchrl.training.checkpoint import load_checkpoint, load_actor
     from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy, evaluate_policy_gym_anm
+    from anm_torchrl.training.factory import make_true_env
 
-    episodes = int(cfg.episodes) if cfg.episodes is not None else (16 if cfg.env == "anm6" else 2)
-    sim = anm6_easy_simulator()
-    states = draw_initial_states(episodes, int(cfg.seed), sim)
+    ckpt = None
     if cfg.checkpoint is not None:
         try:
-            policy = load_actor(cfg.checkpoint)
+            ckpt = load_checkpoint(cfg.checkpoint)
         except (ValueError, FileNotFoundError) as err:
             raise SystemExit(f"evaluate.py: {err}") from None
-        name = "ppo"
+    network = network_of(cfg, ckpt)
+    if cfg.env == "gym_anm" and network != "anm6_easy":
+        raise SystemExit(f"evaluate.py: env=gym_anm runs gym-anm's ANM6Easy only; this policy is for {network!r}")
+    episodes = int(cfg.episodes) if cfg.episodes is not None else (16 if cfg.env == "anm6" else 2)
+    env = make_true_env(episodes, network=network, seed=int(cfg.seed))  # states from its reset distribution
+    states = draw_initial_states(episodes, int(cfg.seed), env.sim, env.init)
+    if ckpt is not None:
+        policy, name = load_actor(ckpt, env=make_true_env(1, network=network)), "ppo"
     else:
         kwargs = OmegaConf.to_container(cfg.policy_kwargs, resolve=True)
         if cfg.policy == "random":
             kwargs.setdefault("seed", int(cfg.seed))
-        policy, name = make_baseline(cfg.policy, sim, **kwargs), cfg.policy
+        policy, name = make_baseline(cfg.policy, env.sim, **kwargs), cfg.policy
 
     t0 = time.perf_counter()
     if cfg.env == "anm6":
-        result = evaluate_policy(policy, states, max_steps=int(cfg.steps), gamma=float(cfg.gamma))
+        result = evaluate_policy(policy, states, max_steps=int(cfg.steps), gamma=float(cfg.gamma), env=env)
     else:
         result = evaluate_policy_gym_anm(policy, states, max_steps=int(cfg.steps), gamma=float(cfg.gamma),
                                          progress=bool(cfg.progress))
-    out = {**result.metrics(), "episodes": episodes, "env": cfg.env, "policy": name,
+    out = {**result.metrics(), "episodes": episodes, "env": cfg.env, "network": network, "policy": name,
            "checkpoint": None if cfg.checkpoint is None else str(cfg.checkpoint), "seed": int(cfg.seed),
            "max_steps": int(cfg.steps), "gamma": float(cfg.gamma), "wall_time": time.perf_counter() - t0,
            "per_episode": {"return": result.returns.tolist(), "discounted_return": result.discounted_returns.tolist(),
@@ -117,13 +122,21 @@ def main(argv: list[str] | None = None) -> dict:
     if cfg.output:
         write_output(Path(cfg.output), line)
     if cfg.render:
-        from anm_torchrl.envs import ANM6Env
         from anm_torchrl.render import render_episode
 
-        paths = render_episode(policy, ANM6Env(1, sim=sim), states[0], int(cfg.steps), cfg.render_dir, stem=name,
-                               title=f"{name}, initial state 0 of seed {int(cfg.seed)}")
+        paths = render_episode(policy, make_true_env(1, network=network), states[0], int(cfg.steps), cfg.render_dir,
+                               stem=name, title=f"{name} on {network}, initial state 0 of seed {int(cfg.seed)}")
         print("episode figure: " + ", ".join(str(p) for p in paths.values()), file=sys.stderr, flush=True)
     return out
+
+
+def network_of(cfg, ckpt: dict | None) -> str:
+    """The network to evaluate on: ``network=``, else the checkpoint's (ANM6-Easy for checkpoints that predate the
+    key and for baselines); a checkpoint trained on another network than ``network=`` is refused."""
+    trained = (ckpt["config"].get("network") or "anm6_easy") if ckpt is not None else None
+    if cfg.network is not None and trained is not None and cfg.network != trained:
+        raise SystemExit(f"evaluate.py: the checkpoint was trained on network={trained!r}, not {cfg.network!r}")
+    return cfg.network or trained or "anm6_easy"
 
 
 def write_output(path: Path, line: str) -> None:

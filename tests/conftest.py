@@ -30,3 +30,15 @@ def ppo_checkpoint(tmp_path_factory):
                "optimizer": optim.state_dict(), "obs_norm": normalizer.stats(), "frames": 32, "update": 1,
                "best_eval": None}
     return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "last.pt", payload)
+
+
+@pytest.fixture(scope="session")
+def evaluate_recipe():
+    """``recipes/evaluate.py`` as a module (its ``main(argv)`` runs in-process)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("evaluate_recipe", Path(__file__).resolve().parents[1] / "recipes"
+                                                  / "evaluate.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

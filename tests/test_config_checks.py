@@ -59,10 +59,12 @@ def test_default_configs_pass():
     ("eval.test_seed=1", "eval.seed (validation states) and eval.test_seed (test states) must differ"),
     ("eval.render_interval=-1", "eval.render_interval must be an integer >= 0, got -1"),
     ("collector.frames_per_batch=16383", "must be a positive multiple of env.num_envs (256)"),
+    ("network=nowhere", "network must be one of anm6_easy, case33bw"),
+    ("eval.render_interval=2 logger.backend=csv", "eval.render_interval > 0 logs figures to TensorBoard"),
 ])
 def test_ppo_config_ranges(override, message):
     with pytest.raises(ValueError) as err:
-        check_ppo_config(ppo_config(override))
+        check_ppo_config(ppo_config(*override.split()))
     assert message in str(err.value)
 
 
@@ -71,6 +73,7 @@ def test_ppo_config_ranges(override, message):
     ("steps", 0, "steps must be an integer >= 1, got 0"),
     ("episodes", 0, "episodes must be an integer >= 1 or null, got 0"),
     ("env", "gym", "env must be one of anm6, gym_anm; got 'gym'"),
+    ("network", "nowhere", "network must be one of null, anm6_easy, case33bw"),
 ])
 def test_evaluate_config_ranges(key, value, message):
     cfg = OmegaConf.load(CONF / "evaluate.yaml")
@@ -78,6 +81,13 @@ def test_evaluate_config_ranges(key, value, message):
     with pytest.raises(ValueError) as err:
         check_evaluate_config(cfg)
     assert message in str(err.value)
+
+
+def test_gym_anm_is_anm6_only():
+    cfg = OmegaConf.load(CONF / "evaluate.yaml")
+    cfg.env, cfg.network = "gym_anm", "case33bw"
+    with pytest.raises(ValueError, match="env=gym_anm runs gym-anm's ANM6Easy only"):
+        check_evaluate_config(cfg)
 
 
 def test_evaluate_defaults_to_the_recipes_test_states():
@@ -122,6 +132,7 @@ def test_nan_weights_and_malformed_checkpoints_are_refused(ppo_checkpoint, tmp_p
 def test_resume_with_another_architecture_is_an_error(ppo_checkpoint):
     saved = load_checkpoint(ppo_checkpoint)["config"]
     for override, key in (("model.activation=relu", "model.activation: checkpoint 'tanh', this run 'relu'"),
+                          ("network=case33bw", "network: checkpoint 'anm6_easy', this run 'case33bw'"),
                           ("model.actor_cells=[32,32]", "model.actor_cells: checkpoint [64, 64], this run [32, 32]")):
         new = OmegaConf.to_container(ppo_config(override), resolve=True)
         with pytest.raises(ValueError, match="another architecture") as err:

@@ -7,7 +7,6 @@ message, take its baseline names from the baselines registry.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -21,11 +20,8 @@ RESULT_KEYS = EVAL_KEYS + ("episodes", "env", "policy", "wall_time", "seed")
 
 
 @pytest.fixture(scope="module")
-def evaluate():
-    spec = importlib.util.spec_from_file_location("evaluate_recipe", ROOT / "recipes" / "evaluate.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def evaluate(evaluate_recipe):
+    return evaluate_recipe
 
 
 def printed_json(capsys) -> dict:
@@ -60,6 +56,21 @@ def test_evaluate_baseline_json_and_output_folder(evaluate, tmp_path, capsys):
     assert out["terminated"] == 0.0 and out["return"] <= out["discounted_return"] < 0
 
 
+@pytest.mark.slow  # the GIF encoding takes from 20 s (idle machine) to minutes (shared)
+def test_render_writes_the_episode_figure_and_animation(evaluate, ppo_checkpoint, tmp_path, capsys):
+    out = evaluate.main([f"checkpoint={ppo_checkpoint}", "steps=6", "episodes=1", "render=true",
+                         f"render_dir={tmp_path / 'ep'}"])
+    assert printed_json(capsys)["policy"] == out["policy"] == "ppo"  # the JSON is still the last stdout line
+    png, gif = tmp_path / "ep" / "ppo.png", tmp_path / "ep" / "ppo.gif"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and gif.read_bytes()[:6] in (b"GIF89a", b"GIF87a")
+    from PIL import Image
+
+    with Image.open(png) as image:
+        assert min(image.size) > 300  # a page, not an empty canvas
+    with Image.open(gif) as image:
+        assert image.n_frames == 6  # one frame per converged step
+
+
 def test_failed_output_write_keeps_the_printed_result(evaluate, tmp_path, capsys):
     blocker = tmp_path / "a_file"
     blocker.write_text("")
@@ -82,6 +93,21 @@ def test_bad_options_and_files_fail_clearly(evaluate, tmp_path):
 
     message = fails(evaluate, "policy=nope")
     assert all(name in message for name in BASELINES), message
+
+
+def test_initial_states_follow_the_networks_reset_distribution():
+    """ANM6-Easy: gym-anm's initial distribution (SoC < 1 MWh, its unit quirk); another network: the uniform
+    distribution of its true env; both reproducible from the seed."""
+    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.training.factory import make_true_env
+
+    anm6 = draw_initial_states(8, seed=4)
+    assert anm6.shape == (8, 18) and bool((anm6[:, 14] < 1.0).all())  # gym_anm init: SoC in [0, 1) MWh
+    env = make_true_env(8, network="case33bw", seed=4)
+    assert env.init == "uniform"
+    s1, s2 = (draw_initial_states(8, 4, env.sim, env.init) for _ in range(2))
+    assert torch.equal(s1, s2) and s1.shape == (8, env.sim.state_dim)
+    assert not torch.equal(s1, draw_initial_states(8, 5, env.sim, env.init))
 
 
 def test_help_lists_the_options(evaluate, capsys):

@@ -115,6 +115,27 @@ def test_summary_separates_validation_from_test_states(base_run):
     assert test["best"]["discounted_return"] != best["discounted_return"]
 
 
+def test_ppo_on_another_network(tmp_path, evaluate_recipe):
+    """``python recipes/ppo.py network=case33bw surrogate=none``: trains and evaluates on the 33-bus feeder's true
+    env, states from its reset distribution; evaluate.py takes the network from the checkpoint."""
+    run_dir = tmp_path / "case33bw"
+    run(PPO, *TINY, "network=case33bw", "surrogate=none", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["frames"] == 64 and summary["config"]["network"] == "case33bw"
+    assert all(math.isfinite(summary["test"][c]["discounted_return"]) for c in ("best", "last"))
+
+    from anm_torchrl.training.checkpoint import load_checkpoint
+    from anm_torchrl.training.factory import make_true_env
+
+    env = make_true_env(1, network="case33bw")
+    n_obs = env.observation_spec["observation"].shape[-1]
+    assert n_obs != 18 and load_checkpoint(run_dir / "checkpoints" / "best.pt")["obs_norm"]["loc"].shape == (n_obs,)
+    out = evaluate_recipe.main([f"checkpoint={run_dir}/checkpoints/best.pt", "steps=10", "episodes=2"])
+    assert out["network"] == "case33bw" and out["steps"] == 10 and math.isfinite(out["discounted_return"])
+    with pytest.raises(SystemExit, match="trained on network='case33bw', not 'anm6_easy'"):
+        evaluate_recipe.main([f"checkpoint={run_dir}/checkpoints/best.pt", "network=anm6_easy"])
+
+
 def test_resume_continues_from_saved_frames(base_run, tmp_path):
     base_run, _ = base_run
     run_dir = tmp_path / "resumed"

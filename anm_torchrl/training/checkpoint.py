@@ -33,7 +33,7 @@ CHECKPOINT_KIND = "anm_torchrl.ppo"
 FORMAT_VERSION = 2
 REQUIRED_KEYS = ("config", "actor", "critic", "obs_norm", "frames", "update")
 # config keys that define the networks' shapes and functions: resuming with other values is an error
-ARCHITECTURE_KEYS = ("model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip")
+ARCHITECTURE_KEYS = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip")
 
 
 def _split(obj: Any, prefix: str, tensors: dict[str, torch.Tensor]) -> Any:
@@ -135,16 +135,17 @@ def load_actor(checkpoint: str | os.PathLike | dict[str, Any], env=None, map_loc
     """The trained PPO actor of a checkpoint (a path or an already loaded dict), in eval mode.
 
     The networks are rebuilt with the checkpoint's ``model`` config and normalisation statistics for the specs of
-    ``env`` (default: a one-grid ``ANM6Env``; every env of the package has the same specs).
+    ``env`` (default: one grid of the checkpoint's ``network``, ANM6-Easy for runs that predate that key; a true
+    env and every surrogate of one network have the same specs).
     """
     from anm_torchrl.training.ppo_models import make_ppo_models
 
     ckpt = checkpoint if isinstance(checkpoint, dict) else load_checkpoint(checkpoint, map_location)
     ckpt = validate_checkpoint(ckpt)
     if env is None:
-        from anm_torchrl.envs import ANM6Env
+        from anm_torchrl.training.factory import make_true_env
 
-        env = ANM6Env(1, seed=0)
+        env = make_true_env(1, seed=0, network=ckpt["config"].get("network"))
     model = dict(ckpt["config"].get("model", {}))
     actor, _, _ = make_ppo_models(env, obs_stats=ckpt["obs_norm"], **model)
     actor.load_state_dict(ckpt["actor"])
@@ -174,6 +175,7 @@ def check_resume_config(saved: dict, config: dict, source: str = "checkpoint") -
         ValueError: an :data:`ARCHITECTURE_KEYS` entry differs (the saved weights belong to another network); the
             message gives both values.
     """
+    saved = {"network": "anm6_easy", **saved}  # checkpoints that predate the key were trained on ANM6-Easy
     changed = config_diff(saved, config)
     arch = [k for k in changed if k in ARCHITECTURE_KEYS]
     if arch:

@@ -78,8 +78,10 @@ def check_ppo_config(cfg: Mapping) -> None:
     Raises:
         ValueError: the first offending key, with the expected range and the value received.
     """
+    from anm_torchrl.networks import list_networks
     from anm_torchrl.training.ppo_models import ACTIVATIONS
 
+    _choice(cfg, "network", tuple(list_networks()))
     _int(cfg, "seed", low=0)
     _int(cfg, "threads")
     # env
@@ -146,7 +148,12 @@ def check_evaluate_config(cfg: Mapping) -> None:
     Raises:
         ValueError: the first offending key, with the expected range and the value received.
     """
+    from anm_torchrl.networks import list_networks
+
     _choice(cfg, "env", EVALUATE_ENVS)
+    _choice(cfg, "network", (None, *list_networks()))
+    if _get(cfg, "env") == "gym_anm" and _get(cfg, "network") not in (None, "anm6_easy"):
+        raise ValueError(f"env=gym_anm runs gym-anm's ANM6Easy only; got network={_get(cfg, 'network')!r}")
     _int(cfg, "seed", low=0)
     _int(cfg, "steps")
     _int(cfg, "episodes", optional=True)

@@ -77,14 +77,26 @@ class EvalResult:
         }
 
 
-def draw_initial_states(num_episodes: int, seed: int, sim: GridSimulator | None = None) -> torch.Tensor:
-    """``num_episodes`` initial states (E, 18) float64 MW/MVAr/MWh from gym-anm's reset distribution.
+def draw_initial_states(num_episodes: int, seed: int, sim: GridSimulator | None = None,
+                        init: str = "gym_anm") -> torch.Tensor:
+    """``num_episodes`` initial states (E, state_dim) float64 MW/MVAr/MWh from a reset distribution.
 
-    Drawn with a fresh ``torch.Generator`` seeded with ``seed`` (the same seed gives the same states).
+    Args:
+        num_episodes: E.
+        seed: seed of a fresh ``torch.Generator`` (the same seed gives the same states).
+        sim: the network's simulator (default ANM6-Easy).
+        init: the env's reset distribution (``env.init``): ``"gym_anm"`` / ``"intended"`` (ANM6-Easy's
+            ``init_state``, with / without its unit quirks) or ``"uniform"`` (``GridSimulator.random_state``, the
+            default of ``ANMEnv`` on other networks).
     """
     sim = anm6_easy_simulator() if sim is None else sim
     generator = torch.Generator(device=sim.net.dev.device).manual_seed(int(seed))
-    states, _ = sim.reset(int(num_episodes), generator)
+    if init == "uniform":
+        states, _ = sim.random_state(int(num_episodes), generator)
+    elif init in ("gym_anm", "intended"):
+        states, _ = sim.reset(int(num_episodes), generator, intended=init == "intended")
+    else:
+        raise ValueError(f"init must be gym_anm, intended or uniform, got {init!r}")
     return states.cpu()
 
 

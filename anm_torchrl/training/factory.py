@@ -7,7 +7,7 @@ from pathlib import Path
 import torch
 from torchrl.envs import DoubleToFloat, EnvBase, SerialEnv, StepCounter, TransformedEnv
 
-from anm_torchrl.envs import ANM6Env, SurrogateEnv
+from anm_torchrl.envs import ANM6Env, ANMEnv, SurrogateEnv
 from anm_torchrl.paths import artifact_home
 from anm_torchrl.surrogates.registry import load_surrogate
 
@@ -51,14 +51,60 @@ def load_surrogate_in_home(name: str, **kwargs):
                         f"set ANM_TORCHRL_HOME to a writable folder, or pass path=") from err
 
 
+ANM6 = "anm6_easy"
+
+
+def network_arguments(network: str | dict | None = None, load_p=None, gen_p_max=None) -> dict | None:
+    """``ANMEnv``'s network arguments for a registered network name or a gym-anm network dict.
+
+    Args:
+        network: a name of :func:`anm_torchrl.networks.list_networks`, a gym-anm network dict, or None (ANM6-Easy).
+        load_p: (T, n_load) MW; required with a dict, optional with a name (replaces the registered profile).
+        gen_p_max: (T, n_gen) MW; as ``load_p``.
+
+    Returns:
+        ``{"network", "load_p", "gen_p_max"}`` (plus the registered ``delta_t``, ``gamma``, ``lamb``,
+        ``costs_clipping`` for a name), or None for ANM6-Easy with its own profiles (the ``ANM6Env`` preset).
+
+    Raises:
+        ValueError: an unknown name, a dict without both profiles, or another type.
+    """
+    if (network is None or network == ANM6) and load_p is None and gen_p_max is None:
+        return None
+    if network is None or isinstance(network, str):
+        from anm_torchrl.networks import get_network
+
+        case = get_network(ANM6 if network is None else network)
+        return {"network": case.network, "load_p": case.load_p if load_p is None else load_p,
+                "gen_p_max": case.gen_p_max if gen_p_max is None else gen_p_max, "delta_t": case.delta_t,
+                "gamma": case.gamma, "lamb": case.lamb, "costs_clipping": case.costs_clipping}
+    if isinstance(network, dict):
+        if load_p is None or gen_p_max is None:
+            raise ValueError("a network dict needs load_p= (T, n_load) MW and gen_p_max= (T, n_gen) MW profiles")
+        return {"network": network, "load_p": load_p, "gen_p_max": gen_p_max}
+    raise ValueError(f"network must be a registered name, a gym-anm network dict or None; got {type(network).__name__}")
+
+
+def make_true_env(num_envs: int = 1, device="cpu", seed: int | None = None, action_mode: str = "raise",
+                  init: str | None = None, network: str | dict | None = None, load_p=None,
+                  gen_p_max=None) -> ANMEnv:
+    """The true simulator of a network (:func:`network_arguments`): the ``ANM6Env`` preset for ANM6-Easy (default
+    ``init="gym_anm"``, gym-anm's initial distribution), else ``ANMEnv`` (default ``init="uniform"``)."""
+    kwargs = network_arguments(network, load_p, gen_p_max)
+    if kwargs is None:
+        return ANM6Env(num_envs, device=device, seed=seed, action_mode=action_mode, init=init or "gym_anm")
+    return ANMEnv(**kwargs, num_envs=num_envs, seed=seed, device=device, action_mode=action_mode,
+                  init=init or "uniform")
+
+
 def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None = None, device="cpu",
              seed: int | None = None, action_mode: str = "raise", init: str | None = None,
-             **surrogate_kwargs) -> EnvBase:
+             network: str | dict | None = None, load_p=None, gen_p_max=None, **surrogate_kwargs) -> EnvBase:
     """Build a batched env of ``num_envs`` grids.
 
     Args:
-        surrogate: ``"none"`` (the true simulator ``ANM6Env``), ``"gym_anm"`` (the original package, slow), or a
-            registered surrogate (``pinn``, ``xgb``, ``rf``, ``dt``, ``lr``, ``dnn``; see
+        surrogate: ``"none"`` (the true simulator), ``"gym_anm"`` (the original package, ANM6-Easy only, slow), or
+            a registered surrogate (``pinn``, ``xgb``, ``rf``, ``dt``, ``lr``, ``dnn``; see
             :func:`anm_torchrl.surrogates.available_surrogates`).
         num_envs: batch size.
         max_steps: episode time limit (``StepCounter``: ``truncated``/``done`` at that step); gym-anm has
@@ -67,19 +113,28 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
         seed: reset seed.
         action_mode: ``"raise"`` or ``"clip"`` for actions outside the box.
         init: reset distribution (``"gym_anm"``, ``"intended"``, ``"uniform"``); default ``"gym_anm"`` for the
-            true simulator and ``"uniform"`` for surrogates.
+            true ANM6-Easy simulator and ``"uniform"`` for other networks and for surrogates.
+        network: a registered network name (:func:`anm_torchrl.networks.list_networks`) or a gym-anm network dict
+            (then with ``load_p`` and ``gen_p_max``); None = ANM6-Easy. A surrogate is loaded (or trained) for
+            that network's simulator.
+        load_p, gen_p_max: (T, n_load), (T, n_gen) MW profiles (see :func:`network_arguments`).
         **surrogate_kwargs: passed to the surrogate's loader (e.g. ``dataset="agent"``, ``path=...``).
     """
-    if surrogate in (None, "none"):
-        env = ANM6Env(num_envs, device=device, seed=seed, action_mode=action_mode, init=init or "gym_anm")
-    elif surrogate == "gym_anm":
-        env = make_gym_anm_env(num_envs, device=device, seed=seed)
-    else:
-        model = load_surrogate_in_home(surrogate, device=device, **surrogate_kwargs)
-        env = SurrogateEnv(model, num_envs, device=device, seed=seed, action_mode=action_mode,
-                           init=init or "uniform")
     if surrogate in (None, "none", "gym_anm") and surrogate_kwargs:
         raise ValueError(f"surrogate={surrogate!r} takes no surrogate options, got {sorted(surrogate_kwargs)}")
+    if surrogate in (None, "none"):
+        env = make_true_env(num_envs, device, seed, action_mode, init, network, load_p, gen_p_max)
+    elif surrogate == "gym_anm":
+        if network_arguments(network, load_p, gen_p_max) is not None:
+            raise ValueError(f"surrogate='gym_anm' runs gym-anm's ANM6Easy only, got network={network!r}")
+        env = make_gym_anm_env(num_envs, device=device, seed=seed)
+    else:
+        # the surrogate runs on this network's simulator (its tables and profiles); None = ANM6-Easy's
+        kwargs = network_arguments(network, load_p, gen_p_max)
+        sim = None if kwargs is None else ANMEnv(**kwargs, num_envs=1, device=device).sim
+        model = load_surrogate_in_home(surrogate, sim=sim, device=device, **surrogate_kwargs)
+        env = SurrogateEnv(model, num_envs, device=device, seed=seed, action_mode=action_mode,
+                           init=init or "uniform", sim=sim)
     if max_steps is not None:
         if isinstance(env, TransformedEnv):  # gym_anm: extend its transforms rather than nest envs
             env.append_transform(StepCounter(int(max_steps)))

@@ -1,4 +1,4 @@
-"""The PPO training loop on ANM6-Easy, as a library function: ``recipes/ppo.py`` and the experiments
+"""The PPO training loop on any registered network, as a library function: ``recipes/ppo.py`` and the experiments
 (:mod:`anm_torchrl.experiments.ppo_runs`) both call :func:`train_ppo` with a composed config of
 ``recipes/conf/config.yaml`` and a run directory.
 
@@ -32,7 +32,7 @@ EVAL_KEYS = ("return", "discounted_return", "e_loss", "penalty", "steps", "termi
 
 
 def make_train_env(surrogate: dict, num_envs: int, max_steps: int | None, seed: int, action_mode: str,
-                   init: str | None, device: str, threads: int):
+                   init: str | None, device: str, threads: int, network: str | None = None):
     """The training env: ``make_env`` + ``RewardSum`` (episode returns for logging). Also a collector-worker factory."""
     import torch
     from torchrl.envs import RewardSum, TransformedEnv
@@ -42,7 +42,7 @@ def make_train_env(surrogate: dict, num_envs: int, max_steps: int | None, seed: 
     torch.set_num_threads(int(threads))
     options = {k: v for k, v in surrogate.items() if k != "name"}
     env = make_env(surrogate["name"], num_envs=num_envs, max_steps=max_steps, device=device, seed=seed,
-                   action_mode=action_mode, init=init, **options)
+                   action_mode=action_mode, init=init, network=network, **options)
     return env.append_transform(RewardSum()) if isinstance(env, TransformedEnv) else TransformedEnv(env, RewardSum())
 
 
@@ -88,9 +88,9 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
     from torchrl.record.loggers import generate_exp_name, get_logger
     from tqdm import tqdm
 
-    from anm_torchrl.envs import ANM6Env
     from anm_torchrl.training.checkpoint import check_resume_config, load_checkpoint, save_checkpoint
     from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.training.factory import make_true_env
     from anm_torchrl.training.ppo_models import make_ppo_models
 
     t_start = time.perf_counter()
@@ -123,7 +123,7 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
     env_kwargs = dict(surrogate=OmegaConf.to_container(cfg.surrogate, resolve=True),
                       num_envs=int(cfg.env.num_envs) // num_workers, max_steps=cfg.env.max_steps,
                       action_mode=cfg.env.action_mode, init=cfg.env.init, device=str(device),
-                      threads=int(cfg.threads))
+                      threads=int(cfg.threads), network=cfg.network)
     train_env = make_train_env(seed=seed, **env_kwargs)
     actor, critic, normalizer = make_ppo_models(
         train_env, actor_cells=cfg.model.actor_cells, critic_cells=cfg.model.critic_cells,
@@ -134,10 +134,13 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
         actor.load_state_dict(resume["actor"])
         critic.load_state_dict(resume["critic"])
 
-    # validation states choose best.pt and the early stop; test states are only evaluated at the end
-    val_states = draw_initial_states(int(cfg.eval.num_episodes), int(cfg.eval.seed))
-    test_states = draw_initial_states(int(cfg.eval.test_episodes), int(cfg.eval.test_seed))
-    eval_env = ANM6Env(int(cfg.eval.num_episodes), device=device, seed=int(cfg.eval.seed))
+    # the network's true simulator, states from its reset distribution: validation states choose best.pt and the
+    # early stop; test states are only evaluated at the end
+    eval_env = make_true_env(int(cfg.eval.num_episodes), device, seed=int(cfg.eval.seed), network=cfg.network)
+    test_env = make_true_env(int(cfg.eval.test_episodes), device, seed=int(cfg.eval.test_seed), network=cfg.network)
+    val_states = draw_initial_states(int(cfg.eval.num_episodes), int(cfg.eval.seed), eval_env.sim, eval_env.init)
+    test_states = draw_initial_states(int(cfg.eval.test_episodes), int(cfg.eval.test_seed), test_env.sim,
+                                      test_env.init)
 
     # ---- collector ------------------------------------------------------------------------------------------
     total_frames = int(cfg.collector.total_frames)
@@ -198,7 +201,7 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
                 "update": update, "logger_step": frames, "best_eval": best, "evals_since_best": evals_since_best,
                 "wall_time": wall_before + time.perf_counter() - t_start}
 
-    def run_eval(policy, states, env=None, trained: tuple[int, int] | None = None) -> dict:
+    def run_eval(policy, states, env, trained: tuple[int, int] | None = None) -> dict:
         """Metrics of ``policy`` on ``states``, tagged with the (frames, update) it was trained for."""
         policy.eval()
         result = evaluate_policy(policy, states, max_steps=int(cfg.eval.max_steps), gamma=float(cfg.eval.gamma),
@@ -311,7 +314,12 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
 
     pbar.close()
     if collector is not None:
-        collector.shutdown()
+        try:
+            collector.shutdown()
+        except Exception as err:  # noqa: BLE001 - after Ctrl-C, worker processes got the SIGINT too
+            if not interrupted:
+                raise
+            log.warning("collector shutdown after Ctrl-C: %s", err)
     save_checkpoint(ckpt_dir / "last.pt", checkpoint_payload())
 
     # ---- test states: best.pt and last.pt, once -----------------------------------------------------------------
@@ -325,7 +333,7 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
             policies["best"][0].load_state_dict(best_ckpt["actor"])
         policies["last"] = (actor, (frames, update))
         for name, (policy, trained) in policies.items():
-            test[name] = run_eval(policy, test_states, trained=trained)
+            test[name] = run_eval(policy, test_states, test_env, trained=trained)
             log_metrics({f"test/{name}/{k}": test[name][k] for k in EVAL_KEYS}, step=frames)
     except KeyboardInterrupt:
         interrupted = True
@@ -360,10 +368,10 @@ def log_episode_figure(logger, actor, state, cfg: DictConfig, step: int) -> None
     from tensordict import TensorDict
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    from anm_torchrl.envs import ANM6Env
     from anm_torchrl.render import episode_figure, episode_from_rollout, network_tables
+    from anm_torchrl.training.factory import make_true_env
 
-    env = ANM6Env(1, device=state.device, seed=int(cfg.eval.seed))
+    env = make_true_env(1, state.device, seed=int(cfg.eval.seed), network=cfg.network)
     td = env.reset(TensorDict({"state": state.to(torch.float64)}, [1], device=env.device), set_state=True)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         roll = env.rollout(int(cfg.eval.max_steps), actor, tensordict=td, auto_reset=False, break_when_any_done=True)
