@@ -45,7 +45,7 @@ def usage() -> str:
 
 def parse_args(argv: list[str]):
     """The config of ``evaluate.yaml`` overridden by ``key=value`` arguments; raises SystemExit with a message."""
-    from anm_torchrl.baselines.simple import BASELINES
+    from anm_torchrl.baselines import available_baselines
     from anm_torchrl.training.config_checks import check_evaluate_config
 
     if any(a in ("-h", "--help") for a in argv):
@@ -68,11 +68,11 @@ def parse_args(argv: list[str]):
         raise SystemExit(f"evaluate.py: {err}") from None
     if cfg.policy is None and cfg.checkpoint is None:
         raise SystemExit("evaluate.py: give checkpoint=<path> or policy=<baseline> "
-                         f"(baselines: {', '.join(BASELINES)})")
+                         f"(baselines: {', '.join(available_baselines())})")
     if cfg.policy is not None and cfg.checkpoint is not None:
         raise SystemExit("evaluate.py: give either checkpoint=... or policy=..., not both")
-    if cfg.policy is not None and cfg.policy not in BASELINES:
-        raise SystemExit(f"evaluate.py: policy must be one of {BASELINES}, got {cfg.policy!r}")
+    if cfg.policy is not None and cfg.policy not in available_baselines():
+        raise SystemExit(f"evaluate.py: policy must be one of {available_baselines()}, got {cfg.policy!r}")
     return cfg
 
 
