@@ -128,3 +128,21 @@ def test_meshed_network_figure_without_a_simulator():
     art.update(np.array([1.0, 1.2, 1.0, 0.8]), np.zeros(5))
     rings = np.concatenate([sc.get_linewidths() for sc in art.buses])
     assert sorted(rings.tolist()) == [0.8, 0.8, 3.0, 3.0]  # the two buses outside [0.95, 1.05] are ringed
+
+
+def test_render_episode_on_case33bw(tmp_path):
+    from anm_torchrl.envs import ANMEnv
+    from anm_torchrl.networks import get_network
+
+    torch.set_num_threads(1)
+    c = get_network("case33bw")
+    env = ANMEnv(network=c.network, load_p=c.load_p, gen_p_max=c.gen_p_max, delta_t=c.delta_t, gamma=c.gamma,
+                 lamb=c.lamb, costs_clipping=c.costs_clipping, num_envs=1, seed=0)
+    tb = network_tables(env.sim.net)
+    assert tb.n_bus == 33 and is_radial(tb.n_bus, tb.f_bus, tb.t_bus)
+
+    def idle(td):  # no generation, no reactive power, idle storage: inside every device's box
+        return td.set("action", torch.zeros(*td.batch_size, env.sim.action_dim))
+
+    paths = render_episode(idle, env, env.reset()["state"][0], 6, tmp_path, gif=False)  # GIFs: tested above
+    assert Image.open(paths["png"]).size[0] > 1000
