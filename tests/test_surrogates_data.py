@@ -412,12 +412,12 @@ def test_surrogate_env_runs_on_its_envs_profiles(surrogate_options, name, monkey
     model = load_surrogate(name, sim=sim, **surrogate_options[name])
     env = SurrogateEnv(model, num_envs=4, seed=0, action_mode="clip", sim=sim)
     readers = []
-    for method in ("loads_at", "p_pot_at"):
+    for method in ("loads_at", "p_pot_at", "next_vars"):  # every way a profile is read
         real = getattr(GridSimulator, method)
 
-        def spy(self, t, _real=real):
+        def spy(self, *args, _real=real, **kwargs):
             readers.append(self)
-            return _real(self, t)
+            return _real(self, *args, **kwargs)
 
         monkeypatch.setattr(GridSimulator, method, spy)
     env.rollout(3, break_when_any_done=False)
