@@ -13,7 +13,7 @@ from gymnasium.vector import AutoresetMode
 from tensordict import TensorDict
 
 import anm_torchrl  # noqa: F401  registers the gymnasium ids
-from anm_torchrl.envs import ANM6Env
+from anm_torchrl.envs import ANM6Env, ANMEnv
 from anm_torchrl.gym import GYM_IDS
 from anm_torchrl.gym.env import ANMGymEnv
 from anm_torchrl.gym.vector import ANMVectorEnv
@@ -154,6 +154,8 @@ def test_partial_reset_and_bad_input():
         ANMVectorEnv(2, autoreset_mode="Disabled")
     with pytest.raises(ValueError, match=r"network must be one of \['anm6_easy', 'case33bw'"):
         gymnasium.make_vec(ID, num_envs=2, network="nope")
+    with pytest.raises(ValueError, match="observation='state'"):
+        ANMVectorEnv(2, env=ANMEnv(sim=ANM6Env(1).sim, num_envs=2, observation=[("bus_v_magn", "all", "pu")]))
     with pytest.raises(gymnasium.error.ResetNeeded):
         ANMGymEnv().step(np.zeros(6))
 

@@ -60,10 +60,11 @@ class NumpyBatch:
     def __init__(self, env: EnvBase):
         if len(env.batch_size) != 1:
             raise ValueError(f"env batch_size must be (N,), got {tuple(env.batch_size)}")
-        obs_dim = env.observation_spec["observation"].shape[-1]
-        if obs_dim != env.sim.state_dim:
-            raise ValueError(f"the gymnasium adapter needs observation = state (gym-anm's observation='state'); "
-                             f"the env's observation has {obs_dim} entries, its state {env.sim.state_dim}")
+        obs_map = getattr(env, "obs_map", None)
+        if obs_map is None or not obs_map.is_state:
+            raise ValueError("the gymnasium adapter needs an env built with observation='state' (its observation "
+                             f"is the clipped state, as gym-anm's ANM6Easy); got {type(env).__name__} with "
+                             f"observation map {obs_map!r}")
         self.env = env
         self.num_envs = int(env.batch_size[0])
         s_low, s_high = (b.cpu().numpy() for b in env.sim.state_bounds())
