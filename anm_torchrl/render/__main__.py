@@ -1,7 +1,8 @@
 """Render one ANM6-Easy episode of a baseline policy: ``python -m anm_torchrl.render --policy mpc_perfect``.
 
 Writes ``episode_<policy>.png`` and ``.gif`` into ``--out`` (the committed example figure
-``docs/figures/episode_mpc_perfect.png`` is ``--policy mpc_perfect --seed 0 --steps 96 --out docs/figures``).
+``docs/figures/episode_mpc_perfect.png`` is ``--policy mpc_perfect --seed 0 --steps 96 --out docs/figures
+--no-gif``).
 The initial state is the first of gym-anm's reset distribution drawn by ``ANM6Env(1, seed=--seed)``.
 """
 
