@@ -20,7 +20,8 @@ Per network, in the same run (these machines are shared: compare ratios, not abs
   A row is skipped when one step is predicted to take more than ``--max-step-s`` seconds, or when the torch
   backend's Jacobians would exceed 2 GB.
 
-``--solver-sweep`` times the numba kernel (``GridSimulator.step``) with the dense and the band LU on synthetic
+``--solver-sweep`` times the numba kernel (``GridSimulator.step``, transitions/s) with the dense LU, the band
+LU and the tree block LU (:func:`anm_torchrl.grid.constants.jacobian_ordering`) on synthetic
 feeders of growing size (batch ``--sweep-batch``, 128): the crossover sets :data:`anm_torchrl.grid.constants.BANDED_MIN_BUS`.
 Writes ``<out>.json`` and ``<out>.md``.
 """
@@ -218,6 +219,7 @@ def bench_anm_env(case: dict, batch: int, backend: str, min_time: float, min_ste
 
 def solver_sweep(sizes: list[int], batch: int, min_time: float) -> list[dict]:
     """numba kernel transitions/s with the dense and the band LU on synthetic feeders of ``sizes`` buses."""
+    from anm_torchrl.grid.constants import build_constants
     from anm_torchrl.grid.simulator import GridSimulator
     from anm_torchrl.networks.validation import validate_network
 
@@ -226,7 +228,7 @@ def solver_sweep(sizes: list[int], batch: int, min_time: float) -> list[dict]:
         net, load_p, gen_p_max = synthetic_feeder(n)
         net = validate_network(net)
         rates = {}
-        for solver in ("dense", "band"):
+        for solver in ("dense", "band", "tree"):
             sim = GridSimulator.from_tables(net, load_p, gen_p_max, 0.25, 0.995, 100.0, (1.0, 100.0),
                                             backend="numba", linear_solver=solver)
             gen = torch.Generator().manual_seed(0)
@@ -243,9 +245,10 @@ def solver_sweep(sizes: list[int], batch: int, min_time: float) -> list[dict]:
 
             _, elapsed, k = _timed(first, step, min_time, 2)
             rates[solver] = batch * k / elapsed
-        c = sim.constants
-        rows.append({"n_bus": n, "kl": int(c.kl), "dense": rates["dense"], "band": rates["band"],
-                     "band/dense": rates["band"] / rates["dense"]})
+        band = build_constants(sim, "band")
+        rows.append({"n_bus": n, "kl": int(band.kl), "dense": rates["dense"], "band": rates["band"],
+                     "tree": rates["tree"], "band/dense": rates["band"] / rates["dense"],
+                     "tree/dense": rates["tree"] / rates["dense"]})
         log.info("solver sweep %s", rows[-1])
     return rows
 
@@ -300,10 +303,10 @@ def markdown(rows: list[dict]) -> str:
 
 
 def sweep_markdown(rows: list[dict]) -> str:
-    lines = ["| buses | band kl = ku | dense LU transitions/s | band LU transitions/s | band / dense |",
-             "|---:|---:|---:|---:|---:|"]
-    lines += [f"| {r['n_bus']} | {r['kl']} | {r['dense']:,.0f} | {r['band']:,.0f} | {r['band/dense']:.2f} |"
-              for r in rows]
+    lines = ["| buses | band kl = ku | dense LU | band LU | tree block LU | band / dense | tree / dense |",
+             "|---:|---:|---:|---:|---:|---:|---:|"]
+    lines += [f"| {r['n_bus']} | {r['kl']} | {r['dense']:,.0f} | {r['band']:,.0f} | {r['tree']:,.0f} | "
+              f"{r['band/dense']:.2f} | {r['tree/dense']:.2f} |" for r in rows]
     return "\n".join(lines)
 
 

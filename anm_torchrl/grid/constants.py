@@ -33,7 +33,8 @@ class TransitionConstants(NamedTuple):
         gen_ppot_row, des_soc_rows: rows of ``h`` filled from P_pot and from the SoC.
         y: (n_bus, n_bus) Y-bus; ycsr: its non-zeros as (row pointers, column indices, values).  lu0, piv0, ok0: LU factors of the flat-start Jacobian (shared by all envs).
         ix: (2 n_bus - 2,) position of each Newton–Raphson variable / equation ([θ, |V|] of the non-slack
-            buses) in the Jacobian; kl, ku: its lower / upper bandwidth (see :func:`jacobian_ordering`).
+            buses) in the Jacobian; kl, ku: its lower / upper bandwidth; parent: (k,) tree of the ``"tree"``
+            solver (position of each bus's parent, -1 for roots), empty otherwise (see :func:`jacobian_ordering`).
         f_bus, t_bus: (n_br,) branch ends.  y_ff, y_ft, y_tf, y_tt: π-model coefficients
             (i_from = y_ff v_f - y_ft v_t, i_to = y_tt v_t - y_tf v_f).  rate: (n_br,) p.u.
         v_min, v_max: (n_bus,) p.u.  delta_t (h), lamb, c0, c1 (costs clipping), term_reward.
@@ -62,6 +63,7 @@ class TransitionConstants(NamedTuple):
     ix: np.ndarray
     kl: int
     ku: int
+    parent: np.ndarray
     f_bus: np.ndarray
     t_bus: np.ndarray
     y_ff: np.ndarray
@@ -84,31 +86,41 @@ def _npy(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().cpu().numpy())
 
 
-# Buses from which the banded solve (RCM ordering) replaces the dense LU: the measured crossover lies between 10
-# buses (band 0.81x dense) and 16 (1.60x); 33 buses 2.4x, 120 buses 10x (results/bench_env_solver.md, made by
-# ``python -m anm_torchrl.benchmarks.env --solver-sweep --out results/bench_env_solver``).
+# Buses from which the tree block LU (radial) or the band LU (meshed) replaces the dense LU. Measured on radial
+# feeders (results/bench_env_solver.md, ``python -m anm_torchrl.benchmarks.env --solver-sweep --out
+# results/bench_env_solver``): tree / dense 1.2x at 6 buses, 2.7x at 16, 5.6x at 33, 59x at 120; band / dense
+# 0.8-1.2x up to 10 buses, 1.6x at 16. Below 13 buses the dense LU is kept: ANM6-Easy's outputs stay
+# bit-identical to earlier releases for a gain of at most ~20 %.
 BANDED_MIN_BUS = 13
 
 
-def jacobian_ordering(y_bus: np.ndarray, solver: str = "auto") -> tuple[np.ndarray, int, int]:
+def jacobian_ordering(y_bus: np.ndarray, solver: str = "auto") -> tuple[np.ndarray, int, int, np.ndarray]:
     """Where each Newton–Raphson unknown goes in the Jacobian, and the resulting bandwidths.
 
     ``"dense"``: gym-anm's layout [θ_1..θ_k, |V|_1..|V|_k] with full bandwidth (plain dense LU).
     ``"band"``: non-slack buses in reverse Cuthill–McKee order of Y's pattern, θ and |V| of a bus interleaved,
     so that the Jacobian is banded with kl = ku = 2·(bus bandwidth) + 1; the LU then costs O(n·kl·(kl+ku))
-    instead of O(n³). ``"auto"``: ``"band"`` from :data:`BANDED_MIN_BUS` buses on.
+    instead of O(n³). ``"tree"`` (radial networks only): buses eliminated leaves first, θ and |V| interleaved,
+    a 2×2-block LU without fill in O(n) and without pivoting across buses. ``"auto"``: from
+    :data:`BANDED_MIN_BUS` buses on, ``"tree"`` for radial networks and ``"band"`` for meshed ones.
 
     Returns:
-        ix (2k,) int64, kl, ku.
+        ix (2k,) int64, kl, ku, parent (k,) int64 (empty unless ``"tree"``).
     """
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-    if solver not in ("auto", "dense", "band"):
-        raise ValueError(f"solver must be 'auto', 'dense' or 'band', got {solver!r}")
+    if solver not in ("auto", "dense", "band", "tree"):
+        raise ValueError(f"solver must be 'auto', 'dense', 'band' or 'tree', got {solver!r}")
     k = y_bus.shape[0] - 1
+    no_tree = np.zeros(0, dtype=np.int64)
     if solver == "dense" or (solver == "auto" and y_bus.shape[0] < BANDED_MIN_BUS):
-        return np.arange(2 * k, dtype=np.int64), 2 * k - 1, 2 * k - 1
+        return np.arange(2 * k, dtype=np.int64), 2 * k - 1, 2 * k - 1, no_tree
+    forest = _forest(y_bus)
+    if solver == "tree" and forest is None:
+        raise ValueError("linear_solver='tree' needs a radial network (the non-slack buses form a forest)")
+    if forest is not None and solver in ("tree", "auto"):
+        return _tree_ordering(*forest)
     pattern = csr_matrix((y_bus[1:, 1:] != 0).astype(np.int8))
     order = np.asarray(reverse_cuthill_mckee(pattern, symmetric_mode=True), dtype=np.int64)
     pos = np.empty(k, dtype=np.int64)
@@ -117,7 +129,39 @@ def jacobian_ordering(y_bus: np.ndarray, solver: str = "auto") -> tuple[np.ndarr
     bw = int(np.abs(pos[rows] - pos[cols]).max()) if rows.size else 0
     ix = np.concatenate([2 * pos, 2 * pos + 1]).astype(np.int64)
     band = min(2 * bw + 1, 2 * k - 1)
-    return ix, band, band
+    return ix, band, band, no_tree
+
+
+def _forest(y_bus: np.ndarray) -> tuple[list[int], np.ndarray] | None:
+    """Breadth-first order and parents (-1: root) of the non-slack buses, or ``None`` if they hold a loop."""
+    k = y_bus.shape[0] - 1
+    adj = [[int(q) - 1 for q in np.flatnonzero(y_bus[i + 1]) if q != 0 and q != i + 1] for i in range(k)]
+    parent, seen, bfs = np.full(k, -1), np.zeros(k, bool), []
+    for root in range(k):
+        if seen[root]:
+            continue
+        seen[root], queue = True, [root]
+        while queue:
+            i = queue.pop(0)
+            bfs.append(i)
+            for q in adj[i]:
+                if not seen[q]:
+                    seen[q], parent[q] = True, i
+                    queue.append(q)
+    if sum(len(a) for a in adj) // 2 != k - int((parent < 0).sum()):  # a forest has k - (#trees) edges
+        return None
+    return bfs, parent
+
+
+def _tree_ordering(bfs: list[int], parent: np.ndarray) -> tuple[np.ndarray, int, int, np.ndarray]:
+    """Leaves-first elimination order of a forest of buses (see :func:`jacobian_ordering`)."""
+    k = parent.shape[0]
+    order = np.array(bfs[::-1], dtype=np.int64)  # every bus before its parent
+    pos = np.empty(k, dtype=np.int64)
+    pos[order] = np.arange(k)
+    parent_pos = np.array([pos[parent[i]] if parent[i] >= 0 else -1 for i in order], dtype=np.int64)
+    ix = np.concatenate([2 * pos, 2 * pos + 1]).astype(np.int64)
+    return ix, 0, 0, parent_pos
 
 
 def build_constants(sim, solver: str = "auto") -> TransitionConstants:
@@ -130,7 +174,7 @@ def build_constants(sim, solver: str = "auto") -> TransitionConstants:
     des_poly, des_h0 = _polygon_arrays(sim._des_poly, sim.des_h0)
     ys, ysh, tp = (_npy(x) for x in (br.y_series, br.y_shunt, br.tap))
     y_bus = _npy(net.y_bus)
-    ix, kl, ku = jacobian_ordering(y_bus, solver)
+    ix, kl, ku, parent = jacobian_ordering(y_bus, solver)
     rows, cols = np.nonzero(y_bus)  # row-major: columns ascending within a row, as the dense loop visits them
     ycsr = (np.searchsorted(rows, np.arange(y_bus.shape[0] + 1)).astype(np.int64), cols.astype(np.int64),
             np.ascontiguousarray(y_bus[rows, cols]))
@@ -139,7 +183,8 @@ def build_constants(sim, solver: str = "auto") -> TransitionConstants:
         renewable=_npy(sim.renewable).astype(np.float64), slack=int(sim.slack_ids[0]), dev_bus=_npy(net.dev_bus),
         counted=_npy(sim.counted).astype(np.float64), gen_poly=gen_poly, des_poly=des_poly, gen_h0=gen_h0,
         des_h0=des_h0, gen_ppot_row=GEN_PPOT_ROW, des_soc_rows=np.array(DES_SOC_ROWS, dtype=np.int64), y=y_bus,
-        ycsr=ycsr, **dict(zip(("lu0", "piv0", "ok0"), _flat_start_lu(ycsr, ix, kl, ku))), ix=ix, kl=kl, ku=ku,
+        ycsr=ycsr, **dict(zip(("lu0", "piv0", "ok0"), _flat_start_lu(ycsr, ix, kl, ku, parent))), ix=ix, kl=kl, ku=ku,
+        parent=parent,
         f_bus=_npy(br.f_bus), t_bus=_npy(br.t_bus),
         y_ff=np.ascontiguousarray((ys + ysh) / np.abs(tp) ** 2), y_ft=np.ascontiguousarray(ys / tp.conj()),
         y_tf=np.ascontiguousarray(ys / tp), y_tt=np.ascontiguousarray(ys + ysh), rate=_npy(br.rate),

@@ -186,6 +186,70 @@ def _lu_solve(a, piv, b, kl, ku):
 
 
 @_njit(inline="always")
+def _tree_factor(a, parent):
+    """Block LU without fill of a Jacobian whose buses form a forest, eliminated leaves first (position j holds
+    θ, |V| of the j-th bus in that order at rows 2j, 2j+1; ``parent[j]`` is the position of its parent or -1).
+
+    Each 2×2 diagonal block is replaced by its inverse, each parent←child block L by L·D⁻¹; only the blocks of
+    the tree are read, in O(n). No pivoting across buses. False when a diagonal block is singular."""
+    for j in range(parent.shape[0]):
+        r = 2 * j
+        d00, d01, d10, d11 = a[r, r], a[r, r + 1], a[r + 1, r], a[r + 1, r + 1]
+        det = d00 * d11 - d01 * d10
+        if det == 0.0 or det != det:
+            return False
+        i00, i01, i10, i11 = d11 / det, -d01 / det, -d10 / det, d00 / det
+        a[r, r], a[r, r + 1], a[r + 1, r], a[r + 1, r + 1] = i00, i01, i10, i11
+        p = parent[j]
+        if p < 0:
+            continue
+        q = 2 * p
+        l00, l01, l10, l11 = a[q, r], a[q, r + 1], a[q + 1, r], a[q + 1, r + 1]
+        m00, m01 = l00 * i00 + l01 * i10, l00 * i01 + l01 * i11  # M = L D^-1
+        m10, m11 = l10 * i00 + l11 * i10, l10 * i01 + l11 * i11
+        a[q, r], a[q, r + 1], a[q + 1, r], a[q + 1, r + 1] = m00, m01, m10, m11
+        u00, u01, u10, u11 = a[r, q], a[r, q + 1], a[r + 1, q], a[r + 1, q + 1]
+        a[q, q] -= m00 * u00 + m01 * u10  # D_p -= M U
+        a[q, q + 1] -= m00 * u01 + m01 * u11
+        a[q + 1, q] -= m10 * u00 + m11 * u10
+        a[q + 1, q + 1] -= m10 * u01 + m11 * u11
+    return True
+
+
+@_njit(inline="always")
+def _tree_solve(a, parent, b):
+    """b <- A⁻¹ b from :func:`_tree_factor`'s ``a``: forward sweep leaves to roots, back sweep roots to leaves."""
+    n = parent.shape[0]
+    for j in range(n):
+        p = parent[j]
+        if p >= 0:
+            r, q = 2 * j, 2 * p
+            b[q] -= a[q, r] * b[r] + a[q, r + 1] * b[r + 1]
+            b[q + 1] -= a[q + 1, r] * b[r] + a[q + 1, r + 1] * b[r + 1]
+    for j in range(n - 1, -1, -1):
+        r, p = 2 * j, parent[j]
+        c0, c1 = b[r], b[r + 1]
+        if p >= 0:
+            q = 2 * p
+            c0 -= a[r, q] * b[q] + a[r, q + 1] * b[q + 1]
+            c1 -= a[r + 1, q] * b[q] + a[r + 1, q + 1] * b[q + 1]
+        b[r], b[r + 1] = a[r, r] * c0 + a[r, r + 1] * c1, a[r + 1, r] * c0 + a[r + 1, r + 1] * c1
+
+
+@_njit(inline="always")
+def _factor(a, piv, kl, ku, parent):
+    return _tree_factor(a, parent) if parent.shape[0] > 0 else _lu_factor(a, piv, kl, ku)
+
+
+@_njit(inline="always")
+def _solve(a, piv, b, kl, ku, parent):
+    if parent.shape[0] > 0:
+        _tree_solve(a, parent, b)
+    else:
+        _lu_solve(a, piv, b, kl, ku)
+
+
+@_njit(inline="always")
 def _jacobian(ycsr, v, vm, s, jac, ix, kl, ku):
     """Polar Jacobian (2n-2, 2n-2) into ``jac``, as :func:`anm_torchrl.grid.powerflow._jacobian`, with variable /
     equation ``j`` at row / column ``ix[j]`` (an ordering that makes it banded for large feeders). Only the band
@@ -216,7 +280,7 @@ def _jacobian(ycsr, v, vm, s, jac, ix, kl, ku):
 
 
 @_njit()
-def _flat_start_lu(ycsr, ix, kl, ku):
+def _flat_start_lu(ycsr, ix, kl, ku, parent):
     """LU factors of the Jacobian at the flat start (the same for every env): (lu, piv, non-singular)."""
     n = ycsr[0].shape[0] - 1
     vm, va = np.ones(n), np.zeros(n)
@@ -224,12 +288,12 @@ def _flat_start_lu(ycsr, ix, kl, ku):
     _injection(vm, va, ycsr, s, v)
     lu, piv = np.zeros((2 * n - 2, 2 * n - 2)), np.empty(2 * n - 2, dtype=np.int64)
     _jacobian(ycsr, v, vm, s, lu, ix, kl, ku)
-    ok = _lu_factor(lu, piv, kl, ku)
+    ok = _factor(lu, piv, kl, ku, parent)
     return lu, piv, ok
 
 
 @_njit(inline="always")
-def _newton_raphson(ycsr, lu0, piv0, ok0, ix, kl, ku, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv):
+def _newton_raphson(ycsr, lu0, piv0, ok0, ix, kl, ku, parent, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv):
     """Flat-start NR (spec §4.1) for one env; fills vm, va, s, v (n,) (``f``, ``jac``, ``piv``: scratch).
 
     The first iteration reuses the flat-start factors ``lu0``, ``piv0`` (``ok0`` False: singular). A singular
@@ -248,9 +312,9 @@ def _newton_raphson(ycsr, lu0, piv0, ok0, ix, kl, ku, s_bus, tol, max_iter, vm, 
             lu, pv, ok = lu0, piv0, ok0
         else:
             _jacobian(ycsr, v, vm, s, jac, ix, kl, ku)
-            lu, pv, ok = jac, piv, _lu_factor(jac, piv, kl, ku)
+            lu, pv, ok = jac, piv, _factor(jac, piv, kl, ku, parent)
         if ok:
-            _lu_solve(lu, pv, f, kl, ku)
+            _solve(lu, pv, f, kl, ku, parent)
         else:
             f[:] = np.nan
         for i in range(k):
@@ -267,7 +331,7 @@ def _env_steps(c, soc, p_load, p_pot_raw, setpoints, out, scratch):
     """The loop of :func:`_transition` over the envs, with its scratch arrays passed in (measured ~8 % faster
     than allocating them in the same function). ``c`` is a :class:`TransitionConstants`, unpacked here once."""
     (dev, lid, gid, did, renewable, slack, dev_bus, counted, gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row,
-     des_soc_rows, y, ycsr, lu0, piv0, ok0, ix, kl, ku, f_bus, t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max,
+     des_soc_rows, y, ycsr, lu0, piv0, ok0, ix, kl, ku, parent, f_bus, t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max,
      delta_t, lamb, c0, c1, term_reward, tol, max_iter) = c
     p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward = out
     hp, h_gen, h_des, s_bus, s, vm, va, f, jac, piv = scratch
@@ -304,7 +368,7 @@ def _env_steps(c, soc, p_load, p_pot_raw, setpoints, out, scratch):
         s_bus[:] = 0.0
         for r in range(pd.shape[0]):
             s_bus[dev_bus[r]] += complex(pd[r], qd[r])
-        it, diff = _newton_raphson(ycsr, lu0, piv0, ok0, ix, kl, ku, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv)
+        it, diff = _newton_raphson(ycsr, lu0, piv0, ok0, ix, kl, ku, parent, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv)
         ok = diff == diff and diff <= tol
         converged[e], n_iter[e] = ok, it
         # 5. slack injection (+inf when NaN) and branch flows
