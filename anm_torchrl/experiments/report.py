@@ -16,8 +16,8 @@ Preset **{preset}**, total wall time {wall:.0f} s, seeds {seeds}.
 **Machine.** {machine}
 **Versions.** {versions}
 
-Which run produced each record (records under `results/`; PPO learning curves are evaluated on the validation
-states, every other PPO and baseline return on the test states):
+Which run produced each record (records under `results/`; PPO learning curves are evaluated after every update on
+the fixed states named in their section, the `test_returns` figures on the held-out test states):
 
 {provenance}
 
@@ -333,8 +333,9 @@ training time grows with both.
         if reused:
             table += "\n\nRuns reused from an earlier record (same states and threshold, not trained again): " \
                 + ", ".join(f"`{lab}` (git commit `{str(o.get('git_commit'))[:7]}`)" for lab, o in reused.items()) + "."
-        table += (f"\n\nThreshold for 'time to reach': return ≥ {_fmt(rec['data']['threshold'])} on the validation "
-                  "states. `threshold_wall_s` is the Kaplan–Meier median over seeds of the PPO wall time "
+        seed = (rec["meta"].get("config") or {}).get("base", {}).get("eval.seed")
+        table += (f"\n\nThreshold for 'time to reach': return ≥ {_fmt(rec['data']['threshold'])} on the evaluation "
+                  f"states (`eval.seed={seed}`). `threshold_wall_s` is the Kaplan–Meier median over seeds of the PPO wall time "
                   "(collection, updates, evaluations) to the first evaluation at or above it, a run that never reaches it counted "
                   "as censored at its run length (empty when fewer than half reached it); `_mean` is the mean of "
                   "those times, a lower bound when a run is censored; `with_training` adds the surrogate's "
