@@ -233,3 +233,14 @@ def test_wall_clock_budget_stops_the_run(tmp_path):
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["out_of_time"] and summary["updates"] == 1 and summary["frames"] == 32
     assert (run_dir / "checkpoints" / "last.pt").is_file()
+
+
+def test_budget_mask_keeps_the_first_frames_in_time_order():
+    """The last batch of a run is cut to the budget: every env's step t before any env's step t + 1."""
+    from anm_torchrl.training.ppo_loop import budget_mask
+
+    assert budget_mask(torch.Size([4, 8]), 32) is None and budget_mask(torch.Size([4, 8]), 99) is None
+    keep = budget_mask(torch.Size([2, 3, 4]), 10)  # [workers, envs per worker, T]: 6 envs, 4 steps
+    assert keep.shape == (2, 3, 4) and int(keep.sum()) == 10
+    per_step = keep.reshape(6, 4).sum(0).tolist()
+    assert per_step == [6, 4, 0, 0]  # all 6 envs at t = 0, the first 4 at t = 1
