@@ -163,3 +163,22 @@ def test_unwritable_artifact_home_names_the_variable(monkeypatch, tmp_path):
     with pytest.raises(PermissionError) as err:
         factory.make_env("pinn", num_envs=1)
     assert "ANM_TORCHRL_HOME" not in str(err.value)
+
+
+def test_make_env_network_by_name_or_dict():
+    """``make_env(network=<name>)`` and ``make_env(network=<its dict>, load_p=, gen_p_max=)`` build the same
+    simulator (same content key); a dict without profiles, or an unknown name, fails with a message."""
+    from anm_torchrl.networks import get_network
+    from anm_torchrl.training.factory import make_env
+
+    case = get_network("case33bw")
+    by_name = make_env("none", network="case33bw", num_envs=2, seed=0)
+    by_dict = make_env("none", network=case.network, load_p=case.load_p, gen_p_max=case.gen_p_max, num_envs=2,
+                       seed=0, init="uniform")
+    assert by_name.network_key == by_dict.network_key != make_env("none", num_envs=1).network_key
+    with pytest.raises(ValueError, match="a network dict needs load_p="):
+        make_env("none", network=case.network)
+    with pytest.raises(ValueError, match="unknown network 'nowhere'"):
+        make_env("none", network="nowhere")
+    with pytest.raises(ValueError, match="surrogate='gym_anm' runs gym-anm's ANM6Easy only"):
+        make_env("gym_anm", network="case33bw")
