@@ -1,6 +1,7 @@
-"""Train the physics-informed surrogate of ANM6-Easy without a single simulator sample, then evaluate it.
+"""Train the physics-informed surrogate of a network without a single simulator sample, then evaluate it.
 
     python recipes/train_pinn.py                                   # default preset -> the network's default cache
+    python recipes/train_pinn.py network=case33bw                  # any registered network (list_networks())
     python recipes/train_pinn.py pinn_preset=paper path=artifacts/pinn_paper
     python recipes/train_pinn.py eval_only=true path=artifacts/pinn_paper
     python recipes/train_pinn.py pinn_preset=smoke path=/tmp/pinn eval.n_random=1000   # seconds
@@ -40,7 +41,7 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 
 @hydra.main(config_path="conf", config_name="train_pinn", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
-    from anm_torchrl.grid.simulator import anm6_easy_simulator
+    from anm_torchrl.data.generic import simulator_for
     from anm_torchrl.surrogates.pinn.cache import default_path, train_and_save
     from anm_torchrl.surrogates.pinn.chain import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
@@ -48,7 +49,7 @@ def main(cfg: DictConfig) -> dict:
 
     torch.set_num_threads(int(cfg.threads))
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    sim = anm6_easy_simulator()
+    sim = simulator_for(cfg.network)
     file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
     out: dict = {"path": str(file)}
     if not cfg.eval_only:

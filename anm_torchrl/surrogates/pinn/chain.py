@@ -1,6 +1,7 @@
-"""The PINN surrogate of ANM6-Easy as a chain of ``TensorDictModule``s (paper §4.2), and :func:`load_pinn`.
+"""The PINN surrogate of any network as a chain of ``TensorDictModule``s (paper §4.2), and :func:`load_pinn`.
 
-``state`` (N, 18), ``action`` (N, 6) (gym-anm order and units, float64) flow through:
+``state`` (N, state_dim), ``action`` (N, action_dim) (gym-anm order and units, float64; ANM6-Easy: 18 and 6)
+flow through:
 
 =====================  =========================================  ===============================================
 module                 reads                                      writes (all p.u. unless noted, float64)
@@ -9,7 +10,7 @@ module                 reads                                      writes (all p.
                                                                   ``p_pot`` (N, n_gen) at t+1, ``des_target``
                                                                   (N, n_des, 2), ``soc`` (N, n_des) p.u.·h,
                                                                   ``p_load``/``q_load`` (N, n_load) at t+1,
-                                                                  ``t_next`` (N,) long
+                                                                  ``t_next`` (N,) aux of the next state
 ``generator`` KKT-NN   ``gen_target``, ``p_pot``                  ``gen_pq`` (N, n_gen, 2), ``gen_lambda`` (N, n_gen, 7)
 ``storage`` KKT-NN     ``des_target``, ``soc``                    ``des_pq`` (N, n_des, 2), ``des_lambda`` (…, 10)
 ``aggregation``        ``gen_pq``, ``des_pq``, ``p_load``,        ``p_dev``/``q_dev`` (N, n_dev) (slack 0),
@@ -20,7 +21,7 @@ module                 reads                                      writes (all p.
                                                                   ``pf_residual`` (N,) max |ΔP|, |ΔQ| at buses 1…
 ``terminal``           ``pf_residual``, ``v_magn`` (physics) or   ``terminated`` (N, 1) bool
                        ``state``, ``action`` (classifier)
-``next_state``         ``state`` and the above                    ``next_state`` (N, 18), ``reward`` (N, 1),
+``next_state``         ``state`` and the above                    ``next_state`` (N, state_dim), ``reward``,
                                                                   ``("grid", k)``: ``e_loss``, ``penalty``,
                                                                   ``curtailment`` (MW), ``v_magn``, ``branch_s`` (MVA)
 =====================  =========================================  ===============================================
@@ -81,8 +82,9 @@ TERMINALS = ("physics", "classifier")
 
 
 class ExogenousInputs(nn.Module):
-    """Split ``state`` and ``action`` into the modules' inputs (p.u.), with the loads and potentials of t+1
-    (perfect foresight, as the simulator: ``loads_at`` / ``p_pot_at`` at ``(aux + 1) mod T``)."""
+    """Split ``state`` and ``action`` into the modules' inputs (p.u.), with the loads and potentials of the next
+    step (perfect foresight, as the simulator: :meth:`GridSimulator.next_vars`, so a ``next_vars`` hook is
+    followed; ``t_next`` is the next state's auxiliary variable)."""
 
     def __init__(self, sim: GridSimulator):
         super().__init__()
@@ -93,11 +95,12 @@ class ExogenousInputs(nn.Module):
         sl = sim.state_slices()
         state, action = state.to(torch.float64), action.to(torch.float64) / b
         ng, nd = sim.n_gen, sim.n_des
-        t_next = (state[:, sl["aux"]].squeeze(1).round().long() + 1) % sim.n_time
-        p_load, q_load = sim.loads_at(t_next)
+        p_load_mw, p_pot_mw, aux = sim.next_vars(state)
+        p_load, q_load = sim.load_pq(p_load_mw / b)
         gen_target = torch.stack([action[:, :ng], action[:, ng:2 * ng]], -1)
         des_target = torch.stack([action[:, 2 * ng:2 * ng + nd], action[:, 2 * ng + nd:]], -1)
-        return gen_target, sim.p_pot_at(t_next), des_target, state[:, sl["des_soc"]] / b, p_load, q_load, t_next
+        return (gen_target, sim.clip_p_pot(p_pot_mw / b), des_target, state[:, sl["des_soc"]] / b, p_load, q_load,
+                aux.squeeze(1))
 
 
 class BusAggregation(nn.Module):
@@ -178,7 +181,7 @@ class ClassifierTerminal(nn.Module):
 
 
 class NextStateReward(nn.Module):
-    """Next state (N, 18) and reward (N, 1) from the predicted grid, with the simulator's own functions; the
+    """Next state (N, state_dim) and reward (N, 1) from the predicted grid, with the simulator's own functions; the
     ``("grid", k)`` diagnostics in the env's units. Terminal rows get the terminal reward and a zero state."""
 
     def __init__(self, sim: GridSimulator):
@@ -189,13 +192,13 @@ class NextStateReward(nn.Module):
         sim, net = self.sim, self.sim.net
         b = net.base_mva
         soc_next = sim.soc_update(soc, des_pq[..., 0])
-        curt = curtailment(p_pot, p_dev[:, sim.gen_ids])
+        curt = curtailment(p_pot, p_dev[:, sim.gen_ids], sim.renewable)  # classical generators are not curtailed
         e_loss = energy_loss(p_dev, sim.counted, curt, net.delta_t)
         pen = penalty(v_magn, branch_s, net, sim.lamb)
         reward = clipped_reward(e_loss, pen, sim.costs_clipping)
         term = terminated.reshape(-1)
         reward = torch.where(term, torch.full_like(reward, sim.terminal_reward), reward)
-        state = torch.cat([p_dev * b, q_dev * b, soc_next * b, p_pot * b, t_next.unsqueeze(1).to(p_dev)], 1)
+        state = torch.cat([p_dev * b, q_dev * b, soc_next * b, p_pot * b, t_next.reshape(-1, 1).to(p_dev)], 1)
         state = torch.where(term.unsqueeze(1), torch.zeros_like(state), state)
         return (state, reward.unsqueeze(-1), e_loss.unsqueeze(-1), pen.unsqueeze(-1), (curt * b).unsqueeze(-1),
                 v_magn, branch_s * b)

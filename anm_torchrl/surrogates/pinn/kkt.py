@@ -89,8 +89,14 @@ def clamp_to_polygon(x: torch.Tensor, g: torch.Tensor, h: torch.Tensor) -> torch
 
 def _device_features(g: torch.Tensor, h0: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """Conditioning features (n, k) of each device's polygon in rating units: finite rows of h0/S, then the
-    slopes of the rows that involve both P and Q."""
+    slopes of the rows that involve both P and Q. Which rows are finite is the same for every device of a kind
+    (checked), so a network of that kind takes the same features on any feeder; no device: (0, 0)."""
+    if h0.shape[0] == 0:
+        return h0.new_zeros(0, 0)
     finite = torch.isfinite(h0[0])
+    if not torch.equal(torch.isfinite(h0), finite.expand_as(h0)):
+        raise ValueError(f"every device of a kind needs the same finite polygon rows (gym-anm's bounds given); "
+                         f"got finite rows {torch.isfinite(h0).int().tolist()}")
     both = (g[0, :, 0] != 0) & (g[0, :, 1] != 0)
     slopes = -g[:, both, 0] / g[:, both, 1]
     return torch.cat([h0[:, finite] / scale.unsqueeze(1), slopes], 1)
@@ -180,6 +186,9 @@ class _ProjectionKKT(nn.Module):
         """Projected (P, Q) (N, n, 2) p.u. (safeguarded if ``self.safeguard``) and duals λ (N, n, m) of
         ``min ½‖x − t‖²`` in p.u."""
         shape = target.shape
+        if shape[-2] == 0:  # a network without devices of this kind
+            return target.new_zeros(shape, dtype=torch.float64), target.new_zeros(*shape[:-1], self.n_rows,
+                                                                                   dtype=torch.float64)
         target = target.reshape(-1, *shape[-2:]).to(torch.float64)
         theta = theta.reshape(-1, shape[-2]).to(torch.float64)
         pred = self.predict_scaled(target, theta)

@@ -48,6 +48,11 @@ def _lr_factor(cfg: ModuleTrainConfig, step: int) -> float:
     return f
 
 
+def _points(samples: int, task: _Task, cfg: ModuleTrainConfig) -> int:
+    """Sobol points for ``samples`` (device samples with ``cfg.per_device``, else points)."""
+    return -(-samples // task.units) if cfg.per_device else samples
+
+
 def _total(losses: dict[str, torch.Tensor], weights: dict[str, float]) -> torch.Tensor:
     return sum(weights.get(k, 1.0) * v for k, v in losses.items())
 
@@ -66,9 +71,12 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
         progress: a tqdm bar to advance by one per step (or None).
     """
     task = TASKS[name](module, sim)
+    if task.dim == 0:  # a network without devices of this kind (e.g. no storage): nothing to learn
+        return {"steps": 0, "best_step": 0, "adam_time_s": 0.0, "time_s": 0.0, "devices": 0}
     engine = torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=seed)
     val_in = task.sample(torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=seed + 10_000)
-                         .draw(cfg.val_size).double())
+                         .draw(_points(cfg.val_size, task, cfg)).double())
+    batch = _points(cfg.batch_size, task, cfg)
     val_ref = task.reference(val_in)
     opt = torch.optim.AdamW(module.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(cfg, s))
@@ -90,7 +98,7 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
     step = 0
     module.train()
     while step < cfg.max_steps:
-        inputs = task.sample(engine.draw(cfg.batch_size).double())
+        inputs = task.sample(engine.draw(batch).double())
         losses = task.losses(inputs, cfg)
         loss = _total(losses, cfg.weights)
         opt.zero_grad(set_to_none=True)
@@ -133,7 +141,7 @@ def _lbfgs_finish(task: _Task, cfg: ModuleTrainConfig, seed: int) -> None:
     module = task.module
     module.net.double()  # only the network: the physics buffers are float64 / complex128 already
     inputs = task.sample(torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=seed + 20_000)
-                         .draw(cfg.lbfgs_batch).double())
+                         .draw(_points(cfg.lbfgs_batch, task, cfg)).double())
     opt = torch.optim.LBFGS(module.parameters(), lr=1.0, max_iter=cfg.lbfgs_iters, history_size=50,
                             tolerance_grad=1e-12, tolerance_change=1e-15, line_search_fn="strong_wolfe")
 

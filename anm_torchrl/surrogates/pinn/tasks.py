@@ -27,6 +27,7 @@ class _Task:
     name: str
     terms: tuple[str, ...]
     dim: int
+    units: int = 1  # samples one Sobol point holds (devices of a KKT-NN), for ``per_device`` batch sizes
 
     def __init__(self, module: nn.Module, sim: GridSimulator):
         self.module, self.sim = module, sim
@@ -49,7 +50,7 @@ class _KKTTask(_Task):
 
     def __init__(self, module, sim):
         super().__init__(module, sim)
-        self.n = module.g.shape[0]
+        self.n = self.units = module.g.shape[0]
         self.dim = 3 * self.n
 
     def sample(self, u):

@@ -1,0 +1,125 @@
+"""PINN accuracy against bus count on the registered feeders: the record ``results/pinn_generic_accuracy.json``.
+
+For each network (:func:`anm_torchrl.networks.list_networks`): train a preset from physics alone (timed: wall and
+CPU seconds of this process, one torch thread, with the load average before and after — the machine may be
+shared), store the model (the network's default cache when it passes the preset's acceptance bar and the cache
+is empty, else ``--model-dir/<network>/pinn.safetensors``), then evaluate the whole chain against the exact simulator on held-out
+``random`` and MPC-``expert`` transitions (:mod:`.evaluate`; never seen in training, other seeds than any
+validation set). Per network and set: |V| MAE (p.u.), next-state P/Q MAE of every generator and storage unit
+relative to its rating (largest and mean over devices; target ≤ 0.01), the slack's relative to the peak load,
+the terminal check's precision/recall against the simulator's non-convergence, and inference cost.
+
+Commands (each network in its own process, then one merge)::
+
+    python -m anm_torchrl.surrogates.pinn.generic_accuracy --networks case33bw --out /tmp/acc_case33bw.json
+    python -m anm_torchrl.surrogates.pinn.generic_accuracy --merge /tmp/acc_*.json --out results/pinn_generic_accuracy.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from anm_torchrl.data.generic import simulator_for
+from anm_torchrl.surrogates.pinn import cache
+from anm_torchrl.surrogates.pinn.chain import load_pinn
+from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets
+from anm_torchrl.surrogates.pinn.train import MODULES, preset, save_pinn, train_pinn
+
+log = logging.getLogger(__name__)
+
+#: metrics kept in the record, per transition set (the full set is in :func:`.evaluate.evaluate_pinn`)
+KEPT = ("n", "terminal_rate_sim", "vmag_mae_pu", "vmag_mae_pb_pu", "pf_residual_mean", "gen_proj_mae_pu",
+        "des_proj_mae_pu", "feasible", "next_pq_rel_mae_max", "next_pq_rel_mae_mean", "slack_pq_rel_mae",
+        "next_pq_mae_mw", "soc_mae_mwh", "reward_mae", "terminal_precision", "terminal_recall", "terminal_rate_pinn",
+        "time_us", "sim_time_us")
+TARGETS = {"vmag_mae_pu": 1e-3, "next_pq_rel_mae_max": 0.01}
+
+
+def measure_network(network: str, preset_name: str = "default", seed: int = 0, n_random: int = 10_000,
+                    expert_envs: int = 8, expert_steps: int = 125, eval_seed: int = 12345,
+                    model_dir: str | Path = "outputs/pinn_generic") -> dict[str, Any]:
+    """Train, store and evaluate the PINN of ``network``; returns its record entry (JSON-ready)."""
+    sim = simulator_for(network)
+    cfg = preset(preset_name, seed=seed)
+    load0 = os.getloadavg()
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    modules, report = train_pinn(cfg, sim)
+    train_wall, train_cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    load1 = os.getloadavg()
+    file = cache.default_path(sim)
+    if not report["accepted"] or file.exists():  # a failed model never lands in the cache; an existing one stays
+        file = Path(model_dir) / network / "pinn.safetensors"
+    save_pinn(file, modules, cfg, report, sim)
+    chain = load_pinn(sim, path=file, train_if_missing=False)
+    results = evaluate_sets(chain, sim, n_random=n_random, n_expert_envs=expert_envs, expert_steps=expert_steps,
+                            seed=eval_seed)
+    sets = {name: {k: res[k] for k in KEPT} for name, res in results.items()}
+    meets = {name: {k: (s[k] is not None and s[k] <= bound) for k, bound in TARGETS.items()} for name, s in sets.items()}
+    return {
+        "network": network, "n_bus": sim.net.n_bus, "n_dev": sim.net.n_dev, "n_gen": sim.n_gen, "n_des": sim.n_des,
+        "n_load": sim.n_load, "preset": preset_name, "seed": seed, "model": str(file), "accepted": report["accepted"],
+        "acceptance_failures": report["acceptance_failures"],
+        "train_wall_s": train_wall, "train_cpu_s": train_cpu, "loadavg_before": list(load0),
+        "loadavg_after": list(load1),
+        "modules": {m: {k: v for k, v in report[m].items() if isinstance(v, (int, float))} for m in MODULES},
+        "eval": sets, "meets_targets": meets,
+    }
+
+
+def record(entries: list[dict[str, Any]], command: str) -> dict[str, Any]:
+    """The record: entries sorted by bus count, with the targets, the machine and the command."""
+    return {"description": __doc__.split("\n")[0], "targets": TARGETS, "command": command,
+            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__,
+                        "torch_threads": torch.get_num_threads()},
+            "networks": sorted(entries, key=lambda e: e["n_bus"])}
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """CLI (module docstring)."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--networks", nargs="*", default=[], help="registered network names")
+    ap.add_argument("--merge", nargs="*", default=[], help="records to merge (their networks), instead of measuring")
+    ap.add_argument("--out", required=True, help="JSON file to write")
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--n-random", type=int, default=10_000)
+    ap.add_argument("--expert-envs", type=int, default=8)
+    ap.add_argument("--expert-steps", type=int, default=125)
+    ap.add_argument("--model-dir", default="outputs/pinn_generic", help="where a model failing its bar is saved")
+    args = ap.parse_args(argv)
+    if bool(args.networks) == bool(args.merge):
+        raise ValueError("give either --networks (measure) or --merge (combine records), not both or neither")
+    torch.set_num_threads(1)
+    if args.merge:
+        entries, commands = [], []
+        for f in args.merge:
+            part = json.loads(Path(f).read_text())
+            entries += part["networks"]
+            commands.append(part["command"])
+        names = [e["network"] for e in entries]
+        if len(set(names)) != len(names):
+            raise ValueError(f"the merged records measure a network twice: {names}")
+        out = record(entries, " && ".join(commands))
+    else:
+        entries = [measure_network(n, args.preset, args.seed, args.n_random, args.expert_envs, args.expert_steps,
+                                   model_dir=args.model_dir) for n in args.networks]
+        out = record(entries, "python -m anm_torchrl.surrogates.pinn.generic_accuracy --networks "
+                     f"{' '.join(args.networks)} --preset {args.preset} --seed {args.seed} --n-random {args.n_random} "
+                     f"--expert-envs {args.expert_envs} --expert-steps {args.expert_steps}")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
+    return out
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO)
+    main()
