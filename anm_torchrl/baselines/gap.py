@@ -120,7 +120,8 @@ def compare_formulations(sim, state: torch.Tensor, steps: int) -> dict:
 
 
 def table(rows: dict) -> list[dict]:
-    """Mean return and loss as % of the optimum's per row (empty percentages without an ``optimal`` row)."""
+    """Mean return and loss as % of the optimum's per row (empty percentages without an ``optimal`` row), best
+    first."""
     opt = np.asarray(rows["optimal"]["discounted_return"]) if "optimal" in rows else None
     out = []
     for name, r in rows.items():
@@ -129,11 +130,12 @@ def table(rows: dict) -> list[dict]:
         out.append({"policy": name, "mean_discounted_return": float(ret.mean()),
                     "loss_pct_of_optimum": None if pct is None else float(np.mean(pct)),
                     "loss_pct_of_optimum_per_episode": None if pct is None else pct.tolist()})
-    return out
+    return sorted(out, key=lambda t: -t["mean_discounted_return"])
 
 
 def markdown(rec: dict) -> str:
     """The gap table of a record as Markdown: per row the mean return, per-episode returns and loss vs optimum."""
+    rec = {**rec, "table": table(rec["rows"])}
     lines = ["| policy | discounted return (mean) | per episode | loss, % of the optimum's |", "|---|---|---|---|"]
     for t in rec["table"]:
         per = ", ".join(f"{v:.4f}" for v in rec["rows"][t["policy"]]["discounted_return"])
