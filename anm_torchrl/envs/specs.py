@@ -92,13 +92,25 @@ def check_action(action: torch.Tensor, low: torch.Tensor, high: torch.Tensor, cl
         raise ValueError(f"non-finite action at (env, entry) {_pairs(envs, entries)}")
     if clip:
         return torch.clamp(a, low, high)
-    out = (a < low) | (a > high)
+    # The action spec is float32: a bound such as 0.754 MW rounds outward in float32, so the spec's own
+    # high/low must pass. Accept the float32-rounded box, then clamp onto the exact float64 box (the
+    # projection onto the device polygon would do the same).
+    low32, high32 = _f32_outward(low, -1), _f32_outward(high, 1)
+    out = (a < low32) | (a > high32)
     if out.any():
         envs, entries = out.nonzero(as_tuple=True)
         vals = a[envs[:5], entries[:5]].tolist()
         raise ValueError(
             f"action outside the box at (env, entry) {_pairs(envs, entries)}; values {vals}; box low "
             f"{low.tolist()} high {high.tolist()} (MW/MVAr). Pass action_mode='clip' to clip instead.")
-    return a
+    return torch.clamp(a, low, high)
+
+
+def _f32_outward(bound: torch.Tensor, direction: int) -> torch.Tensor:
+    """``bound`` (float64) widened to the nearest float32 value on its outer side (``direction`` ±1)."""
+    b32 = bound.to(torch.float32)
+    inward = (b32.to(torch.float64) - bound) * direction < 0
+    b32 = torch.where(inward, torch.nextafter(b32, torch.full_like(b32, direction * float("inf"))), b32)
+    return b32.to(torch.float64)
 
 
