@@ -57,8 +57,8 @@ def versions() -> dict[str, str | None]:
     from importlib import metadata
 
     out: dict[str, str | None] = {}
-    for pkg in ("anm_torchrl", "torch", "torchrl", "tensordict", "numpy", "gym-anm", "scikit-learn", "xgboost",
-                "hydra-core", "matplotlib", "osqp"):
+    for pkg in ("anm_torchrl", "torch", "torchrl", "tensordict", "numpy", "gym-anm", "scikit-learn", "xgboost-cpu",
+                "xgboost", "hydra-core", "matplotlib", "osqp", "numba", "casadi"):
         try:
             out[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
