@@ -17,7 +17,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.experiments.report import CLAIMS, _fmt, _table
+from anm_torchrl.experiments.report import CLAIMS, _portable_command, _table
 
 BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)", re.S)
 
@@ -61,7 +61,7 @@ def block_test_returns(res: dict[str, Any]) -> str:
     if reused:
         table += (f"\n\nRows measured by earlier runs of this experiment on the same states and protocol (git "
                   f"commit {', '.join(f'`{c}`' for c in reused)}) and merged into this record.")
-    na = "; ".join(f"`{k}`: {str(v)[:120]}" for k, v in d.get("not_available", {}).items())
+    na = "; ".join(f"`{k}`: {_portable_command(v)[:120]}" for k, v in d.get("not_available", {}).items())
     return f"{head}\n\n{table}\n\n" + (f"Not available: {na}\n\n" if na else "") + _source(rec, res.get("run"))
 
 
@@ -78,8 +78,11 @@ def block_adaptability(res: dict[str, Any]) -> str:
             row.update({sc: next((r["one_step_mae"] for r in rows if (r["agent"], r["surrogate"], r["scenario"]) ==
                                   (agent, lab, sc)), None) for sc in scenarios})
             table.append(row)
+    na = rec["data"].get("not_available") or {}
+    missing = (f"Not in this record (no trained model when it ran): {', '.join(f'`{k}`' for k in na)}.\n\n"
+               if na else "")
     return ("One-step (teacher-forced) state MAE along the episodes of each scenario (MW, MVAr, MWh):\n\n"
-            + _table(table, ["agent", "surrogate", *scenarios]) + "\n\n" + _source(rec, res.get("run")))
+            + _table(table, ["agent", "surrogate", *scenarios]) + "\n\n" + missing + _source(rec, res.get("run")))
 
 
 BLOCKS = {"claims": block_claims, "test_returns": block_test_returns, "adaptability": block_adaptability}

@@ -63,13 +63,21 @@ def _portable(path: str) -> str:
     return ".../" + "/".join(p.parts[-2:])
 
 
+def _portable_command(cmd: str) -> str:
+    """A recorded command line or message with its absolute paths made portable (:func:`_portable`)."""
+    import re
+
+    return re.sub(r"(?<![\w.])(/(?:[\w.\-]+/)*[\w.\-]+)", lambda m: _portable(m.group(1)), str(cmd))
+
+
 def _status(rec: dict | None) -> str:
     if not rec:
         return "**not run** (not selected in this preset)"
     if rec["status"] in ("not available", "error"):
-        return f"**{rec['status']}**: {rec.get('reason')}"
+        return f"**{rec['status']}**: {_portable_command(rec.get('reason'))}"
     na = rec.get("data", {}).get("not_available") or {}
-    extra = ("; not available: " + "; ".join(f"`{k}` ({str(v)[:160]})" for k, v in na.items())) if na else ""
+    extra = ("; not available: " + "; ".join(f"`{k}` ({_portable_command(v)[:160]})" for k, v in na.items())
+             if na else "")
     return f"status **{rec['status']}**{extra}"
 
 
@@ -393,16 +401,16 @@ def write_results_md(res: dict, figs: dict, path: str | Path, run_info: dict) ->
         except Exception as err:  # noqa: BLE001
             what, verdict = f"error: {err}", "not measured"
         claims.append(f"| {text} | {what} | **{verdict}** |")
-    updates = "".join(f"\n_Updated by `{u['command']}` on {u['date']} ({u['wall_s']:.0f} s): experiments "
+    updates = "".join(f"\n_Updated by `{_portable_command(u['command'])}` on {u['date']} ({u['wall_s']:.0f} s): experiments "
                       f"{', '.join(u['experiments'])} re-run with git commit {u['versions'].get('git_commit')}._"
                       for u in run_info.get("updates", []))
-    prov = [{"experiment": k, "status": v.get("status"), "command": f"`{run_info.get('command')}`",
+    prov = [{"experiment": k, "status": v.get("status"), "command": f"`{_portable_command(run_info.get('command'))}`",
              "date": run_info.get("date"), "git commit": (v.get("git_commit") or v_commit)[:7],
              "wall_s": v.get("wall_s")} for k, v in run_info.get("experiments", {}).items()
             for v_commit in [str((run_info.get("versions") or {}).get("git_commit"))]]
     for u in run_info.get("updates", []):  # a later merged run replaces the rows of the experiments it re-ran
         prov = [r for r in prov if r["experiment"] not in u["experiments"]] + [
-            {"experiment": k, "status": e.get("status"), "command": f"`{u['command']}`", "date": u["date"],
+            {"experiment": k, "status": e.get("status"), "command": f"`{_portable_command(u['command'])}`", "date": u["date"],
              "git commit": str(e.get("git_commit") or (u.get("versions") or {}).get("git_commit"))[:7],
              "wall_s": e.get("wall_s")} for k, e in u["experiments"].items()]
     md = TEMPLATE.format(provenance=_table(prov, ["experiment", "status", "command", "date", "git commit",
