@@ -10,10 +10,16 @@ length, as gym-anm's ``MPCAgentPerfect`` wraps around the day), per stage ``k`` 
   P_ij = B_ij (θ_i − θ_j) for branch (i → j);
 * loads = forecast; PMIN ≤ P_gen ≤ PMAX and P_gen ≤ forecast P_pot; PMIN ≤ P_DES ≤ PMAX; P_DES = p_dis − p_ch;
   SoC_{k+1} = SoC_k + Δt·EFF·p_ch − Δt·p_dis/EFF ∈ [SOC_MIN, SOC_MAX] (SoC_0 from the state);
-* θ ∈ [−π, π], θ_slack-bus = 0; the slack P is free;
-* objective Σ_k γ^k [P_slack,k + λ Σ_branches o_k].
+* θ ∈ [−π, π], θ = 0 at the bus whose position is the slack device's (gym-anm's rule; the slack bus whenever the
+  slack is device 0 at bus 0, as on every registered network); the slack P is free;
+* objective Σ_k γ^k [P_slack,k + Σ P_classical,k + λ Σ_branches o_k] (gym-anm's cost: every non-renewable
+  generator's P).
 
-The action is the first-stage P of the renewable generators and of the DES in MW, all Q = 0, clipped to the
+Any network: classical and renewable generators are both planned (P ≤ min(PMAX, forecast potential), the
+classical ones at a cost), any number of storage units (zero included), unrated branches carry no overload term.
+The action is the first-stage P of every non-slack generator and storage unit.
+
+The action is the first-stage P of the non-slack generators and of the DES in MW, all Q = 0, clipped to the
 action box. Forecasts: ``"constant"`` (the state's load P and P_pot held flat, as ``MPCAgentConstant``) or
 ``"perfect"`` (the raw series at t+1 … t+N, as ``MPCAgentPerfect``: the unclipped 36.75 MW PV values appear).
 
@@ -52,7 +58,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from anm_torchrl.grid import devices as dv
-from anm_torchrl.grid.network import SLACK
+from anm_torchrl.grid.network import CLASSICAL_GEN, SLACK
 from anm_torchrl.grid.simulator import GridSimulator
 
 DEFAULT_HORIZON = 32
@@ -125,7 +131,13 @@ class MPCPolicy(TensorDictModuleBase):
         nb, nd, nbr = net.n_bus, net.n_dev, len(net.branches.rate)
         gen, des, load = sim.gen_ids, sim.des_ids, sim.load_ids
         nes, nl = len(des), len(load)
-        slack = [i for i, k in enumerate(net.dev_type.tolist()) if k == SLACK][0]
+        kinds = net.dev_type.tolist()
+        slack = kinds.index(SLACK)
+        if slack >= nb:
+            raise ValueError(f"the slack device's position {slack} must be < n_bus = {nb}: gym-anm fixes the angle "
+                             f"of the bus at that position (MPCAgent: V_bus_ang[dev_id_mapping[slack]] = 0)")
+        # gym-anm's stage cost P_slack + Σ P_classical: every generator that is not renewable
+        costly = [slack] + [i for i, k in enumerate(kinds) if k == CLASSICAL_GEN]
         dev = net.dev.cpu().numpy()
         b_bus = net.y_bus.imag.cpu().numpy()
         f_bus, t_bus = net.branches.f_bus.cpu().numpy(), net.branches.t_bus.cpu().numpy()
@@ -167,7 +179,8 @@ class MPCPolicy(TensorDictModuleBase):
         split = unit(o_p + np.array(des, dtype=int))  # P_DES − p_dis + p_ch = 0
         split[np.arange(nes), o_ch + np.arange(nes)] = 1.0
         split[np.arange(nes), o_dis + np.arange(nes)] = -1.0
-        ang = unit(o_th + 0)  # gym-anm fixes θ at index dev_id_mapping[slack] = 0, the slack bus
+        ang = unit(o_th + slack)  # gym-anm fixes θ at index dev_id_mapping[slack] (the slack bus on every registered
+        # network, where the slack is device 0 at bus 0)
         eq = np.vstack([bal, fix_load, split, ang])
         n_eq = eq.shape[0]
         self._a_eq = sp.block_diag([sp.csc_matrix(eq)] * n_stage, format="csc")
@@ -214,9 +227,9 @@ class MPCPolicy(TensorDictModuleBase):
         self._soc_hi_rows = self._soc_lo_rows + n_stage * nes
         self._soc_min, self._soc_max = dev[des, dv.SOC_MIN], dev[des, dv.SOC_MAX]
 
-        # Cost Σ_k γ^k [P_slack + λ Σ o].
+        # Cost Σ_k γ^k [P_slack + Σ P_classical + λ Σ o].
         c_loc = np.zeros(nv)
-        c_loc[o_p + slack] = 1.0
+        c_loc[o_p + np.array(costly, dtype=int)] = 1.0
         c_loc[o_o + np.flatnonzero(fin)] = lamb
         self._c = np.concatenate([self.gamma ** k * c_loc for k in range(n_stage)])
         self._p_zero = sp.csc_matrix((n_var, n_var))
