@@ -60,6 +60,11 @@ IPOPT_OPTIONS = {
     "print_level": 0,
     "sb": "yes",
 }
+# Upper bound (p.u.) of the penalty's slack variables. Late steps of a 3,000-step horizon weigh γ^k ≈ 3e-7, so
+# their slacks cost less than IPOPT's barrier parameter μ; unbounded, the barrier pushes them to ≈ μ / weight
+# (thousands of p.u.) and IPOPT crawls back over hundreds of iterations. A violation of 1 p.u. costs λΔt = 25 a
+# step (the optimum's are < 0.04 p.u.), and a solution with a slack at this bound is refused (``slack_at_bound``).
+SLACK_MAX = 1.0
 # Horizons up to this are expanded to one SX graph (function evaluations ~10x faster, build time growing with N:
 # seconds at 256 steps, minutes at 3,000); longer ones keep the mapped stage function.
 EXPAND_MAX = 256
@@ -176,6 +181,7 @@ class NLPResult:
         status: IPOPT's return status.  success: IPOPT's success flag.  iterations: IPOPT iterations.
         inf_pr, inf_du: IPOPT's final primal and dual infeasibility (unscaled max-norms), the KKT residual.
         complementarity: max_k min(p_ch, p_dis) p.u. (0 when the split is exact).
+        slack_at_bound: whether a penalty slack sits at :data:`SLACK_MAX` (the bound would then be active).
         solve_time: s (wall, IPOPT and function evaluations).
         x, lam_x, lam_g: raw primal and dual vectors (for warm starts).
     """
@@ -190,6 +196,7 @@ class NLPResult:
     inf_pr: float
     inf_du: float
     complementarity: float
+    slack_at_bound: bool
     solve_time: float
     x: np.ndarray
     lam_x: np.ndarray
@@ -199,6 +206,7 @@ class NLPResult:
         """JSON-ready scalars of the solve."""
         return {"status": self.status, "success": self.success, "iterations": self.iterations,
                 "inf_pr": self.inf_pr, "inf_du": self.inf_du, "complementarity": self.complementarity,
+                "slack_at_bound": self.slack_at_bound,
                 "objective": self.objective, "discounted_return": self.discounted_return,
                 "solve_time_s": self.solve_time, "clip_active_steps": int(self.points.clip_active.sum()),
                 "max_penalty": float(self.points.penalty.max()),
@@ -412,6 +420,8 @@ class ACHorizonNLP:
             lbx[:, lay["v2"]] = 0.0
         for name in ("vu", "vl", "ob", "pch", "pdis"):
             lbx[:, lay[name]] = 0.0
+        for name in ("vu", "vl", "ob"):
+            ubx[:, lay[name]] = SLACK_MAX
         des = sim.des_ids
         ubx[:, lay["pch"]], ubx[:, lay["pdis"]] = -dev[des, dv.PMIN], dev[des, dv.PMAX]
         if direction is not None:
@@ -523,7 +533,12 @@ class ACHorizonNLP:
                          objective=float(sol["f"]) + float(curt), status=str(st["return_status"]),
                          success=bool(st["success"]), iterations=int(st["iter_count"]), inf_pr=inf_pr,
                          inf_du=inf_du, complementarity=comp, solve_time=wall, x=x,
+                         slack_at_bound=bool(self._slacks(x).max(initial=0.0) >= SLACK_MAX - 1e-6),
                          lam_x=np.asarray(sol["lam_x"]).reshape(-1), lam_g=np.asarray(sol["lam_g"]).reshape(-1))
+
+    def _slacks(self, x: np.ndarray) -> np.ndarray:
+        xs = x.reshape(self.horizon, self.nx)
+        return np.concatenate([xs[:, self.lay[k]] for k in ("vu", "vl", "ob")], 1)
 
     def extract(self, x: np.ndarray, soc0: np.ndarray, p_load: np.ndarray, p_pot: np.ndarray,
                 offsets: PowerFlowOffsets | None = None) -> tuple[OperatingPoints, np.ndarray, float]:

@@ -184,6 +184,8 @@ def _round(res: NLPResult, what: str) -> dict:
 
 
 def _check(res: NLPResult, k: int) -> None:
+    if res.slack_at_bound:
+        raise RuntimeError(f"optimum round {k}: a penalty slack reached its bound SLACK_MAX (nlp_model)")
     if not res.success:
         raise RuntimeError(f"optimum round {k}: IPOPT returned {res.status} after {res.iterations} iterations "
                            f"(primal infeasibility {res.inf_pr:.2e}, dual {res.inf_du:.2e})")
