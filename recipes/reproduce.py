@@ -89,8 +89,8 @@ def run_experiment(name: str, cfg: DictConfig, out_dir: Path, surrogates: list[d
                    train_s: dict[str, float]) -> dict:
     """Run one experiment by name; any exception becomes an ``error`` record. ``train_s``: seconds this run spent
     training each surrogate (label -> s), counted in claim 2's time to return."""
-    from anm_torchrl.experiments import (accuracy, adaptability, pinn_losses, ppo_curves, rollout_error, speed,
-                                         sweep, test_returns)
+    from anm_torchrl.experiments import (accuracy, adaptability, payoff, pinn_losses, ppo_curves, rollout_error,
+                                         speed, sweep, test_returns)
     from anm_torchrl.experiments.io import result
 
     p = OmegaConf.to_container(cfg.preset, resolve=True)
@@ -120,6 +120,8 @@ def run_experiment(name: str, cfg: DictConfig, out_dir: Path, surrogates: list[d
             ppo = sub.get("ppo", {})
             sub = {**sub, "ppo": {**ppo, "base": {**ppo.get("base", {}), "threads": int(cfg.threads)}}}
             rec = test_returns.run(sub, surrogates, out_dir)
+        elif name == "payoff":  # issue 13's study: python recipes/reproduce.py preset=payoff
+            rec = payoff.run(sub, surrogates, out_dir, seed)
         else:
             raise ValueError(f"unknown experiment {name!r}")
     except Exception as err:  # noqa: BLE001 - one experiment never stops the others

@@ -1,0 +1,219 @@
+"""The study "when does a surrogate pay off?" (issue 13 item 5): cost per transition against bus count, the PINN's
+accuracy against bus count, and PPO's time to a fixed fraction of do-nothing's loss.
+
+Three parts, each optional (``cfg["parts"]``):
+
+* ``cost`` — per registered network (6 → 115 buses) and batch size, in ONE run: gym-anm 2.0.1's generic env
+  (batch 1; :func:`~anm_torchrl.benchmarks.env_networks.bench_gym_generic`), ``ANMEnv`` on the numba and the
+  torch backend, and every surrogate spec whose model exists for that network (PINN, XGBoost, MLP ``dnn``...;
+  a missing one is a row with its reason). Each measurement is ``rand_action`` + ``step_and_maybe_reset`` after a
+  warm-up (construction, model load, first reset and step) timed apart. The machine is shared: every row carries
+  the 1-minute load average read just before it, and the ratio to the numba backend at the same network and
+  batch (measured next to it) is the figure to compare across rows. ``crossover``: per surrogate and batch, the
+  smallest bus count at which it is cheaper per transition than the cheaper exact backend (None: never, over the
+  networks measured).
+* ``accuracy`` — the PINN's accuracy and training time against bus count, read from the record of the generic
+  PINN (``accuracy_record``, default ``results/pinn_generic_accuracy.json``); never trained here.
+* ``ppo`` — PPO (:func:`~anm_torchrl.training.ppo_loop.train_ppo`, the recipe's loop) on ``network`` with each
+  training env (``none``: the true simulator; a surrogate spec), seeds ``seeds``, a wall-clock cap
+  (``timeout_s``): the time (wall, training only, frames) to first reach a return ≥ ``threshold_fraction`` ×
+  do-nothing's return on the same validation states (returns are < 0: 0.5 = half of do-nothing's loss), runs that never reach it censored at their length
+  (:mod:`.time_to_return`), a surrogate's training time added when given (``surrogate_train_s``). Runs made
+  earlier by the same code may be reused (``reuse``: label → list of ``run_ppo`` record files).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from anm_torchrl.experiments.common import label, make_env_or_reason
+from anm_torchrl.experiments.io import read_json, result
+
+log = logging.getLogger(__name__)
+
+PARTS = ("cost", "accuracy", "ppo")
+EXACT = ("numba", "torch")
+ACCURACY_RECORD = Path(__file__).resolve().parents[2] / "results" / "pinn_generic_accuracy.json"
+
+
+def _load() -> float:
+    return os.getloadavg()[0]
+
+
+def _row(network: str, n_bus: int, impl: str, batch: int, warm: float | None, rate: float | None,
+         load: float, **extra) -> dict[str, Any]:
+    us = None if not rate else 1e6 / rate
+    return {"network": network, "n_bus": n_bus, "impl": impl, "batch": batch, "warm_s": warm,
+            "transitions_per_s": rate, "us_per_transition": us, "load_avg_1min": load, **extra}
+
+
+def surrogate_row(spec: dict, network: str, n_bus: int, batch: int, min_time: float, min_steps: int,
+                  seed: int) -> dict[str, Any]:
+    """One surrogate env's warm-up and rate on ``network`` at ``batch`` (a reason instead when it has no model)."""
+    from anm_torchrl.benchmarks.env import time_env_steps
+
+    load = _load()
+    if spec["name"] == "pinn":  # time an existing model only: never train one inside a timing loop
+        spec = {"train_if_missing": False, **spec}
+    env, why = make_env_or_reason(spec, 1, network=network)
+    if env is None:
+        return _row(network, n_bus, label(spec), batch, None, None, load, reason=why)
+    del env
+
+    def make():
+        env, err = make_env_or_reason(spec, batch, seed=seed, network=network)
+        if env is None:
+            raise RuntimeError(err)
+        return env
+
+    warm, steps_per_s = time_env_steps(make, min_time, min_steps, seed)
+    return _row(network, n_bus, label(spec), batch, warm, batch * steps_per_s, load)
+
+
+def cost_rows(networks: list[str], batches: list[int], surrogates: list[dict], min_time: float, min_steps: int,
+              gym_steps: int, seed: int = 0, backends: tuple[str, ...] = EXACT) -> list[dict[str, Any]]:
+    """Rows of :func:`_row` for every network × implementation × batch (see the module docstring)."""
+    from anm_torchrl.benchmarks.env_networks import bench_anm_env, bench_gym_generic, load_case
+
+    rows = []
+    for name in networks:
+        case = load_case(name)
+        n_bus = int(case["network"]["bus"].shape[0])
+        if gym_steps > 0:
+            load = _load()
+            r = bench_gym_generic(case, gym_steps, seed)
+            rows.append(_row(name, n_bus, "gym_anm", 1, r["warm"], r["rate"], load))
+        for b in batches:
+            for backend in backends:
+                load = _load()
+                r = bench_anm_env(case, b, backend, min_time, min_steps, seed)
+                rows.append(_row(name, n_bus, f"anm_env_{backend}", b, r["warm"], r["rate"], load))
+            for spec in surrogates:
+                rows.append(surrogate_row(spec, name, n_bus, b, min_time, min_steps, seed))
+            log.info("payoff cost: %s batch %d done", name, b)
+    for r in rows:  # ratio to numba at the same network and batch, measured in the same run
+        ref = next((q for q in rows if q["network"] == r["network"] and q["batch"] == r["batch"]
+                    and q["impl"] == "anm_env_numba" and q["us_per_transition"]), None)
+        r["x_numba"] = (r["us_per_transition"] / ref["us_per_transition"]
+                        if ref is not None and r["us_per_transition"] else None)
+    return rows
+
+
+def crossover(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per (surrogate, batch): the smallest bus count where its cost per transition is below the cheaper exact
+    backend's (``n_bus`` None: never over the networks measured), and the bus counts it was measured at."""
+    exact = {f"anm_env_{b}" for b in EXACT}
+    out = []
+    for impl in sorted({r["impl"] for r in rows if r["impl"] not in exact and r["impl"] != "gym_anm"}):
+        for batch in sorted({r["batch"] for r in rows}):
+            measured, first = [], None
+            for r in sorted((r for r in rows if r["impl"] == impl and r["batch"] == batch and r["us_per_transition"]),
+                            key=lambda r: r["n_bus"]):
+                best = min((q["us_per_transition"] for q in rows if q["network"] == r["network"]
+                            and q["batch"] == batch and q["impl"] in exact and q["us_per_transition"]), default=None)
+                if best is None:
+                    continue
+                measured.append(r["n_bus"])
+                if first is None and r["us_per_transition"] < best:
+                    first = r["n_bus"]
+            out.append({"impl": impl, "batch": batch, "crossover_n_bus": first, "measured_n_bus": measured})
+    return out
+
+
+def accuracy_part(path: str | Path | None) -> dict[str, Any]:
+    """The generic PINN's accuracy-vs-bus-count record, or why it is not available."""
+    p = Path(path) if path else ACCURACY_RECORD
+    if not p.is_file():
+        return {"available": False, "reason": f"{p} not found (the generic PINN's record has not landed)"}
+    rec = read_json(p)
+    return {"available": True, "file": str(p), "status": rec.get("status"), "data": rec.get("data", rec)}
+
+
+def do_nothing_return(network: str, base: dict[str, Any]) -> dict[str, Any]:
+    """Do-nothing's metrics on the PPO runs' validation states (same seed, count, length, network)."""
+    from anm_torchrl.baselines import make_baseline
+    from anm_torchrl.experiments.ppo_runs import compose_ppo_config, ppo_overrides
+    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.training.factory import make_true_env
+
+    cfg = compose_ppo_config(ppo_overrides({"name": "none"}, 0, {**base, "network": network}))
+    ev = cfg.eval
+    env = make_true_env(int(ev.num_episodes), seed=int(ev.seed), network=network)
+    states = draw_initial_states(int(ev.num_episodes), int(ev.seed), env.sim, env.init)
+    res = evaluate_policy(make_baseline("do_nothing", sim=env.sim), states, max_steps=int(ev.max_steps),
+                          gamma=float(ev.gamma), env=env)
+    return {**res.metrics(), "seconds": res.wall_time, "episodes": int(ev.num_episodes),
+            "max_steps": int(ev.max_steps), "eval_seed": int(ev.seed)}
+
+
+def ppo_part(cfg: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    """PPO time to ``threshold_fraction`` × do-nothing's return on ``network`` (see the module docstring)."""
+    from anm_torchrl.experiments.ppo_curves import threshold_columns
+    from anm_torchrl.experiments.ppo_runs import last_mean, ppo_overrides, run_ppo, time_to_reach
+
+    network = str(cfg.get("network", "case33bw"))
+    base = {**dict(cfg.get("base", {})), "network": network}
+    dn = do_nothing_return(network, base)
+    fraction = float(cfg.get("threshold_fraction", 0.5))
+    threshold = fraction * dn["return"]
+    reuse = {k: [read_json(f) for f in v] for k, v in (cfg.get("reuse") or {}).items()}
+    train_s = dict(cfg.get("surrogate_train_s") or {})
+    runs, table = {}, []
+    for spec in [{"name": n} if isinstance(n, str) else dict(n) for n in cfg.get("envs", ["none"])]:
+        lab = label(spec)
+        if lab in reuse:
+            seed_runs = reuse[lab]
+        else:
+            seed_runs = [run_ppo(ppo_overrides(spec, s, base), out_dir / "runs" / "payoff" / f"{lab}_s{s}",
+                                 timeout_s=cfg.get("timeout_s")) | {"seed": s} for s in cfg.get("seeds", [0])]
+        for r in seed_runs:
+            r["time_to_threshold"] = time_to_reach(r["curve"], threshold)
+            r["last_return"] = last_mean(r["curve"], "return", 1)
+            r["test"] = (r.get("summary") or {}).get("test")
+        runs[lab] = seed_runs
+        ok = [r for r in seed_runs if r["curve"]]
+        first = lambda r, k: ((r.get("summary") or {}).get("test") or {}).get("best", {}).get(k)  # noqa: E731
+        table.append({"env": lab, "network": network, "seeds": [r.get("seed") for r in ok],
+                      "frames": [r["curve"][-1]["frames"] for r in ok],
+                      "wall_s": [r["curve"][-1]["wall_s"] for r in ok],
+                      "best_eval_return": [max(c["return"] for c in r["curve"]) for r in ok],
+                      "test_best_return": [first(r, "return") for r in ok],
+                      "load_avg_1min": [r.get("load_avg_1min") for r in ok],
+                      **threshold_columns(ok, train_s.get(lab, 0.0 if lab == "none" else None))})
+    return {"network": network, "do_nothing": dn, "threshold_fraction": fraction, "threshold": threshold,
+            "base": base, "runs": runs, "table": table}
+
+
+def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seed: int = 0) -> dict:
+    """cfg keys: ``parts`` (subset of :data:`PARTS`), ``networks`` (default every registered one), ``batch_sizes``,
+    ``min_time``, ``min_steps``, ``gym_steps``, ``backends``, ``accuracy_record``, ``ppo`` (see :func:`ppo_part`).
+    ``surrogates``: the specs timed in ``cost`` (those without a model on a network get a reason)."""
+    from anm_torchrl.networks import list_networks
+
+    parts = list(cfg.get("parts", PARTS))
+    bad = [p for p in parts if p not in PARTS]
+    if bad:
+        raise ValueError(f"payoff.parts: unknown {bad}; expected a subset of {list(PARTS)}")
+    t0 = time.perf_counter()
+    data: dict[str, Any] = {"parts": parts}
+    if "cost" in parts:
+        rows = cost_rows(list(cfg.get("networks") or list_networks()), [int(b) for b in cfg.get("batch_sizes", [1, 1024])],
+                         surrogates, float(cfg.get("min_time", 1.0)), int(cfg.get("min_steps", 3)),
+                         int(cfg.get("gym_steps", 20)), seed, tuple(cfg.get("backends", EXACT)))
+        data["rows"] = rows
+        data["crossover"] = crossover(rows)
+    if "accuracy" in parts:
+        data["pinn_accuracy"] = accuracy_part(cfg.get("accuracy_record"))
+    if "ppo" in parts:
+        data["ppo"] = ppo_part(dict(cfg.get("ppo", {})), Path(out_dir))
+    data["wall_s"] = time.perf_counter() - t0
+    missing = [r for r in data.get("rows", []) if r.get("reason")]
+    status = "partial" if missing or not data.get("pinn_accuracy", {"available": True})["available"] else "ok"
+    return result("payoff", status, data, reason=None if status == "ok" else
+                  f"{len(missing)} cost rows without a model; PINN accuracy record "
+                  f"{'present' if data.get('pinn_accuracy', {}).get('available') else 'absent or not asked'}",
+                  config=cfg, seeds={"seed": seed})

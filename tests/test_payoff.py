@@ -1,0 +1,79 @@
+"""The payoff study (``anm_torchrl/experiments/payoff.py``): crossover logic, parts, a tiny cost run, and the
+Hydra multirun through the submitit launcher's local executor (slow)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from anm_torchrl.experiments import payoff
+
+torch.set_num_threads(1)
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _r(net, n_bus, impl, batch, us):
+    return {"network": net, "n_bus": n_bus, "impl": impl, "batch": batch, "us_per_transition": us}
+
+
+def test_crossover_is_the_first_bus_count_where_the_surrogate_is_cheaper():
+    rows = [_r("a", 6, "anm_env_numba", 1, 10.0), _r("a", 6, "anm_env_torch", 1, 50.0), _r("a", 6, "pinn", 1, 20.0),
+            _r("b", 33, "anm_env_numba", 1, 40.0), _r("b", 33, "anm_env_torch", 1, 30.0), _r("b", 33, "pinn", 1, 25.0),
+            _r("c", 115, "anm_env_numba", 1, 90.0), _r("c", 115, "pinn", 1, 30.0),
+            _r("a", 6, "anm_env_numba", 64, 1.0), _r("a", 6, "pinn", 64, 2.0), _r("b", 33, "pinn", 64, None)]
+    out = {(c["impl"], c["batch"]): c for c in payoff.crossover(rows)}
+    # at 33 buses the cheaper exact backend is torch (30) and the PINN costs 25: cheaper there first
+    assert out[("pinn", 1)]["crossover_n_bus"] == 33 and out[("pinn", 1)]["measured_n_bus"] == [6, 33, 115]
+    assert out[("pinn", 64)]["crossover_n_bus"] is None and out[("pinn", 64)]["measured_n_bus"] == [6]
+
+
+def test_unknown_part_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="payoff.parts"):
+        payoff.run({"parts": ["cost", "speed"]}, [], tmp_path)
+
+
+def test_missing_accuracy_record_is_reported(tmp_path):
+    part = payoff.accuracy_part(tmp_path / "absent.json")
+    assert part["available"] is False and "absent.json" in part["reason"]
+
+
+def test_tiny_cost_run(tmp_path, monkeypatch):
+    """Exact rows measured with a rate and a load average; a surrogate without a model is a row with a reason."""
+    monkeypatch.setenv("ANM_TORCHRL_HOME", str(tmp_path / "home"))  # an empty home: no trained surrogate
+    rec = payoff.run({"parts": ["cost"], "networks": ["anm6_easy"], "batch_sizes": [1, 8], "min_time": 0.0,
+                      "min_steps": 2, "gym_steps": 2}, [{"name": "xgb", "dataset": "generative"}], tmp_path)
+    rows = rec["data"]["rows"]
+    assert {(r["impl"], r["batch"]) for r in rows} == {("gym_anm", 1), ("anm_env_numba", 1), ("anm_env_torch", 1),
+                                                        ("xgb_generative", 1), ("anm_env_numba", 8),
+                                                        ("anm_env_torch", 8), ("xgb_generative", 8)}
+    for r in rows:
+        assert r["load_avg_1min"] >= 0
+        if r["impl"] == "xgb_generative":
+            assert r["us_per_transition"] is None and "xgb" in r["reason"]
+        else:
+            assert r["us_per_transition"] > 0 and r["warm_s"] > 0
+    assert next(r for r in rows if r["impl"] == "anm_env_numba" and r["batch"] == 8)["x_numba"] == 1.0
+    assert rec["status"] == "partial"
+
+
+@pytest.mark.slow
+def test_multirun_with_submitit_local(tmp_path):
+    """``reproduce.py -m`` over two networks through ``hydra/launcher=submitit_local``: one payoff record each."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "ANM_TORCHRL_HOME": str(tmp_path / "home")}
+    cmd = [sys.executable, "recipes/reproduce.py", "-m", "preset=payoff", "preset.payoff.parts=[cost]",
+           "preset.payoff.networks=[anm6_easy],[cigre_mv]", "preset.payoff.batch_sizes=[1]",
+           "preset.payoff.min_time=0.0", "preset.payoff.gym_steps=0", "preset.surrogates=[]",
+           "publish_readme=false", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10",
+           f"hydra.sweep.dir={tmp_path / 'sweep'}"]
+    subprocess.run(cmd, cwd=REPO, env=env, check=True, timeout=900)
+    recs = sorted((tmp_path / "sweep").glob("*/payoff.json"))
+    assert len(recs) == 2
+    nets = {json.loads(p.read_text())["data"]["rows"][0]["network"] for p in recs}
+    assert nets == {"anm6_easy", "cigre_mv"}
