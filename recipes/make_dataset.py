@@ -1,6 +1,7 @@
-"""Generate a dataset of ANM6-Easy transitions for the data-driven surrogates.
+"""Generate a dataset of a network's transitions for the data-driven surrogates.
 
     python recipes/make_dataset.py dataset=generative size=100000 seed=0
+    python recipes/make_dataset.py network=case33bw dataset=agent size=100000   # any registered network
     python recipes/make_dataset.py dataset=agent size=100000 seed=0 agent.num_envs=200
     python recipes/make_dataset.py -m dataset=generative,agent         # both
     python recipes/make_dataset.py dataset=agent size=2000 out=/tmp/agent_small overwrite=true
@@ -27,15 +28,16 @@ log = logging.getLogger("make_dataset")
 
 def run(cfg: DictConfig) -> str:
     """Generate and write the dataset described by ``cfg``; returns its folder."""
-    from anm_torchrl.data import available_datasets, make_dataset
+    from anm_torchrl.data import available_datasets, make_dataset, simulator_for
 
     torch.set_num_threads(int(cfg.threads))
     if cfg.dataset not in available_datasets():
         raise ValueError(f"dataset must be one of {list(available_datasets())}, got {cfg.dataset!r}")
     options = dict(cfg[cfg.dataset]) if cfg.get(cfg.dataset) is not None else {}
     start = time.perf_counter()
+    sim = simulator_for(cfg.network)
     path = make_dataset(cfg.dataset, int(cfg.size), int(cfg.seed), path=cfg.out, overwrite=bool(cfg.overwrite),
-                        progress=bool(cfg.progress), fractions=tuple(cfg.fractions), **options)
+                        sim=sim, progress=bool(cfg.progress), fractions=tuple(cfg.fractions), **options)
     log.info("%s dataset (%d rows, seed %d) written to %s in %.1f s", cfg.dataset, cfg.size, cfg.seed, path,
              time.perf_counter() - start)
     return str(path)

@@ -1,6 +1,7 @@
-"""Train a data-driven surrogate of ANM6-Easy (and its terminal classifier), then measure it.
+"""Train a data-driven surrogate of a network (and its terminal classifier), then measure it.
 
     python recipes/train_surrogate.py surrogate=xgb surrogate.dataset=agent
+    python recipes/train_surrogate.py network=case33bw surrogate=xgb data.size=20000 overwrite_cache=true
     python recipes/train_surrogate.py surrogate=rf models.rf.n_estimators=32
     python recipes/train_surrogate.py all=true          # lr, dt, rf, xgb, dnn on generative and agent (10 models)
     python recipes/train_surrogate.py -m surrogate=lr,dt,rf,xgb,dnn surrogate.dataset=generative,agent
@@ -9,7 +10,8 @@ Steps: load both datasets (``data.*``; a missing one is generated first unless `
 fit the terminal classifier on the surrogate's dataset (or reuse the cached one), fit the regressor on the
 training split (validation split for early stopping), then evaluate on the held-out test split of the same
 dataset *and* of the other dataset. The surrogate folder (``surrogate.path``, default
-``anm_torchrl.paths.surrogate_dir(name, dataset)``) receives, in one atomic save with a manifest, the model,
+``anm_torchrl.paths.surrogate_dir(name, dataset)``, suffixed with the network key on networks other than
+ANM6-Easy: ``anm_torchrl.data.for_network``) receives, in one atomic save with a manifest, the model,
 ``surrogate.json``, the classifier, ``metrics.json``, ``config.yaml`` and, for the DNN, TensorBoard curves in
 ``tb/``. The trained surrogate is then available as ``anm_torchrl.make_env(name, dataset=dataset)`` and
 ``python recipes/ppo.py surrogate=<name>``.
@@ -123,12 +125,12 @@ def check_default_slot(size: int, path: str | None, overwrite_cache: bool) -> No
 
 def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: dict, sim) -> dict:
     """Train, save and evaluate surrogate ``name`` on ``dataset``; returns its metrics."""
-    from anm_torchrl.data import split
+    from anm_torchrl.data import for_network, split
     from anm_torchrl.paths import surrogate_dir
     from anm_torchrl.surrogates.regressors import DATASETS, evaluate_surrogate, fit_regressor
 
     check_request(name, dataset)
-    out = Path(path) if path else surrogate_dir(name, dataset)
+    out = Path(path) if path else for_network(surrogate_dir(name, dataset), sim)
     total = time.perf_counter()
     td, meta = data[dataset]
     check_default_slot(meta["size"], path, bool(cfg.overwrite_cache))  # an explicit data folder may be small too
@@ -182,7 +184,7 @@ def summary_table(results: list[dict]) -> str:
 def run(cfg: DictConfig) -> list[dict]:
     """Train what ``cfg`` asks for (one surrogate, or all ten with ``all=true``); returns the metrics."""
     from anm_torchrl.artifacts import atomic_write
-    from anm_torchrl.grid.simulator import anm6_easy_simulator
+    from anm_torchrl.data import for_network, simulator_for
     from anm_torchrl.paths import artifact_home
     from anm_torchrl.surrogates.regressors import DATASETS, KINDS
 
@@ -193,7 +195,7 @@ def run(cfg: DictConfig) -> list[dict]:
         check_default_slot(int(cfg.data.size), None if cfg.all else cfg.surrogate.get("path"),
                            bool(cfg.overwrite_cache))
     start = time.perf_counter()
-    sim = anm6_easy_simulator()
+    sim = simulator_for(cfg.network)
     data = load_datasets(cfg, sim)
     if cfg.all:
         if cfg.surrogate.get("path"):
@@ -202,7 +204,7 @@ def run(cfg: DictConfig) -> list[dict]:
         results = [train_one(cfg, k, d, None, data, sim)
                    for k, d in tqdm(jobs, desc="surrogates", unit="model", disable=not cfg.progress)]
         table = summary_table(results)
-        out = artifact_home() / "surrogates"
+        out = for_network(artifact_home() / "surrogates", sim)
         atomic_write(out / "summary.json", json.dumps(results, indent=2).encode())
         atomic_write(out / "summary.md", (table + "\n").encode())
         log.info("all surrogates trained in %.1f s; summary in %s\n%s", time.perf_counter() - start,

@@ -1,7 +1,8 @@
 """Datasets of simulator transitions for the data-driven surrogates: Generative (Sobol) and Agent-based.
 
-``python recipes/make_dataset.py dataset=generative|agent size=100000 seed=0`` writes one to
-``anm_torchrl.paths.dataset_dir(kind, size, seed)``; :func:`load_dataset` opens and checks it.
+``python recipes/make_dataset.py dataset=generative|agent size=100000 seed=0 [network=case33bw]`` writes one to
+:func:`default_dataset_dir` (``anm_torchrl.paths.dataset_dir(kind, size, seed)``, suffixed with the network key
+on networks other than ANM6-Easy); :func:`load_dataset` opens and checks it.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from tensordict import TensorDict
 
 from anm_torchrl.artifacts import exclusive_lock
 from anm_torchrl.data.agent import WaypointAgent, generate_agent
+from anm_torchrl.data.generic import for_network, is_anm6, simulator_for
 from anm_torchrl.data.generative import generate_generative
 from anm_torchrl.data.registry import available_datasets, dataset_generator, register_dataset
 from anm_torchrl.data.storage import (KINDS, SPLITS, DatasetError, checksum, load_dataset, make_command, read_meta,
@@ -20,9 +22,16 @@ from anm_torchrl.data.storage import (KINDS, SPLITS, DatasetError, checksum, loa
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.paths import dataset_dir
 
-__all__ = ["KINDS", "SPLITS", "DatasetError", "WaypointAgent", "available_datasets", "checksum", "ensure_dataset",
+__all__ = ["KINDS", "SPLITS", "DatasetError", "WaypointAgent", "available_datasets", "checksum", "default_dataset_dir",
+           "ensure_dataset", "for_network", "simulator_for",
            "generate", "generate_agent", "generate_generative", "load_dataset", "make_dataset", "read_meta",
            "register_dataset", "save_dataset", "split"]
+
+
+def default_dataset_dir(kind: str, size: int, seed: int, sim: GridSimulator | None = None) -> Path:
+    """Default folder of a dataset of ``sim``'s network (None: ANM6-Easy): :func:`anm_torchrl.paths.dataset_dir`,
+    suffixed with the network key on any other network (:func:`anm_torchrl.data.generic.for_network`)."""
+    return for_network(dataset_dir(kind, size, seed), sim)
 
 
 def generate(kind: str, size: int, seed: int = 0, sim: GridSimulator | None = None, progress: bool = False,
@@ -40,7 +49,7 @@ def make_dataset(kind: str, size: int, seed: int = 0, path: str | os.PathLike | 
     The path's exclusive lock is held from the existence check to the final rename, so two runs on one path
     cannot both write: the second raises ``LockedError`` (a ``FileExistsError``) at once.
     """
-    path = Path(path) if path is not None else dataset_dir(kind, size, seed)
+    path = Path(path) if path is not None else default_dataset_dir(kind, size, seed, sim)
     dataset_generator(kind)  # unknown kind: fail before taking the lock
     with exclusive_lock(path):
         if path.exists() and not overwrite:
@@ -58,10 +67,11 @@ def ensure_dataset(kind: str, size: int, seed: int = 0, path: str | os.PathLike 
         DatasetError: it is missing and ``generate_missing`` is False (the message gives the command), or it
             exists but is corrupted or mismatched (it is never silently regenerated).
     """
-    path = Path(path) if path is not None else dataset_dir(kind, size, seed)
+    path = Path(path) if path is not None else default_dataset_dir(kind, size, seed, sim)
     if not path.exists():
         if not generate_missing:
+            network = "" if is_anm6(sim) else " network=<its name>"
             raise DatasetError(f"no {kind} dataset at {path}; generate it with: {make_command(kind, size, seed)}"
-                               f" out={path}")
+                               f"{network} out={path}")
         make_dataset(kind, size, seed, path=path, sim=sim, progress=progress, **options)
     return load_dataset(path, kind=kind, size=size, seed=seed, sim=sim, verify=verify)

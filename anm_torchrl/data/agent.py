@@ -21,6 +21,7 @@ import torch
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
+from anm_torchrl.data.generic import is_anm6
 from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 
@@ -97,6 +98,13 @@ class WaypointAgent:
             self.phase[idx] = 0
 
 
+def initial_sampler(sim: GridSimulator):
+    """The env's default reset distribution of ``sim``'s network, ``(n, generator) -> (state, transition)``:
+    gym-anm's ANM6-Easy resets on ANM6-Easy, uniform reachable states (``random_state``, ``ANMEnv``'s default
+    ``init="uniform"``) on every other network, whose gym-anm reset distribution is not defined."""
+    return sim.reset if is_anm6(sim) else sim.random_state
+
+
 def generate_agent(size: int, seed: int = 0, sim: GridSimulator | None = None, num_envs: int = 100,
                    waypoint_every: int = 8, random_every: bool = True, waypoints: str = "arcsine",
                    max_episode_steps: int = 480, fractions=DEFAULT_FRACTIONS,
@@ -125,7 +133,8 @@ def generate_agent(size: int, seed: int = 0, sim: GridSimulator | None = None, n
     a_low, a_high = sim.action_bounds()
     agent = WaypointAgent(a_low, a_high, num_envs, waypoint_every, gen, random_every=random_every,
                           waypoints=waypoints)
-    state, _ = sim.reset(num_envs, gen)
+    reset = initial_sampler(sim)
+    state, _ = reset(num_envs, gen)
     episode = torch.arange(num_envs)
     ep_step = torch.zeros(num_envs, dtype=torch.long)
     next_episode = num_envs
@@ -145,7 +154,7 @@ def generate_agent(size: int, seed: int = 0, sim: GridSimulator | None = None, n
         state = next_state
         if done.any():
             idx = done.nonzero().squeeze(1)
-            fresh, _ = sim.reset(idx.numel(), gen)
+            fresh, _ = reset(idx.numel(), gen)
             state = state.index_copy(0, idx, fresh)
             agent.restart(done)
             ep_step[idx] = 0
@@ -162,7 +171,8 @@ def generate_agent(size: int, seed: int = 0, sim: GridSimulator | None = None, n
              size, num_envs, n_steps, n_term, n_trunc)
     meta = {
         "kind": "agent", "size": int(size), "seed": int(seed), "simulator": simulator_settings(sim),
-        "generator": {"method": "random waypoint agent, cosine-interpolated actions, gym-anm resets",
+        "generator": {"method": "random waypoint agent, cosine-interpolated actions, "
+                                + ("gym-anm resets" if is_anm6(sim) else "uniform resets (GridSimulator.random_state)"),
                       "num_envs": num_envs, "steps_per_env": n_steps, "waypoint_every": int(waypoint_every),
                       "random_every": bool(random_every), "waypoints": waypoints,
                       "max_episode_steps": int(max_episode_steps), "episodes": next_episode},

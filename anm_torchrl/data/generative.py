@@ -1,16 +1,16 @@
 """The *Generative* dataset: scrambled Sobol samples over the free state variables and the action.
 
 Each sample is one independent transition (paper §4.2, "Generative"; Cestero et al.). The Sobol point
-``u ∈ [0, 1)^14`` (dimension order below) gives
+``u ∈ [0, 1)^(1 + n_des + 2·action_dim)`` (14 on ANM6-Easy; dimension order below) gives
 
-====  =================================  ===========================================================
-dims  variable                           mapping
-====  =================================  ===========================================================
-0     time index t of the state          ``floor(96·u)``
-1     SoC of the state                   ``SOC_MIN + u·(SOC_MAX − SOC_MIN)`` MWh (0–100)
-2–7   device set-points of the state     uniform over the action box (MW / MVAr)
-8–13  action                             uniform over the action box (MW / MVAr)
-====  =================================  ===========================================================
+=============  =================================  ===========================================================
+dims           variable                           mapping
+=============  =================================  ===========================================================
+0              time index t of the state          ``floor(T·u)`` (T = 96 on ANM6-Easy)
+1 … n_des      SoC of each storage unit           ``SOC_MIN + u·(SOC_MAX − SOC_MIN)`` MWh
+next A         device set-points of the state     uniform over the action box (MW / MVAr)
+last A         action                             uniform over the action box (MW / MVAr)
+=============  =================================  ===========================================================
 
 The state is made consistent the way :meth:`GridSimulator.random_state` does it: one transition at time ``t``
 from the state set-points (loads and potentials of the series, projection onto the feasible sets, power flow
@@ -34,7 +34,10 @@ from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 
 log = logging.getLogger(__name__)
 
-SOBOL_DIMS = ("t", "soc", "state_setpoints[6]", "action[6]")
+def sobol_dims(sim: GridSimulator) -> tuple[str, ...]:
+    """Names of the Sobol dimensions (module docstring), e.g. ``("t", "soc", "state_setpoints[6]", "action[6]")``."""
+    soc = "soc" if sim.n_des == 1 else f"soc[{sim.n_des}]"
+    return ("t", soc, f"state_setpoints[{sim.action_dim}]", f"action[{sim.action_dim}]")
 
 
 def generate_generative(size: int, seed: int = 0, sim: GridSimulator | None = None, chunk: int = 8192,
@@ -90,7 +93,7 @@ def generate_generative(size: int, seed: int = 0, sim: GridSimulator | None = No
              size, drawn, skipped, n_term)
     meta = {
         "kind": "generative", "size": int(size), "seed": int(seed), "simulator": simulator_settings(sim),
-        "generator": {"method": "scrambled Sobol (torch.quasirandom.SobolEngine)", "dims": list(SOBOL_DIMS),
+        "generator": {"method": "scrambled Sobol (torch.quasirandom.SobolEngine)", "dims": list(sobol_dims(sim)),
                       "sobol_dim": dim, "chunk": int(chunk), "points_drawn": drawn, "invalid_states_skipped": skipped},
         "splits": {name: int((td.get("split") == code).sum()) for name, code in SPLITS.items()},
         "split_fractions": [float(f) for f in fractions], "split_unit": "row",

@@ -1,6 +1,6 @@
 """Datasets of simulator transitions on disk: a TensorDict memmap plus a metadata JSON, with fixed splits.
 
-Layout of a dataset folder (``anm_torchrl.paths.dataset_dir(kind, size, seed)`` by default)::
+Layout of a dataset folder (``anm_torchrl.data.default_dataset_dir(kind, size, seed, sim)`` by default)::
 
     <dir>/dataset.json   metadata: layout marker and version, kind, size, seed, package version, simulator
                          settings and fingerprint, generator options, split sizes, field shapes/dtypes, checksum
@@ -10,14 +10,14 @@ Layout of a dataset folder (``anm_torchrl.paths.dataset_dir(kind, size, seed)`` 
 Writes are atomic (a temporary folder renamed into place) and exclusive (:func:`anm_torchrl.artifacts.
 exclusive_lock`: two writers of one path cannot both write; the second fails naming the first).
 
-Fields (one row per transition, N = size):
+Fields (one row per transition, N = size; S = state_dim, A = action_dim of the network, 18 and 6 on ANM6-Easy):
 
 ==========================  ==========  =======  ===================================================================
 key                         shape       dtype    meaning
 ==========================  ==========  =======  ===================================================================
-``state``                   (N, 18)     float64  gym-anm state before the step (MW, MVAr, MWh, time index)
-``action``                  (N, 6)      float64  action (MW / MVAr), inside the action box
-``next_state``              (N, 18)     float64  state after the step; zeros on terminal rows (as gym-anm)
+``state``                   (N, S)      float64  gym-anm state before the step (MW, MVAr, MWh, time index)
+``action``                  (N, A)      float64  action (MW / MVAr), inside the action box
+``next_state``              (N, S)      float64  state after the step; zeros on terminal rows (as gym-anm)
 ``reward``                  (N, 1)      float64  gym-anm reward; −100/(1−γ) on terminal rows
 ``terminated``              (N, 1)      bool     the power flow of the step did not converge
 ``("grid", k)``             (N, ·)      float64  e_loss, penalty, curtailment (MW), v_magn (p.u.), branch_s (MVA)

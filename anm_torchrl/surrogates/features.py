@@ -2,12 +2,13 @@
 
 Inputs (``Featurizer``, all float64, N rows):
 
-* the 18 state entries (gym-anm order, MW / MVAr / MWh / time index),
+* the state_dim state entries (gym-anm order, MW / MVAr / MWh / time index; 18 on ANM6-Easy), named by
+  ``GridState`` block (:func:`state_names`),
 * ``sin`` and ``cos`` of the time of day (2π·aux/T), so that linear models and networks see the daily cycle,
-* the 6 action entries (MW / MVAr),
+* the action_dim action entries (MW / MVAr; 6 on ANM6-Easy),
 * with ``foresight`` (default): the exogenous values of the *next* step — load P (MW) and clipped renewable
-  potentials (MW) at ``aux + 1`` — read from the simulator's time series. The surrogate env has perfect
-  foresight of them anyway (it writes them into the next state), and the projection and the power flow of the
+  potentials (MW) from the simulator's ``next_vars`` (its time series at ``aux + 1``). The surrogate env has
+  perfect foresight of them anyway (it writes them into the next state), and the projection and the power flow of the
   step depend on them, not on the current ones.
 
 Targets (``target_layout``): the next-state entries the physics decides — P and Q of the slack, the renewable
@@ -21,20 +22,27 @@ import math
 
 import torch
 
+from anm_torchrl.data.generic import is_anm6
 from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.grid.state import STATE_KEYS, from_vector
 
-DEVICE_NAMES = {0: "slack", 1: "load1", 2: "pv", 3: "load3", 4: "wind", 5: "load5", 6: "des"}
+ANM6_DEVICE_NAMES = {0: "slack", 1: "load1", 2: "pv", 3: "load3", 4: "wind", 5: "load5", 6: "des"}
 
 
-def _dev(i: int) -> str:
-    return DEVICE_NAMES.get(i, f"dev{i}")
+def device_names(sim: GridSimulator) -> list[str]:
+    """A name per device: ANM6-Easy's (``slack``, ``pv``, ``wind``, ``des``, ``load<i>``), ``dev<i>`` elsewhere."""
+    names = ANM6_DEVICE_NAMES if is_anm6(sim) else {}
+    return [names.get(i, f"dev{i}") for i in range(sim.net.n_dev)]
 
 
 def state_names(sim: GridSimulator) -> list[str]:
-    """Names of the state entries, e.g. ``p_slack`` (MW), ``q_pv`` (MVAr), ``soc_des`` (MWh), ``aux``."""
-    n = sim.net.n_dev
-    return ([f"p_{_dev(i)}" for i in range(n)] + [f"q_{_dev(i)}" for i in range(n)]
-            + [f"soc_{_dev(i)}" for i in sim.des_ids] + [f"p_pot_{_dev(i)}" for i in sim.gen_ids] + ["aux"])
+    """Names of the state entries, e.g. ``p_slack`` (MW), ``q_pv`` (MVAr), ``soc_des`` (MWh), ``aux``, in the order
+    of the ``GridState`` blocks (:data:`anm_torchrl.grid.state.STATE_KEYS`)."""
+    dev = device_names(sim)
+    per_block = {"dev_p": [f"p_{d}" for d in dev], "dev_q": [f"q_{d}" for d in dev],
+                 "des_soc": [f"soc_{dev[i]}" for i in sim.des_ids],
+                 "gen_p_max": [f"p_pot_{dev[i]}" for i in sim.gen_ids], "aux": ["aux"]}
+    return [n for k in STATE_KEYS for n in per_block[k]]
 
 
 def target_layout(sim: GridSimulator) -> tuple[list[int], list[str]]:
@@ -61,12 +69,12 @@ class Featurizer:
 
     def __init__(self, sim: GridSimulator, foresight: bool = True):
         self.sim, self.foresight = sim, bool(foresight)
-        self._aux = sim.state_slices()["aux"].start
-        a_names = [f"a_p_{_dev(i)}" for i in sim.gen_ids] + [f"a_q_{_dev(i)}" for i in sim.gen_ids]
-        a_names += [f"a_p_{_dev(i)}" for i in sim.des_ids] + [f"a_q_{_dev(i)}" for i in sim.des_ids]
+        dev = device_names(sim)
+        a_names = [f"a_p_{dev[i]}" for i in sim.gen_ids] + [f"a_q_{dev[i]}" for i in sim.gen_ids]
+        a_names += [f"a_p_{dev[i]}" for i in sim.des_ids] + [f"a_q_{dev[i]}" for i in sim.des_ids]
         names = state_names(sim) + ["time_sin", "time_cos"] + a_names
         if self.foresight:
-            names += [f"next_p_{_dev(i)}" for i in sim.load_ids] + [f"next_p_pot_{_dev(i)}" for i in sim.gen_ids]
+            names += [f"next_p_{dev[i]}" for i in sim.load_ids] + [f"next_p_pot_{dev[i]}" for i in sim.gen_ids]
         self.names = names
 
     @property
@@ -81,13 +89,11 @@ class Featurizer:
             raise ValueError(f"action must have shape ({state.shape[0]}, {sim.action_dim}), got {tuple(action.shape)}")
         state = state.to(torch.float64)
         action = action.to(torch.float64)
-        aux = state[:, self._aux]
+        aux = from_vector(state, sim.state_sizes)["aux"][:, 0]
         ang = 2 * math.pi * aux / sim.n_time
         cols = [state, torch.sin(ang).unsqueeze(1), torch.cos(ang).unsqueeze(1), action]
-        if self.foresight:
-            t_next = (aux.round().long() + 1) % sim.n_time
-            t_next = t_next.clamp(0, sim.n_time - 1).to(sim.net.dev.device)
+        if self.foresight:  # the simulator's own next_vars (so a next_vars hook is followed), clipped as it uses them
             b = sim.net.base_mva
-            p_load, _ = sim.loads_at(t_next)
-            cols += [p_load.to(state.device) * b, sim.p_pot_at(t_next).to(state.device) * b]
+            p_load, p_pot, _ = sim.next_vars(state.to(sim.net.dev.device))
+            cols += [sim.load_pq(p_load / b)[0].to(state.device) * b, sim.clip_p_pot(p_pot / b).to(state.device) * b]
         return torch.cat(cols, 1)

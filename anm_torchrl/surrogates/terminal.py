@@ -13,7 +13,8 @@ precision–recall curve, and the decision threshold is then chosen on the valid
 (weighting alone makes 0.5 far too eager). Report: accuracy, precision, recall on terminal steps, F1.
 
 API used elsewhere (the PINN chain): ``fit(state, action, terminated, eval_set=...)``,
-``predict_terminated(state (N, 18) f64, action (N, 6) f64) -> (N,) bool``, ``save(dir)``, ``load(dir, sim=...)``.
+``predict_terminated(state (N, state_dim) f64, action (N, action_dim) f64) -> (N,) bool``, ``save(dir)``,
+``load(dir, sim=...)``.
 A saved classifier is an artifact folder (``terminal.json``, ``terminal.ubj``, ``manifest.json``; atomic, hash
 checked before reading, :mod:`anm_torchrl.artifacts`); inside a regressor surrogate's folder the surrogate's
 manifest covers the same two files. The foresight features read the simulator it is loaded on.
@@ -111,7 +112,7 @@ class TerminalClassifier:
     def fit(self, state: torch.Tensor, action: torch.Tensor, terminated: torch.Tensor,
             eval_set: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
             progress: bool = False) -> "TerminalClassifier":
-        """Train on ``state`` (N, 18), ``action`` (N, 6) MW/MVAr and ``terminated`` (N,) or (N, 1) bool.
+        """Train on ``state`` (N, state_dim), ``action`` (N, action_dim) MW/MVAr and ``terminated`` (N,) or (N, 1) bool.
 
         ``eval_set = (state, action, terminated)`` enables early stopping and threshold tuning.
         """
@@ -150,12 +151,14 @@ class TerminalClassifier:
         return self.booster.inplace_predict(np.ascontiguousarray(x, dtype=np.float32), validate_features=False)
 
     def predict_proba(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Probability (N,) float64 that the step from ``state`` (N, 18) under ``action`` (N, 6) is terminal."""
+        """Probability (N,) float64 that the step from ``state`` (N, state_dim) under ``action`` (N, action_dim) is
+        terminal."""
         p = self._proba_np(self._x(state, action))
         return torch.as_tensor(np.asarray(p, dtype=np.float64), device=state.device)
 
     def predict_terminated(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Terminal decision (N,) bool for ``state`` (N, 18) float64 and ``action`` (N, 6) float64 MW/MVAr."""
+        """Terminal decision (N,) bool for ``state`` (N, state_dim) float64 and ``action`` (N, action_dim) float64
+        MW/MVAr."""
         return self.predict_proba(state, action) >= self.threshold
 
     def evaluate(self, state: torch.Tensor, action: torch.Tensor, terminated: torch.Tensor) -> dict[str, float]:

@@ -1,18 +1,21 @@
 """PINN accuracy against bus count on the registered feeders: the record ``results/pinn_generic_accuracy.json``.
 
-For each network (:func:`anm_torchrl.networks.list_networks`): train a preset from physics alone (timed: wall and
-CPU seconds of this process, one torch thread, with the load average before and after — the machine may be
-shared), store the model (the network's default cache when it passes the preset's acceptance bar and the cache
-is empty, else ``--model-dir/<network>/pinn.safetensors``), then evaluate the whole chain against the exact simulator on held-out
-``random`` and MPC-``expert`` transitions (:mod:`.evaluate`; never seen in training, other seeds than any
-validation set). Per network and set: |V| MAE (p.u.), next-state P/Q MAE of every generator and storage unit
-relative to its rating (largest and mean over devices; target ≤ 0.01), the slack's relative to the peak load,
-the terminal check's precision/recall against the simulator's non-convergence, and inference cost.
+For each network (:func:`anm_torchrl.networks.list_networks`): train a preset from physics alone, its three
+modules in three processes (the weights of :func:`.loop.train_pinn`; timed: wall seconds and the CPU seconds of
+the three trainings together, one torch thread each, with the load average before and after — the machine may
+be shared), store the model (the network's default cache when it passes the preset's acceptance bar and the
+cache is empty, else ``--model-dir/<network>/pinn.safetensors``), then evaluate the whole chain against the
+exact simulator on held-out ``random`` and MPC-``expert`` transitions (:mod:`.evaluate`; never seen in training,
+other seeds than any validation set). Per network and set: |V| MAE (p.u.), next-state P/Q MAE of every generator
+and storage unit relative to its rating (largest and mean over devices; target ≤ 0.01), the slack's relative to
+the peak load, the terminal check's precision/recall against the simulator's non-convergence, inference cost.
 
 Commands (each network in its own process, then one merge)::
 
-    python -m anm_torchrl.surrogates.pinn.generic_accuracy --networks case33bw --out /tmp/acc_case33bw.json
-    python -m anm_torchrl.surrogates.pinn.generic_accuracy --merge /tmp/acc_*.json --out results/pinn_generic_accuracy.json
+    python -m anm_torchrl.surrogates.pinn.generic_accuracy --networks case33bw --preset quick \
+        --expert-envs 4 --expert-steps 50 --out /tmp/acc_case33bw.json
+    python -m anm_torchrl.surrogates.pinn.generic_accuracy --merge /tmp/acc_*.json \
+        --out results/pinn_generic_accuracy.json
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from anm_torchrl.data.generic import simulator_for
 from anm_torchrl.surrogates.pinn import cache
 from anm_torchrl.surrogates.pinn.chain import load_pinn
 from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets
-from anm_torchrl.surrogates.pinn.train import MODULES, preset, save_pinn, train_pinn
+from anm_torchrl.surrogates.pinn.train import MODULES, build_modules, check_acceptance, preset, save_pinn, train_module
 
 log = logging.getLogger(__name__)
 
@@ -51,9 +54,9 @@ def measure_network(network: str, preset_name: str = "default", seed: int = 0, n
     sim = simulator_for(network)
     cfg = preset(preset_name, seed=seed)
     load0 = os.getloadavg()
-    wall0, cpu0 = time.perf_counter(), time.process_time()
-    modules, report = train_pinn(cfg, sim)
-    train_wall, train_cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    wall0 = time.perf_counter()
+    modules, report, train_cpu = train_modules_in_parallel(network, preset_name, seed)
+    train_wall = time.perf_counter() - wall0
     load1 = os.getloadavg()
     file = cache.default_path(sim)
     if not report["accepted"] or file.exists():  # a failed model never lands in the cache; an existing one stays
@@ -63,7 +66,8 @@ def measure_network(network: str, preset_name: str = "default", seed: int = 0, n
     results = evaluate_sets(chain, sim, n_random=n_random, n_expert_envs=expert_envs, expert_steps=expert_steps,
                             seed=eval_seed)
     sets = {name: {k: res[k] for k in KEPT} for name, res in results.items()}
-    meets = {name: {k: (s[k] is not None and s[k] <= bound) for k, bound in TARGETS.items()} for name, s in sets.items()}
+    meets = {name: {k: (s[k] is not None and s[k] <= bound) for k, bound in TARGETS.items()}
+             for name, s in sets.items()}
     return {
         "network": network, "n_bus": sim.net.n_bus, "n_dev": sim.net.n_dev, "n_gen": sim.n_gen, "n_des": sim.n_des,
         "n_load": sim.n_load, "preset": preset_name, "seed": seed, "model": str(file), "accepted": report["accepted"],
@@ -73,6 +77,46 @@ def measure_network(network: str, preset_name: str = "default", seed: int = 0, n
         "modules": {m: {k: v for k, v in report[m].items() if isinstance(v, (int, float))} for m in MODULES},
         "eval": sets, "meets_targets": meets,
     }
+
+
+def _train_one(network: str, preset_name: str, seed: int, name: str) -> tuple[dict, dict, float]:
+    """Worker: module ``name`` trained exactly as :func:`.loop.train_pinn` trains it (same initial weights: the
+    three modules are built after the same ``manual_seed``; same Sobol seed). Returns its state dict, report and
+    the worker's CPU seconds."""
+    torch.set_num_threads(1)
+    cpu0 = time.process_time()
+    sim = simulator_for(network)
+    cfg = preset(preset_name, seed=seed)
+    torch.manual_seed(cfg.seed)
+    modules = build_modules(cfg, sim)
+    k = MODULES.index(name)
+    rep = train_module(name, modules[name], sim, getattr(cfg, name), seed=cfg.seed + 1000 * k)
+    return modules[name].state_dict(), rep, time.process_time() - cpu0
+
+
+def train_modules_in_parallel(network: str, preset_name: str, seed: int) -> tuple[dict, dict, float]:
+    """:func:`.loop.train_pinn` with its three independent modules in three processes (the same weights; on a
+    shared machine each process gets its own CPU share). Returns the modules, the report (with ``accepted``) and
+    the CPU seconds of the three trainings together (comparable with one process training them in turn)."""
+    from concurrent.futures import ProcessPoolExecutor
+    import multiprocessing
+
+    sim = simulator_for(network)
+    cfg = preset(preset_name, seed=seed)
+    torch.manual_seed(cfg.seed)
+    modules = build_modules(cfg, sim)
+    with ProcessPoolExecutor(len(MODULES), mp_context=multiprocessing.get_context("spawn")) as pool:
+        jobs = {m: pool.submit(_train_one, network, preset_name, seed, m) for m in MODULES}
+        done = {m: j.result() for m, j in jobs.items()}
+    report: dict[str, Any] = {}
+    for m, (state, rep, _) in done.items():
+        modules[m].load_state_dict(state)
+        modules[m].eval()
+        report[m] = rep
+    report["time_s"] = sum(report[m]["time_s"] for m in MODULES)
+    report["acceptance_failures"] = check_acceptance(cfg, report)
+    report["accepted"] = not report["acceptance_failures"]
+    return modules, report, sum(c for _, _, c in done.values())
 
 
 def record(entries: list[dict[str, Any]], command: str) -> dict[str, Any]:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import torch
 
+from anm_torchrl.data.generic import for_network
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 from anm_torchrl.paths import surrogate_dir
 from anm_torchrl.surrogates.regressors.defaults import DATASETS, KINDS, META_FILE, train_command
@@ -23,7 +24,8 @@ from anm_torchrl.surrogates.terminal import ModelFileError
 
 def load_regressor_surrogate(kind: str, sim: GridSimulator | None = None, device=None, dataset: str = "generative",
                              path: str | os.PathLike | None = None, n_jobs: int = 1) -> RegressorSurrogate:
-    """Load trained surrogate ``kind`` for ``dataset`` from ``path`` (default ``surrogate_dir(kind, dataset)``).
+    """Load trained surrogate ``kind`` for ``dataset`` from ``path`` (default ``surrogate_dir(kind, dataset)``, suffixed
+    with the network key on networks other than ANM6-Easy).
 
     Args:
         kind: ``lr``, ``dt``, ``rf``, ``xgb`` or ``dnn``.
@@ -47,10 +49,10 @@ def load_regressor_surrogate(kind: str, sim: GridSimulator | None = None, device
     elif device is not None and torch.device(device) != sim.net.dev.device:
         raise ValueError(f"device={device!r} differs from the simulator's device {sim.net.dev.device}; pass one")
     default = path is None
-    p = surrogate_dir(kind, dataset) if default else Path(path)
+    p = for_network(surrogate_dir(kind, dataset), sim) if default else Path(path)
     if not (p / META_FILE).is_file():
         raise FileNotFoundError(f"no trained {kind!r} surrogate for the {dataset!r} dataset at {p}; train it with: "
-                                f"{train_command(kind, dataset, None if default else p)}")
+                                f"{train_command(kind, dataset, None if default else p, sim)}")
     sur = load_surrogate_folder(p, kind=kind, device=sim.net.dev.device, sim=sim, n_jobs=n_jobs)
     stored = sur.meta.get("dataset")
     if stored != dataset:

@@ -20,11 +20,11 @@ from anm_torchrl.surrogates.terminal import TerminalClassifier
 class RegressorSurrogate(TensorDictModuleBase):
     """A trained regressor + terminal classifier as a ``SurrogateEnv`` transition model.
 
-    Reads ``"state"`` (N, 18) and ``"action"`` (N, 6) (any float dtype, MW/MVAr), writes ``"next_state"``
-    (N, 18) float64 (predicted physics entries; the other entries are copied from ``state`` and overwritten by
-    the env), ``"reward"`` (N, 1) float64 and ``"terminated"`` (N, 1) bool. With ``clip`` the predicted
-    entries are clamped to the state's observation bounds (the slack excepted, whose bounds gym-anm does not
-    enforce) and the reward to gym-anm's clipping range [−(c₁ + c₂), c₁].
+    Reads ``"state"`` (N, state_dim) and ``"action"`` (N, action_dim) (any float dtype, MW/MVAr), writes
+    ``"next_state"`` (N, state_dim) float64 (predicted physics entries; the other entries are copied from
+    ``state`` and overwritten by the env), ``"reward"`` (N, 1) float64 and ``"terminated"`` (N, 1) bool. With
+    ``clip`` the predicted entries are clamped to the state's observation bounds (the slack excepted, whose
+    bounds gym-anm does not enforce) and the reward to gym-anm's clipping range [−(c₁ + c₂), c₁].
 
     Build one with :func:`fit_regressor` or :meth:`load`.
     """

@@ -1,0 +1,152 @@
+"""Surrogates on networks other than ANM6-Easy (issue 13 items 1, 2): the PINN chain, datasets, regressors and the
+terminal classifier on registered feeders, each tied to its network. Tiny models: this checks wiring and the
+network guards, not accuracy (that is ``results/pinn_generic_accuracy.json``)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+
+from anm_torchrl.artifacts import ArtifactError
+from anm_torchrl.data import DatasetError, default_dataset_dir, for_network, generate, load_dataset, simulator_for
+from anm_torchrl.data.storage import network_key
+from anm_torchrl.envs import SurrogateEnv
+from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.networks import get_network
+from anm_torchrl.paths import dataset_dir, surrogate_dir
+from anm_torchrl.surrogates import load_surrogate
+from anm_torchrl.surrogates.features import Featurizer, state_names
+from anm_torchrl.surrogates.pinn import cache
+from anm_torchrl.surrogates.pinn import train as tr
+from anm_torchrl.surrogates.pinn.chain import load_pinn
+
+torch.set_num_threads(1)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def case33():
+    return simulator_for("case33bw")
+
+
+def test_simulator_for_and_network_folders(case33):
+    assert case33.net.n_bus == 33 and case33.n_des == 2
+    anm6 = anm6_easy_simulator()
+    assert network_key(simulator_for("anm6_easy")) == network_key(anm6)
+    base = dataset_dir("generative", 10, 0)
+    assert for_network(base, anm6) == base == default_dataset_dir("generative", 10, 0)  # ANM6 paths unchanged
+    assert default_dataset_dir("generative", 10, 0, case33) == base.with_name(f"{base.name}_{network_key(case33)}")
+    assert cache.default_path(case33) != cache.default_path(anm6)
+    # a changed network (one branch's resistance) never reads the model cached for the original one
+    c = get_network("case33bw")
+    branch = c.network["branch"].copy()
+    branch[3, 2] *= 1.1
+    changed = GridSimulator.from_tables({**c.network, "branch": branch}, c.load_p, c.gen_p_max, c.delta_t, c.gamma,
+                                        c.lamb, c.costs_clipping)
+    assert cache.default_path(changed) != cache.default_path(case33)
+    with pytest.raises(ValueError, match="unknown network 'nope'"):
+        simulator_for("nope")
+
+
+@pytest.mark.parametrize("network", ["case33bw", "simbench_mv_semiurb"])
+def test_pinn_chain_on_a_feeder(network, tmp_path):
+    """A smoke PINN trained on a feeder (the 115-bus one has no storage) runs as that feeder's SurrogateEnv, and its
+    file is refused by another network."""
+    sim = simulator_for(network)
+    modules, report = tr.train_pinn(tr.preset("smoke"), sim)
+    assert report["storage"].get("devices") != 0 or sim.n_des == 0
+    file = tr.save_pinn(tmp_path / "pinn.safetensors", modules, tr.preset("smoke"), report, sim)
+    chain = load_pinn(sim, path=file)
+    env = SurrogateEnv(chain, num_envs=3, seed=0, sim=sim)
+    td = env.rollout(2, break_when_any_done=False)
+    assert td["next", "state"].shape == (3, 2, sim.state_dim)
+    assert torch.isfinite(td["next", "reward"]).all()
+    with pytest.raises(ArtifactError, match="trained on network"):
+        load_pinn(anm6_easy_simulator(), path=file)
+
+
+def test_pinn_curtailment_counts_only_renewables():
+    """cigre_mv has classical generators: the chain's curtailment (MW) is the simulator's formula with its
+    renewable mask, exactly, at the chain's own generator outputs."""
+    from tensordict import TensorDict
+
+    from anm_torchrl.grid.reward import curtailment
+    from anm_torchrl.surrogates.pinn.evaluate import random_transitions
+
+    sim = simulator_for("cigre_mv")
+    assert 0 < sim.renewable.sum() < sim.n_gen
+    modules, report = tr.train_pinn(tr.preset("smoke"), sim)
+    chain = tr_chain(sim, modules)
+    state, action = random_transitions(sim, 32, seed=1)
+    out = chain(TensorDict({"state": state, "action": action}, [32]))
+    gen = out.get(("pinn", "gen_pq"))[..., 0]
+    expected = curtailment(out.get(("pinn", "p_pot")), gen, sim.renewable) * sim.net.base_mva
+    torch.testing.assert_close(out.get(("grid", "curtailment")).reshape(-1), expected, rtol=0, atol=1e-12)
+
+
+def tr_chain(sim, modules):
+    from anm_torchrl.surrogates.pinn.chain import build_chain
+
+    return build_chain(sim, modules["generator"], modules["storage"], modules["power_balance"])
+
+
+def test_featurizer_names_follow_the_grid_state(case33):
+    f = Featurizer(case33)
+    names = state_names(case33)
+    assert len(names) == case33.state_dim and names[0] == "p_dev0" and names[-1] == "aux"
+    assert f.names[: case33.state_dim] == names
+    assert f.n_features == case33.state_dim + 2 + case33.action_dim + case33.n_load + case33.n_gen
+
+
+def _recipe(name: str):
+    spec = importlib.util.spec_from_file_location(f"recipe_{name}", ROOT / "recipes" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _compose(config: str, overrides: list[str]):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
+        return compose(config, overrides=overrides)
+
+
+def test_data_driven_surrogates_on_case33bw(case33, tmp_path, monkeypatch):
+    """make_dataset / train_surrogate with network=case33bw write to that network's default folders; the model runs
+    as its SurrogateEnv; ANM6-Easy's default folder stays empty; the dataset refuses another simulator."""
+    monkeypatch.setenv("ANM_TORCHRL_HOME", str(tmp_path))
+    size = 400
+    for kind in ("generative", "agent"):
+        cfg = _compose("make_dataset", ["network=case33bw", f"dataset={kind}", f"size={size}", "progress=false",
+                                        "agent.num_envs=8"])
+        assert _recipe("make_dataset").run(cfg) == str(default_dataset_dir(kind, size, 0, case33))
+    with pytest.raises(DatasetError, match="different simulator"):
+        load_dataset(default_dataset_dir("agent", size, 0, case33), kind="agent", sim=anm6_easy_simulator())
+    cfg = _compose("train_surrogate", ["network=case33bw", "surrogate=xgb", f"data.size={size}", "progress=false",
+                                       "n_jobs=1", "overwrite_cache=true", "models.xgb.num_boost_round=5",
+                                       "terminal.num_boost_round=5"])
+    (metrics,) = _recipe("train_surrogate").run(cfg)
+    assert metrics["in_dataset"]["r2"] > 0.0  # better than predicting the mean: the fit saw this network's data
+    assert (for_network(surrogate_dir("xgb", "generative"), case33) / "surrogate.json").is_file()
+    assert not surrogate_dir("xgb", "generative").exists()
+    model = load_surrogate("xgb", sim=case33, dataset="generative")
+    env = SurrogateEnv(model, num_envs=4, seed=0, sim=case33)
+    td = env.rollout(2, break_when_any_done=False)
+    assert td["next", "state"].shape == (4, 2, case33.state_dim)
+    with pytest.raises(FileNotFoundError, match="train_surrogate.py network=<its name> surrogate=xgb"):
+        load_surrogate("xgb", sim=case33, dataset="agent")
+    with pytest.raises(FileNotFoundError, match="no trained 'xgb'"):  # ANM6-Easy never sees case33bw's model
+        load_surrogate("xgb", sim=anm6_easy_simulator(), dataset="generative")
+
+
+def test_generated_rows_match_the_simulator(case33):
+    """A few generative rows on case33bw: the labels are the simulator's own step."""
+    td, meta = generate("generative", 64, seed=3, sim=case33, chunk=64)
+    nxt, tr_ = case33.step(td["state"], td["action"])
+    torch.testing.assert_close(td["next_state"], nxt, rtol=0, atol=0)
+    assert meta["simulator"]["n_bus"] == 33
