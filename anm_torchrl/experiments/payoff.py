@@ -74,12 +74,22 @@ def surrogate_row(spec: dict, network: str, n_bus: int, batch: int, min_time: fl
     return _row(network, n_bus, label(spec), batch, warm, batch * steps_per_s, load)
 
 
+def _predicted_step_s(rows: list[dict], network: str, impl: str, batch: int) -> float | None:
+    """Seconds one step of ``impl`` at ``batch`` would take at its batch-1 cost per transition (an upper bound for
+    batched backends, whose cost per transition falls with the batch); None without a batch-1 row."""
+    one = next((r for r in rows if r["network"] == network and r["impl"] == impl and r["batch"] == 1
+                and r["us_per_transition"]), None)
+    return None if one is None else one["us_per_transition"] * 1e-6 * batch
+
+
 def cost_rows(networks: list[str], batches: list[int], surrogates: list[dict], min_time: float, min_steps: int,
-              gym_steps: int, seed: int = 0, backends: tuple[str, ...] = EXACT) -> list[dict[str, Any]]:
-    """Rows of :func:`_row` for every network × implementation × batch (see the module docstring)."""
+              gym_steps: int, seed: int = 0, backends: tuple[str, ...] = EXACT, max_step_s: float = 30.0
+              ) -> list[dict[str, Any]]:
+    """Rows of :func:`_row` for every network × implementation × batch (see the module docstring). A batched row
+    whose step is predicted (:func:`_predicted_step_s`) to exceed ``max_step_s`` is skipped, with the prediction."""
     from anm_torchrl.benchmarks.env_networks import bench_anm_env, bench_gym_generic, load_case
 
-    rows = []
+    rows: list[dict[str, Any]] = []
     for name in networks:
         case = load_case(name)
         n_bus = int(case["network"]["bus"].shape[0])
@@ -87,13 +97,20 @@ def cost_rows(networks: list[str], batches: list[int], surrogates: list[dict], m
             load = _load()
             r = bench_gym_generic(case, gym_steps, seed)
             rows.append(_row(name, n_bus, "gym_anm", 1, r["warm"], r["rate"], load))
-        for b in batches:
-            for backend in backends:
-                load = _load()
-                r = bench_anm_env(case, b, backend, min_time, min_steps, seed)
-                rows.append(_row(name, n_bus, f"anm_env_{backend}", b, r["warm"], r["rate"], load))
-            for spec in surrogates:
-                rows.append(surrogate_row(spec, name, n_bus, b, min_time, min_steps, seed))
+        for b in sorted(batches):
+            for impl, measure in ([(f"anm_env_{k}", lambda b, k=k: bench_anm_env(case, b, k, min_time, min_steps,
+                                                                                    seed)) for k in backends]
+                                  + [(label(sp), sp) for sp in surrogates]):
+                pred = _predicted_step_s(rows, name, impl, b) if b > 1 else None
+                if pred is not None and pred > max_step_s:
+                    rows.append(_row(name, n_bus, impl, b, None, None, _load(),
+                                     skipped=f"one step predicted {pred:.0f} s > max_step_s {max_step_s:g}"))
+                elif callable(measure):
+                    load = _load()
+                    r = measure(b)
+                    rows.append(_row(name, n_bus, impl, b, r["warm"], r["rate"], load))
+                else:
+                    rows.append(surrogate_row(measure, name, n_bus, b, min_time, min_steps, seed))
             log.info("payoff cost: %s batch %d done", name, b)
     for r in rows:  # ratio to numba at the same network and batch, measured in the same run
         ref = next((q for q in rows if q["network"] == r["network"] and q["batch"] == r["batch"]
@@ -203,7 +220,8 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seed: 
     if "cost" in parts:
         rows = cost_rows(list(cfg.get("networks") or list_networks()), [int(b) for b in cfg.get("batch_sizes", [1, 1024])],
                          surrogates, float(cfg.get("min_time", 1.0)), int(cfg.get("min_steps", 3)),
-                         int(cfg.get("gym_steps", 20)), seed, tuple(cfg.get("backends", EXACT)))
+                         int(cfg.get("gym_steps", 20)), seed, tuple(cfg.get("backends", EXACT)),
+                         float(cfg.get("max_step_s", 30.0)))
         data["rows"] = rows
         data["crossover"] = crossover(rows)
     if "accuracy" in parts:
@@ -211,9 +229,74 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seed: 
     if "ppo" in parts:
         data["ppo"] = ppo_part(dict(cfg.get("ppo", {})), Path(out_dir))
     data["wall_s"] = time.perf_counter() - t0
-    missing = [r for r in data.get("rows", []) if r.get("reason")]
+    missing = [r for r in data.get("rows", []) if r.get("reason") or r.get("skipped")]
     status = "partial" if missing or not data.get("pinn_accuracy", {"available": True})["available"] else "ok"
     return result("payoff", status, data, reason=None if status == "ok" else
-                  f"{len(missing)} cost rows without a model; PINN accuracy record "
+                  f"{len(missing)} cost rows without a model or skipped; PINN accuracy record "
                   f"{'present' if data.get('pinn_accuracy', {}).get('available') else 'absent or not asked'}",
                   config=cfg, seeds={"seed": seed})
+
+
+def _f(x, fmt="{:,.1f}") -> str:
+    return "—" if x is None else fmt.format(x)
+
+
+def markdown(rec: dict) -> str:
+    """The study's tables (cost per transition, crossover, PINN accuracy, PPO) from a ``payoff`` record."""
+    d, out = rec.get("data") or {}, []
+    rows = d.get("rows") or []
+    if rows:
+        batches = sorted({r["batch"] for r in rows})
+        impls = list(dict.fromkeys(r["impl"] for r in rows))
+        nets = list(dict.fromkeys((r["network"], r["n_bus"]) for r in rows))
+        out += ["Cost per transition, µs (× numba at the same network and batch; 1-min load average when measured):",
+                "", "| network | buses | " + " | ".join(f"{i} b={b:,}" for b in batches for i in impls) + " |",
+                "|---|---:|" + "---:|" * (len(batches) * len(impls))]
+        for net, nb in nets:
+            cells = []
+            for b in batches:
+                for i in impls:
+                    r = next((r for r in rows if r["network"] == net and r["impl"] == i and r["batch"] == b), None)
+                    if r is None:
+                        cells.append("")
+                    elif r["us_per_transition"] is None:
+                        cells.append("skipped" if r.get("skipped") else "n/a")
+                    else:
+                        cells.append(f"{r['us_per_transition']:,.1f} ({r['x_numba']:.2f}×; L{r['load_avg_1min']:.0f})")
+            out.append(f"| {net} | {nb} | " + " | ".join(cells) + " |")
+        reasons = sorted({f"{r['impl']} on {r['network']}: {r['reason'].split(';')[0][:120]}" for r in rows
+                          if r.get("reason")})
+        if reasons:
+            out += ["", "Not measured (no trained model for that network):", ""] + [f"- {x}" for x in reasons]
+        out += ["", "Crossover (smallest bus count where the surrogate is cheaper than the cheaper exact backend):", "",
+                "| surrogate | batch | crossover buses | measured at buses |", "|---|---:|---:|---|"]
+        for c in d.get("crossover", []):
+            out.append(f"| {c['impl']} | {c['batch']:,} | {c['crossover_n_bus'] if c['crossover_n_bus'] else 'none'}"
+                       f" | {', '.join(map(str, c['measured_n_bus'])) or 'nowhere'} |")
+    acc = d.get("pinn_accuracy")
+    if acc is not None:
+        out += ["", "PINN accuracy vs bus count: " + (f"from `{acc['file']}`." if acc["available"] else acc["reason"])]
+    ppo = d.get("ppo")
+    if ppo:
+        dn = ppo["do_nothing"]
+        out += ["", f"PPO on `{ppo['network']}` (validation: {dn['episodes']} states × {dn['max_steps']} steps, seed "
+                f"{dn['eval_seed']}); do-nothing return {dn['return']:.4f}; threshold = {ppo['threshold_fraction']} × "
+                f"that = {ppo['threshold']:.4f}:", "",
+                "| env | seeds | frames | wall s | best eval return | test return (best.pt) | reached | time to "
+                "threshold s (KM median) | censored at s |", "|---|---|---|---|---|---|---:|---:|---|"]
+        for t in ppo["table"]:
+            out.append(f"| {t['env']} | {t['seeds']} | {t['frames']} | {[round(x) for x in t['wall_s']]} | "
+                       f"{[round(x, 4) for x in t['best_eval_return']]} | "
+                       f"{[None if x is None else round(x, 4) for x in t['test_best_return']]} | "
+                       f"{t['threshold_reached']}/{t['threshold_runs']} | {_f(t['threshold_wall_s'])} | "
+                       f"{[round(x) for x in t['threshold_censored_at_s']]} |")
+    return "\n".join(out)
+
+
+if __name__ == "__main__":
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(description="print the payoff study's tables from its record")
+    parser.add_argument("record", nargs="?", default="results/payoff.json")
+    sys.stdout.write(markdown(read_json(parser.parse_args().record)) + "\n")
