@@ -53,8 +53,10 @@ def test_report_only_rewrites_the_page_from_the_records(results: Path):
     """``report_only=true`` runs nothing: same records, a page rendered again from them."""
     md = results / "RESULTS_again.md"  # beside the original, so figure links compare equal
     records = {p.name: p.read_bytes() for p in results.glob("*.json")}
+    env = {**os.environ, "ANM_TORCHRL_HOME": str(results / "home")}  # the home of the run: paths shown relative to it
     proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), f"out_dir={results}",
-                           f"results_md={md}", "report_only=true"], cwd=REPO, capture_output=True, text=True, timeout=300)
+                           f"results_md={md}", "report_only=true"], cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=300)
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert records == {p.name: p.read_bytes() for p in results.glob("*.json")}
     assert md.read_text().split("\n", 3)[3] == (results / "RESULTS.md").read_text().split("\n", 3)[3]
