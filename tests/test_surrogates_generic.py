@@ -150,3 +150,18 @@ def test_generated_rows_match_the_simulator(case33):
     nxt, tr_ = case33.step(td["state"], td["action"])
     torch.testing.assert_close(td["next_state"], nxt, rtol=0, atol=0)
     assert meta["simulator"]["n_bus"] == 33
+
+
+def test_per_device_batches_keep_anm6_rows_and_scale_on_feeders():
+    """The default preset counts KKT batches in device samples: ANM6-Easy keeps its 1024-point steps and
+    4096-point validation sets (2 generators, 1 storage unit), a 121-generator feeder draws 17 points a step."""
+    from anm_torchrl.surrogates.pinn.loop import _points
+    from anm_torchrl.surrogates.pinn.tasks import TASKS
+
+    cfg = tr.preset("default")
+    for network, name, batch, val in (("anm6_easy", "generator", 1024, 4096), ("anm6_easy", "storage", 1024, 4096),
+                                      ("simbench_mv_semiurb", "generator", 17, 68)):
+        sim = simulator_for(network)
+        task = TASKS[name](tr.build_modules(cfg, sim)[name], sim)
+        mcfg = getattr(cfg, name)
+        assert (_points(mcfg.batch_size, task, mcfg), _points(mcfg.val_size, task, mcfg)) == (batch, val), network
