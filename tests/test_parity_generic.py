@@ -15,35 +15,27 @@ float32 ulps or 1e-6 absolute (the state tolerance, for quantities near 0).
 from __future__ import annotations
 
 import importlib.util
-import json
-import pathlib
 
 import numpy as np
 import pytest
 import torch
 
+from anm_torchrl.benchmarks.parity import (FIXTURES, GENERIC_PREFIX, OBS_ATOL, OBS_RTOL, REWARD_ATOL, REWARD_RTOL,
+                                           STATE_TOL, generic_env, load_fixture, step_recorded)
+
 torch.set_num_threads(1)
 
-FIXTURES = pathlib.Path(__file__).parent / "fixtures"
 _spec = importlib.util.spec_from_file_location("record_generic", FIXTURES / "record_generic.py")
 record_generic = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(record_generic)
-NETWORKS, observation_arg = record_generic.NETWORKS, record_generic.observation_arg
-STATE_TOL = 1e-6
-REWARD_RTOL, REWARD_ATOL = 1e-6, 1e-9
-OBS_RTOL, OBS_ATOL = 2 * 2.0 ** -23, 1e-6
+NETWORKS = list(record_generic.NETWORKS)  # the recorder's networks: each must have its fixture
 
 
 def load(name: str) -> dict:
-    with np.load(FIXTURES / f"generic_{name}.npz", allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
+    return load_fixture(GENERIC_PREFIX + name)
 
 
-def network(d: dict) -> dict:
-    return {"baseMVA": float(d["baseMVA"]), "bus": d["bus"], "device": d["device"], "branch": d["branch"]}
-
-
-@pytest.mark.parametrize("name", list(NETWORKS))
+@pytest.mark.parametrize("name", NETWORKS)
 def test_fixture_covers_what_it_claims(name):
     d = load(name)
     assert len(d["reward"]) >= 2000
@@ -68,20 +60,11 @@ def test_fixtures_cover_every_device_type():
 
 
 @pytest.mark.parametrize("backend", ["numba", "torch"])
-@pytest.mark.parametrize("name", list(NETWORKS))
+@pytest.mark.parametrize("name", NETWORKS)
 def test_one_batch_equals_gym_anm(name, backend):
-    from tensordict import TensorDict
-
-    from anm_torchrl.envs import ANMEnv
-
     d = load(name)
     n = len(d["reward"])
-    env = ANMEnv(network=network(d), load_p=d["load_p"], gen_p_max=d["gen_p_max"], num_envs=n,
-                 observation=observation_arg(json.loads(str(d["observation"]))), delta_t=0.25, gamma=0.995,
-                 lamb=100, costs_clipping=(1, 100), seed=0, backend=backend)
-    td = env.reset(TensorDict({"state": torch.as_tensor(d["state"])}, [n]), set_state=True)
-    td["action"] = torch.as_tensor(d["action"], dtype=torch.float32)
-    out = env.step(td)["next"]
+    out = step_recorded(generic_env(d, n, backend), d)
 
     term = out["terminated"].reshape(n).numpy()
     bad = np.flatnonzero(term != d["terminated"])

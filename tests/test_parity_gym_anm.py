@@ -13,20 +13,19 @@ Tolerances: states within 1e-6 (MW/MVAr/MWh), rewards within 1e-6 relative, iden
 
 from __future__ import annotations
 
-import pathlib
 import warnings
 
 import numpy as np
 import pytest
 import torch
 
+from anm_torchrl.benchmarks.parity import (ANM6_FIXTURE, FIXTURES, REWARD_RTOL, STATE_TOL, compare, fixture_env,
+                                           load_fixture, reference_observation, step_recorded)
 from anm_torchrl.grid.simulator import anm6_easy_simulator
 
 torch.set_num_threads(1)
 
-FIXTURE = pathlib.Path(__file__).parent / "fixtures" / "gym_anm_transitions.npz"
-STATE_TOL = 1e-6  # MW / MVAr / MWh
-REWARD_RTOL = 1e-6
+FIXTURE = FIXTURES / f"{ANM6_FIXTURE}.npz"
 TERMINAL_REWARD = -19999.99999999998
 
 GOLDEN_RESET_OBS = [25.34521365, -5, 4, -10, 11, -25, 0, 10.48302624, -1, -0.13812797, -2, -0.45902648, -5, 0,
@@ -144,7 +143,7 @@ def test_golden_trajectory_env(backend):
 def fixture_data():
     if not FIXTURE.exists():
         pytest.skip(f"{FIXTURE} missing: run tests/fixtures/record_gym_anm.py")
-    return dict(np.load(FIXTURE))
+    return load_fixture(ANM6_FIXTURE)
 
 
 def test_fixture_coverage(fixture_data):
@@ -166,15 +165,11 @@ def test_fixture_coverage(fixture_data):
 
 
 def _compare(name, next_state, reward, terminated, d) -> dict:
-    ref_s, ref_r, ref_t = d["next_state"], d["reward"], d["terminated"]
-    ds = np.abs(next_state - ref_s)
-    rel = np.abs(reward - ref_r) / np.abs(ref_r)
-    stats = {"max |Δstate|": ds.max(), "argmax entry": int(ds.max(0).argmax()), "max rel |Δreward|": rel.max(),
-             "termination mismatches": int((terminated != ref_t).sum()), "terminal": int(ref_t.sum())}
+    stats = compare(d, next_state, reward, terminated)
     print(f"{name}: {stats}")
-    assert stats["termination mismatches"] == 0, stats
-    assert ds.max() <= STATE_TOL, stats
-    assert rel.max() <= REWARD_RTOL, stats
+    assert stats["terminations_ok"], stats
+    assert stats["max_abs_state_diff"] <= STATE_TOL, stats
+    assert stats["max_rel_reward_diff"] <= REWARD_RTOL, stats
     return stats
 
 
@@ -188,16 +183,14 @@ def test_differential_grid(fixture_data, backend):
 
 @BACKENDS
 def test_differential_env(fixture_data, backend):
-    from tensordict import TensorDict
-
-    anm6 = pytest.importorskip("anm_torchrl.envs.anm6")
     d = fixture_data
     n = len(d["reward"])
-    env = anm6.ANM6Env(num_envs=n, device="cpu", seed=0, backend=backend)
+    from tensordict import TensorDict
+
+    env = fixture_env(ANM6_FIXTURE, d, backend)
     td = env.reset(TensorDict({"state": torch.as_tensor(d["state"])}, [n]), set_state=True)
     torch.testing.assert_close(td["state"], torch.as_tensor(d["state"]), rtol=0, atol=0)
-    td["action"] = torch.as_tensor(d["action"], dtype=torch.float32)
-    out = env.step(td)["next"]
+    out = step_recorded(env, d)
     assert out["state"].dtype == torch.float64 and out["observation"].dtype == torch.float32
     assert out["reward"].shape == (n, 1) and out["reward"].dtype == torch.float32
     assert out["terminated"].shape == (n, 1) and out["terminated"].dtype == torch.bool
@@ -205,9 +198,7 @@ def test_differential_env(fixture_data, backend):
                      out["terminated"].squeeze(1).numpy(), d)
     assert torch.equal(out["done"], out["terminated"])
     # Observation = clip(state) to gym-anm's bounds, in float32.
-    low, high = env.sim.state_bounds()
-    obs_ref = np.clip(d["next_state"], low.numpy(), high.numpy()).astype(np.float32)
-    np.testing.assert_allclose(out["observation"].numpy(), obs_ref, rtol=2e-7, atol=STATE_TOL)
+    np.testing.assert_allclose(out["observation"].numpy(), reference_observation(d, env), rtol=2e-7, atol=STATE_TOL)
     assert stats["terminal"] > 0
 
 
