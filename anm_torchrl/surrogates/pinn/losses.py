@@ -78,15 +78,17 @@ def power_balance_residuals(v_magn: torch.Tensor, v_ang: torch.Tensor, p_bus: to
 
 
 def power_balance_losses(v_magn: torch.Tensor, v_ang: torch.Tensor, p_bus: torch.Tensor, q_bus: torch.Tensor,
-                         y_bus: torch.Tensor, robust: str = "squared",
-                         robust_scale: float = 0.01) -> dict[str, torch.Tensor]:
+                         y_bus: torch.Tensor, robust: str = "squared", robust_scale: float = 0.01,
+                         unit: float | torch.Tensor = 1.0) -> dict[str, torch.Tensor]:
     """Mean penalised AC power-flow residual at the non-slack buses (paper eqs. 31, 32).
 
     Args:
         v_magn, v_ang: (N, n_bus) predicted voltages (slack entries 1 and 0); p_bus, q_bus: (N, n_bus) p.u.
         y_bus: (n_bus, n_bus) complex admittance.
         robust: ``"squared"`` (the paper's mean squared residual), ``"pseudo_huber"`` or ``"cauchy"``.
-        robust_scale: the robust penalty's scale c (p.u.).
+        robust_scale: the robust penalty's scale c (in ``unit``).
+        unit: the residuals are measured in this unit (p.u.): 1 (p.u. on the network's base), or the size of the
+            network's injections (``residual_unit="box"``), so that one loss scale fits feeders of any base and size.
 
     Returns:
         ``{"residual_p", "residual_q"}`` scalars.
@@ -94,5 +96,6 @@ def power_balance_losses(v_magn: torch.Tensor, v_ang: torch.Tensor, p_bus: torch
     if robust not in ROBUST:
         raise ValueError(f"robust must be one of {sorted(ROBUST)}, got {robust!r}")
     dp, dq = power_balance_residuals(v_magn, v_ang, p_bus, q_bus, y_bus)
+    dp, dq = dp / unit, dq / unit
     rho = ROBUST[robust]
     return {"residual_p": rho(dp, robust_scale).mean(), "residual_q": rho(dq, robust_scale).mean()}

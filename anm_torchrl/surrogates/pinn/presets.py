@@ -116,6 +116,9 @@ class ModuleTrainConfig:
         v_scale, ang_scale: power balance only: output scaling (p.u., rad per unit output).
         val_size: held-out Sobol points.
         max_time_s: wall-clock cap of the Adam phase (None: none).
+        residual_unit: power balance only: the unit of the residuals in its loss, ``pu`` (the network's base) or
+            ``box`` (its largest bus-injection bound, :meth:`.power_balance.PowerBalanceNet.injection_scale`), so
+            that one ``robust_scale`` suits feeders of any base (ANM6-Easy 100 MVA, CIGRE MV 1 MVA).
         per_device: KKT-NNs only: ``batch_size``, ``val_size`` and ``lbfgs_batch`` count device samples, not
             Sobol points: a step draws ``ceil(batch_size / n_devices)`` points of all n devices of the kind, so the
             cost of a step stays the same on a feeder with 2 or 120 generators (the network is shared by them).
@@ -149,6 +152,7 @@ class ModuleTrainConfig:
     val_size: int = 4096
     max_time_s: float | None = None
     per_device: bool = False
+    residual_unit: str = "pu"
 
     def __post_init__(self):
         """Reject bad values before any work starts (a ``ValueError`` names the option and what it got)."""
@@ -175,6 +179,7 @@ class ModuleTrainConfig:
         if self.max_time_s is not None and not self.max_time_s > 0:
             raise ValueError(f"PINN training option 'max_time_s' must be > 0 or null, got {self.max_time_s!r}")
         for k, allowed in (("schedule", ("constant", "cosine")), ("norm", ("squared", "l2")),
+                           ("residual_unit", ("pu", "box")),
                            ("robust", ("squared", "pseudo_huber", "cauchy"))):
             if getattr(self, k) not in allowed:
                 raise ValueError(f"PINN training option {k!r} must be one of {allowed}, got {getattr(self, k)!r}")

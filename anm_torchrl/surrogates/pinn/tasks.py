@@ -107,7 +107,8 @@ class _PowerBalanceTask(_Task):
 
     def losses(self, inputs, cfg):
         v_magn, v_ang = self.module(*inputs)
-        return power_balance_losses(v_magn, v_ang, *inputs, self.module.y_bus, cfg.robust, cfg.robust_scale)
+        unit = self.module.injection_scale() if cfg.residual_unit == "box" else 1.0
+        return power_balance_losses(v_magn, v_ang, *inputs, self.module.y_bus, cfg.robust, cfg.robust_scale, unit)
 
     def reference(self, inputs):
         pf = newton_raphson(self.sim.net.y_bus, torch.complex(*inputs), tol=1e-10)
