@@ -75,11 +75,13 @@ def surrogate_row(spec: dict, network: str, n_bus: int, batch: int, min_time: fl
 
 
 def _predicted_step_s(rows: list[dict], network: str, impl: str, batch: int) -> float | None:
-    """Seconds one step of ``impl`` at ``batch`` would take at its batch-1 cost per transition (an upper bound for
-    batched backends, whose cost per transition falls with the batch); None without a batch-1 row."""
-    one = next((r for r in rows if r["network"] == network and r["impl"] == impl and r["batch"] == 1
-                and r["us_per_transition"]), None)
-    return None if one is None else one["us_per_transition"] * 1e-6 * batch
+    """Seconds one step of ``impl`` at ``batch`` would take at its cost per transition at the largest smaller batch
+    measured (an upper bound: the cost per transition of a batched env falls with the batch); None without one."""
+    smaller = [r for r in rows if r["network"] == network and r["impl"] == impl and r["batch"] < batch
+               and r["us_per_transition"]]
+    if not smaller:
+        return None
+    return max(smaller, key=lambda r: r["batch"])["us_per_transition"] * 1e-6 * batch
 
 
 def cost_rows(networks: list[str], batches: list[int], surrogates: list[dict], min_time: float, min_steps: int,
@@ -184,6 +186,11 @@ def ppo_part(cfg: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         lab = label(spec)
         if lab in reuse:
             seed_runs = reuse[lab]
+            for r in seed_runs:  # a reused run must have been made with this part's overrides (same states)
+                r.setdefault("seed", int(next(o.split("=", 1)[1] for o in r["overrides"] if o.startswith("seed="))))
+                want = set(ppo_overrides(spec, r["seed"], base))
+                if not want <= set(r["overrides"]):
+                    raise ValueError(f"ppo.reuse[{lab!r}]: a run lacks overrides {sorted(want - set(r['overrides']))}")
         else:
             seed_runs = [run_ppo(ppo_overrides(spec, s, base), out_dir / "runs" / "payoff" / f"{lab}_s{s}",
                                  timeout_s=cfg.get("timeout_s")) | {"seed": s} for s in cfg.get("seeds", [0])]
@@ -248,21 +255,21 @@ def markdown(rec: dict) -> str:
     if rows:
         batches = sorted({r["batch"] for r in rows})
         impls = list(dict.fromkeys(r["impl"] for r in rows))
-        nets = list(dict.fromkeys((r["network"], r["n_bus"]) for r in rows))
+        nets = sorted(dict.fromkeys((r["network"], r["n_bus"]) for r in rows), key=lambda x: x[1])
+        cols = [(i, b) for b in batches for i in impls if any(r["impl"] == i and r["batch"] == b for r in rows)]
         out += ["Cost per transition, µs (× numba at the same network and batch; 1-min load average when measured):",
-                "", "| network | buses | " + " | ".join(f"{i} b={b:,}" for b in batches for i in impls) + " |",
-                "|---|---:|" + "---:|" * (len(batches) * len(impls))]
+                "", "| network | buses | " + " | ".join(f"{i} b={b:,}" for i, b in cols) + " |",
+                "|---|---:|" + "---:|" * len(cols)]
         for net, nb in nets:
             cells = []
-            for b in batches:
-                for i in impls:
-                    r = next((r for r in rows if r["network"] == net and r["impl"] == i and r["batch"] == b), None)
-                    if r is None:
-                        cells.append("")
-                    elif r["us_per_transition"] is None:
-                        cells.append("skipped" if r.get("skipped") else "n/a")
-                    else:
-                        cells.append(f"{r['us_per_transition']:,.1f} ({r['x_numba']:.2f}×; L{r['load_avg_1min']:.0f})")
+            for i, b in cols:
+                r = next((r for r in rows if r["network"] == net and r["impl"] == i and r["batch"] == b), None)
+                if r is None:
+                    cells.append("")
+                elif r["us_per_transition"] is None:
+                    cells.append("skipped" if r.get("skipped") else "n/a")
+                else:
+                    cells.append(f"{r['us_per_transition']:,.1f} ({r['x_numba']:.2f}×; L{r['load_avg_1min']:.0f})")
             out.append(f"| {net} | {nb} | " + " | ".join(cells) + " |")
         reasons = sorted({f"{r['impl']} on {r['network']}: {r['reason'].split(';')[0][:120]}" for r in rows
                           if r.get("reason")})
