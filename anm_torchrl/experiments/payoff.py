@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -271,8 +272,9 @@ def markdown(rec: dict) -> str:
                 else:
                     cells.append(f"{r['us_per_transition']:,.1f} ({r['x_numba']:.2f}×; L{r['load_avg_1min']:.0f})")
             out.append(f"| {net} | {nb} | " + " | ".join(cells) + " |")
-        reasons = sorted({f"{r['impl']} on {r['network']}: {r['reason'].split(';')[0][:120]}" for r in rows
-                          if r.get("reason")})
+        # no machine-local paths in the docs: the record keeps the full reason
+        reasons = sorted({f"{r['impl']} on {r['network']}: " + re.sub(r"\S*/\S*", "<path>", r["reason"].split(";")[0])
+                          for r in rows if r.get("reason")})
         if reasons:
             out += ["", "Not measured (no trained model for that network):", ""] + [f"- {x}" for x in reasons]
         out += ["", "Crossover (smallest bus count where the surrogate is cheaper than the cheaper exact backend):", "",
@@ -282,7 +284,8 @@ def markdown(rec: dict) -> str:
                        f" | {', '.join(map(str, c['measured_n_bus'])) or 'nowhere'} |")
     acc = d.get("pinn_accuracy")
     if acc is not None:
-        out += ["", "PINN accuracy vs bus count: " + (f"from `{acc['file']}`." if acc["available"] else acc["reason"])]
+        out += ["", "PINN accuracy vs bus count: " + (f"from `results/{Path(acc['file']).name}`." if acc["available"]
+                                                     else re.sub(r"\S*/(\S+)", r"\1", acc["reason"]))]
     ppo = d.get("ppo")
     if ppo:
         dn = ppo["do_nothing"]
