@@ -23,7 +23,6 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from tensordict import TensorDict
 
 from anm_torchrl.baselines import make_baseline
 from anm_torchrl.baselines.mpc import MPCPolicy
