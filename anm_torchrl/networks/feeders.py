@@ -11,7 +11,9 @@ its annual maximum is the feeder's nominal value (the nominal loads of these cas
   indices 13, 23, 29) of 0.754, 1.100 and 1.071 MW: the three-DG loss-minimising placement reported by
   M. M. Aman, G. B. Jasmon, A. H. A. Bakar, H. Mokhlis, "A new approach for optimum simultaneous multi-DG
   distributed generation units placement and sizing based on maximization of system loadability using HPSO
-  algorithm", Energy 66 (2014) 202–215 (placement as commonly cited for the 33-bus feeder). Our choices, not the
+  algorithm", Energy 66 (2014) 202–215 (placement as commonly cited for the 33-bus feeder; NOTE: this attribution
+  was written from memory and could not be checked against the paper here — the placement is the widely reported
+  three-DG loss-minimising one, which several 2013–2014 studies report; verify before quoting). Our choices, not the
   study's: bus 14 and 30 units are PV (SimBench PV3), bus 24 is wind (WP4); two storage units of
   0.5 MW / 2 MWh at the ends of the two longest laterals (buses 18 and 33, indices 17 and 32). Every load
   follows SimBench ``lv_semiurb5`` (peak-scaled); the case has no line ratings (no branch penalty).
