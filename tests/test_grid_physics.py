@@ -503,7 +503,12 @@ def test_do_nothing_daily_reward_profile():
     assert abs(r[28] + 0.13) < 0.01 and abs(r[48] + 0.13) < 0.01
     assert r.sum() == pytest.approx(-413.84, abs=6e-3)
     assert sum(p > 0 for p in pen) == 92
-    assert 0.0002 <= min(e) and max(e) <= 0.0021  # spec: "0.0004-0.002"; measured min 2.8e-4
+    # The spec's prose says "0.0004-0.002 per step"; that is a rough range, and its own t = 29 step (PV ramp, lowest
+    # net flow) is 2.849e-4. Pin the extremes where they occur instead of a loosened range: rewards over the same
+    # day are checked against the spec above, and e_loss enters every reward compared with gym-anm in
+    # test_parity_gym_anm.py. 1e-9 relative: the NR stopping rule leaves ~1e-10 p.u. of slack-injection error.
+    assert int(np.argmin(e)) == 29 and min(e) == pytest.approx(2.849291905e-4, rel=1e-9)
+    assert int(np.argmax(e)) == 0 and max(e) == pytest.approx(2.002242348e-3, rel=1e-9)
 
 
 def test_numba_backend_equals_torch_backend():
