@@ -165,3 +165,24 @@ def test_per_device_batches_keep_anm6_rows_and_scale_on_feeders():
         task = TASKS[name](tr.build_modules(cfg, sim)[name], sim)
         mcfg = getattr(cfg, name)
         assert (_points(mcfg.batch_size, task, mcfg), _points(mcfg.val_size, task, mcfg)) == (batch, val), network
+
+
+def test_recipe_trained_surrogate_loads_through_make_env(tmp_path, monkeypatch):
+    """A surrogate trained by train_surrogate.py network=case33bw is the one make_env(<kind>, network="case33bw")
+    loads: the recipe (simulator_for) and make_env build the feeder's simulator through one function, so both look
+    under one network key (they used to differ: the recipe skipped gym-anm's defaults for the slack's P+/Q+/Q-)."""
+    from anm_torchrl.training.factory import make_env
+
+    monkeypatch.setenv("ANM_TORCHRL_HOME", str(tmp_path))
+    assert network_key(make_env("none", network="case33bw").sim) == network_key(simulator_for("case33bw"))
+    size = 200  # below the default data.size: overwrite_cache=true lets it into the default folder make_env reads
+    cfg = _compose("train_surrogate", ["network=case33bw", "surrogate=xgb", "surrogate.dataset=generative",
+                                       f"data.size={size}", "progress=false", "n_jobs=1", "overwrite_cache=true",
+                                       "models.xgb.num_boost_round=3", "terminal.num_boost_round=3"])
+    _recipe("train_surrogate").run(cfg)
+    env = make_env("xgb", network="case33bw", dataset="generative", seed=0)
+    td = env.reset()
+    td["action"] = env.action_spec.rand()
+    out = env.step(td)["next"]
+    assert out["state"].shape == (1, env.sim.state_dim)
+    assert torch.isfinite(out["state"]).all() and torch.isfinite(out["reward"]).all()

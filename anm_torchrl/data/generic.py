@@ -20,7 +20,10 @@ ANM6 = "anm6_easy"
 
 
 def simulator_for(network: str | None = None, device=None, backend: str = "auto") -> GridSimulator:
-    """The :class:`GridSimulator` of a registered network (with its registered profiles and env constants).
+    """The :class:`GridSimulator` of a registered network (with its registered profiles and env constants), built
+    as ``ANMEnv`` and ``make_env(network=name)`` build it (:func:`anm_torchrl.envs.anm_env.build_simulator`:
+    gym-anm's defaults filled in), so what a recipe saves under this simulator's network key is what
+    ``make_env`` looks up.
 
     Args:
         network: a name of :func:`anm_torchrl.networks.list_networks`; None or ``"anm6_easy"``: ANM6-Easy.
@@ -35,11 +38,12 @@ def simulator_for(network: str | None = None, device=None, backend: str = "auto"
     if not isinstance(network, str):
         raise ValueError(f"network must be a registered network name, got {type(network).__name__} "
                          "(for a network dict pass sim=ANMEnv(network=..., load_p=..., gen_p_max=...).sim)")
+    from anm_torchrl.envs.anm_env import build_simulator  # here: the envs import torchrl, the data package need not
     from anm_torchrl.networks import get_network
 
     c = get_network(network)
-    return GridSimulator.from_tables(c.network, c.load_p, c.gen_p_max, c.delta_t, c.gamma, c.lamb,
-                                     c.costs_clipping, device=device, backend=backend)
+    return build_simulator(c.network, c.load_p, c.gen_p_max, c.delta_t, c.gamma, c.lamb, c.costs_clipping,
+                           device=device, backend=backend)
 
 
 @functools.lru_cache(maxsize=1)

@@ -36,6 +36,44 @@ def _check_reward_args(delta_t, gamma, lamb, costs_clipping) -> tuple[float, flo
     return c
 
 
+def build_simulator(network: dict, load_p, gen_p_max, delta_t: float = 0.25, gamma: float = 0.995,
+                    lamb: float = 100, costs_clipping=(1, 100), *, device=None, backend: str = "auto",
+                    next_vars: Callable | None = None) -> GridSimulator:
+    """The :class:`GridSimulator` of a gym-anm network and its profiles, with gym-anm's checks and defaults
+    (:func:`anm_torchrl.networks.validation.validate_network`). ``ANMEnv`` and
+    :func:`anm_torchrl.data.generic.simulator_for` both build through it, so an env and a recipe given the same
+    network get the same simulator (and the same :func:`anm_torchrl.data.storage.network_key`).
+
+    Args:
+        network: gym-anm network dict (``None``/NaN where gym-anm allows a missing value).
+        load_p: (T, n_load) MW, loads in device-id order.
+        gen_p_max: (T, n_gen) MW, non-slack generators in device-id order.
+        delta_t, gamma, lamb, costs_clipping: as ``ANMEnv``.
+        device: torch device (None: CPU).
+        backend: ``"auto"``, ``"numba"`` or ``"torch"``.
+        next_vars: optional batched exogenous-variable hook (``ANMEnv``).
+
+    Raises:
+        ValueError: a network, profile or constant gym-anm would reject (naming what is wrong).
+    """
+    from anm_torchrl.networks.validation import device_ids, validate_network, validate_profile
+
+    if network is None or load_p is None or gen_p_max is None:
+        raise ValueError("a simulator needs network=, load_p= and gen_p_max= (ANMEnv: or sim=)")
+    net = validate_network(network)
+    loads, gens = device_ids(net, (-1,)), device_ids(net, (1, 2))
+    load_p = validate_profile(load_p, "load_p", len(loads), f"loads {loads} in device-id order")
+    gen_p_max = validate_profile(gen_p_max, "gen_p_max", len(gens), f"non-slack generators {gens} in device-id order")
+    if load_p.shape[0] != gen_p_max.shape[0]:
+        raise ValueError(f"load_p and gen_p_max must have the same T rows, got {load_p.shape[0]} and "
+                         f"{gen_p_max.shape[0]}")
+    clip = _check_reward_args(delta_t, gamma, lamb, costs_clipping)
+    if next_vars is not None and not callable(next_vars):
+        raise ValueError(f"next_vars must be callable, got {next_vars!r}")
+    return GridSimulator.from_tables(net, load_p, gen_p_max, float(delta_t), float(gamma), float(lamb), clip,
+                                     device=device, backend=backend, next_vars_hook=next_vars)
+
+
 class ANMEnv(EnvBase):
     """gym-anm's generic environment on ``network``, equal to it transition by transition, for N grids at once.
 
@@ -94,8 +132,8 @@ class ANMEnv(EnvBase):
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         super().__init__(batch_size=torch.Size([int(num_envs)]), device=device, allow_done_after_reset=True)
         if sim is None:
-            sim = self._build_sim(network, load_p, gen_p_max, delta_t, gamma, lamb, costs_clipping, backend,
-                                  next_vars)
+            sim = build_simulator(network, load_p, gen_p_max, delta_t, gamma, lamb, costs_clipping,
+                                  device=self.device, backend=backend, next_vars=next_vars)
         elif network is not None or load_p is not None or gen_p_max is not None or next_vars is not None:
             raise ValueError("pass either sim= or network=/load_p=/gen_p_max=/next_vars=, not both")
         self.sim = sim
@@ -106,25 +144,6 @@ class ANMEnv(EnvBase):
         self._a_low, self._a_high = sim.action_bounds()
         self.network_key = sim.content_key()
         self.set_seed(seed)
-
-    def _build_sim(self, network, load_p, gen_p_max, delta_t, gamma, lamb, costs_clipping, backend, next_vars):
-        from anm_torchrl.networks.validation import device_ids, validate_network, validate_profile
-
-        if network is None or load_p is None or gen_p_max is None:
-            raise ValueError("ANMEnv needs network=, load_p= and gen_p_max= (or sim=)")
-        net = validate_network(network)
-        loads, gens = device_ids(net, (-1,)), device_ids(net, (1, 2))
-        load_p = validate_profile(load_p, "load_p", len(loads), f"loads {loads} in device-id order")
-        gen_p_max = validate_profile(gen_p_max, "gen_p_max", len(gens),
-                                     f"non-slack generators {gens} in device-id order")
-        if load_p.shape[0] != gen_p_max.shape[0]:
-            raise ValueError(f"load_p and gen_p_max must have the same T rows, got {load_p.shape[0]} and "
-                             f"{gen_p_max.shape[0]}")
-        clip = _check_reward_args(delta_t, gamma, lamb, costs_clipping)
-        if next_vars is not None and not callable(next_vars):
-            raise ValueError(f"next_vars must be callable, got {next_vars!r}")
-        return GridSimulator.from_tables(net, load_p, gen_p_max, float(delta_t), float(gamma), float(lamb), clip,
-                                         device=self.device, backend=backend, next_vars_hook=next_vars)
 
     def _set_seed(self, seed: int | None) -> None:
         self.rng = torch.Generator(device=self.device)

@@ -8,6 +8,7 @@ import torch
 from torchrl.envs import DoubleToFloat, EnvBase, SerialEnv, StepCounter, TransformedEnv
 
 from anm_torchrl.envs import ANM6Env, ANMEnv, SurrogateEnv
+from anm_torchrl.envs.anm_env import build_simulator
 from anm_torchrl.paths import artifact_home
 from anm_torchrl.surrogates.registry import load_surrogate
 
@@ -129,9 +130,10 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
             raise ValueError(f"surrogate='gym_anm' runs gym-anm's ANM6Easy only, got network={network!r}")
         env = make_gym_anm_env(num_envs, device=device, seed=seed)
     else:
-        # the surrogate runs on this network's simulator (its tables and profiles); None = ANM6-Easy's
+        # the surrogate runs on this network's simulator (its tables and profiles); None = ANM6-Easy's. Built as
+        # simulator_for(name) builds it for the recipes, so the model is looked up under the key it was saved under
         kwargs = network_arguments(network, load_p, gen_p_max)
-        sim = None if kwargs is None else ANMEnv(**kwargs, num_envs=1, device=device).sim
+        sim = None if kwargs is None else build_simulator(**kwargs, device=device)
         model = load_surrogate_in_home(surrogate, sim=sim, device=device, **surrogate_kwargs)
         env = SurrogateEnv(model, num_envs, device=device, seed=seed, action_mode=action_mode,
                            init=init or "uniform", sim=sim)
