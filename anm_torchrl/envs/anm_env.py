@@ -11,7 +11,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from anm_torchrl.envs.observation import ObservationMap
-from anm_torchrl.envs.specs import GRID_KEYS, check_action, make_specs
+from anm_torchrl.envs.specs import GRID_KEYS, ActionBox, check_action, make_specs
 from anm_torchrl.grid.simulator import GridSimulator, Transition
 
 INITS = ("uniform", "gym_anm", "intended")
@@ -142,6 +142,7 @@ class ANMEnv(EnvBase):
         for name, spec in make_specs(sim, self.batch_size, self.device, self.obs_map).items():
             setattr(self, name, spec)
         self._a_low, self._a_high = sim.action_bounds()
+        self._a_box = ActionBox.of(self._a_low, self._a_high)
         self.network_key = sim.content_key()
         self.set_seed(seed)
 
@@ -165,7 +166,7 @@ class ANMEnv(EnvBase):
                           batch_size=self.batch_size, device=self.device)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = check_action(tensordict.get("action"), self._a_low, self._a_high, clip=self.action_mode == "clip")
+        action = check_action(tensordict.get("action"), self._a_box, clip=self.action_mode == "clip")
         state = self.validate_state(tensordict.get("state"))
         next_state, tr = self.sim.step(state, action)
         out = self._output(next_state, tr)

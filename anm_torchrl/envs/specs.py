@@ -23,6 +23,8 @@ Surrogates that cannot predict a ``grid`` quantity report NaN for it.
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
@@ -76,13 +78,33 @@ def make_specs(sim: GridSimulator, batch_size: torch.Size, device, obs_map=None)
     }
 
 
-def check_action(action: torch.Tensor, low: torch.Tensor, high: torch.Tensor, clip: bool) -> torch.Tensor:
-    """Validate a batch of actions (N, A); return it as float64, clipped to the box if ``clip``.
+@dataclasses.dataclass(frozen=True)
+class ActionBox:
+    """The action box (A,) MW/MVAr in float64 and the box :func:`check_action` accepts.
+
+    The action spec is float32: a bound such as case33bw's 0.754 MW rounds outward in float32, so the spec's own
+    high/low must pass. ``accept_low``/``accept_high`` are the bounds widened to the nearest float32 value outside
+    them, computed once here rather than on every step.
+    """
+
+    low: torch.Tensor
+    high: torch.Tensor
+    accept_low: torch.Tensor
+    accept_high: torch.Tensor
+
+    @classmethod
+    def of(cls, low: torch.Tensor, high: torch.Tensor) -> "ActionBox":
+        return cls(low, high, _f32_outward(low, -1), _f32_outward(high, 1))
+
+
+def check_action(action: torch.Tensor, box: ActionBox, clip: bool) -> torch.Tensor:
+    """Validate a batch of actions (N, A); return it as float64 inside ``box`` (clipped to it if ``clip``).
 
     Raises:
-        ValueError: wrong trailing shape, NaN/inf entries (always), or entries outside [low, high] unless
-            ``clip`` — the message names the env indices and action entries involved.
+        ValueError: wrong trailing shape, NaN/inf entries (always), or entries outside the (float32-rounded) box
+            unless ``clip`` — the message names the env indices and action entries involved.
     """
+    low, high = box.low, box.high
     if action.ndim != 2 or action.shape[-1] != low.shape[-1]:
         raise ValueError(f"action must have shape (num_envs, {low.shape[-1]}), got {tuple(action.shape)}")
     a = action.to(torch.float64)
@@ -90,19 +112,15 @@ def check_action(action: torch.Tensor, low: torch.Tensor, high: torch.Tensor, cl
     if bad.any():
         envs, entries = bad.nonzero(as_tuple=True)
         raise ValueError(f"non-finite action at (env, entry) {_pairs(envs, entries)}")
-    if clip:
-        return torch.clamp(a, low, high)
-    # The action spec is float32: a bound such as 0.754 MW rounds outward in float32, so the spec's own
-    # high/low must pass. Accept the float32-rounded box, then clamp onto the exact float64 box (the
-    # projection onto the device polygon would do the same).
-    low32, high32 = _f32_outward(low, -1), _f32_outward(high, 1)
-    out = (a < low32) | (a > high32)
-    if out.any():
-        envs, entries = out.nonzero(as_tuple=True)
-        vals = a[envs[:5], entries[:5]].tolist()
-        raise ValueError(
-            f"action outside the box at (env, entry) {_pairs(envs, entries)}; values {vals}; box low "
-            f"{low.tolist()} high {high.tolist()} (MW/MVAr). Pass action_mode='clip' to clip instead.")
+    if not clip:
+        out = (a < box.accept_low) | (a > box.accept_high)
+        if out.any():
+            envs, entries = out.nonzero(as_tuple=True)
+            vals = a[envs[:5], entries[:5]].tolist()
+            raise ValueError(
+                f"action outside the box at (env, entry) {_pairs(envs, entries)}; values {vals}; box low "
+                f"{low.tolist()} high {high.tolist()} (MW/MVAr). Pass action_mode='clip' to clip instead.")
+    # inside the float32-rounded box: onto the exact float64 box (the polygon projection would do the same)
     return torch.clamp(a, low, high)
 
 

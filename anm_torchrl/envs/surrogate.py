@@ -56,7 +56,7 @@ class SurrogateEnv(ANMEnv):
         self._grid_sizes = grid_sizes(self.sim)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = check_action(tensordict.get("action"), self._a_low, self._a_high, clip=self.action_mode == "clip")
+        action = check_action(tensordict.get("action"), self._a_box, clip=self.action_mode == "clip")
         state = self.validate_state(tensordict.get("state"))
         with torch.no_grad():
             pred = self.model(TensorDict({"state": state, "action": action}, batch_size=self.batch_size))
