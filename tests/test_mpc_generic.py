@@ -63,14 +63,11 @@ def _case(name: str) -> dict:
 
 def _gym_env(case: dict, seed: int):
     """gym-anm's generic env on ``case`` with the ``P_loads`` / ``P_maxs`` series ``MPCAgentPerfect`` reads."""
+    from anm_torchrl.networks.case_file import to_gym_anm
     from anm_torchrl.networks.validation import validate_network
 
     net = validate_network(case["network"])
-    gym_net = {"baseMVA": net["baseMVA"]}
-    for key in ("bus", "device", "branch"):  # gym-anm wants None where a value is missing
-        arr = net[key].astype(object)
-        arr[np.isnan(net[key].astype(float))] = None
-        gym_net[key] = arr
+    gym_net = to_gym_anm(net)  # gym-anm wants None where a value is missing
     env = record_generic.make_env_class()(gym_net, "state", case["load_p"], case["gen_p_max"], seed)
     env.P_loads, env.P_maxs = case["load_p"].T, case["gen_p_max"].T  # (n_load, T), (n_gen, T) MW
     return env

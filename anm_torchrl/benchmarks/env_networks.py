@@ -102,14 +102,11 @@ def bench_gym_generic(case: dict, n_steps: int, seed: int = 0) -> dict:
 
     from gym_anm import ANMEnv as GymANMEnv
 
+    from anm_torchrl.networks.case_file import to_gym_anm
     from anm_torchrl.networks.validation import validate_network
 
     net = validate_network(case["network"])
-    gym_net = {"baseMVA": net["baseMVA"]}
-    for key in ("bus", "device", "branch"):  # gym-anm wants None where a value is missing
-        arr = net[key].astype(object)
-        arr[np.isnan(net[key].astype(float))] = None
-        gym_net[key] = arr
+    gym_net = to_gym_anm(net)  # gym-anm wants None where a value is missing
     load_p, gen_p_max = np.asarray(case["load_p"]), np.asarray(case["gen_p_max"])
     T = load_p.shape[0]
 
