@@ -4,12 +4,11 @@ network guards, not accuracy (that is ``results/pinn_generic_accuracy.json``).""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import pytest
 import torch
 
+from recipe_utils import compose, load_recipe
 from anm_torchrl.artifacts import ArtifactError
 from anm_torchrl.data import DatasetError, default_dataset_dir, for_network, generate, load_dataset, simulator_for
 from anm_torchrl.data.storage import network_key
@@ -25,7 +24,6 @@ from anm_torchrl.surrogates.pinn.chain import load_pinn
 
 torch.set_num_threads(1)
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -102,35 +100,21 @@ def test_featurizer_names_follow_the_grid_state(case33):
     assert f.n_features == case33.state_dim + 2 + case33.action_dim + case33.n_load + case33.n_gen
 
 
-def _recipe(name: str):
-    spec = importlib.util.spec_from_file_location(f"recipe_{name}", ROOT / "recipes" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def _compose(config: str, overrides: list[str]):
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
-        return compose(config, overrides=overrides)
-
-
 def test_data_driven_surrogates_on_case33bw(case33, tmp_path, monkeypatch):
     """make_dataset / train_surrogate with network=case33bw write to that network's default folders; the model runs
     as its SurrogateEnv; ANM6-Easy's default folder stays empty; the dataset refuses another simulator."""
     monkeypatch.setenv("ANM_TORCHRL_HOME", str(tmp_path))
     size = 400
     for kind in ("generative", "agent"):
-        cfg = _compose("make_dataset", ["network=case33bw", f"dataset={kind}", f"size={size}", "progress=false",
+        cfg = compose("make_dataset", ["network=case33bw", f"dataset={kind}", f"size={size}", "progress=false",
                                         "agent.num_envs=8"])
-        assert _recipe("make_dataset").run(cfg) == str(default_dataset_dir(kind, size, 0, case33))
+        assert load_recipe("make_dataset").run(cfg) == str(default_dataset_dir(kind, size, 0, case33))
     with pytest.raises(DatasetError, match="different simulator"):
         load_dataset(default_dataset_dir("agent", size, 0, case33), kind="agent", sim=anm6_easy_simulator())
-    cfg = _compose("train_surrogate", ["network=case33bw", "surrogate=xgb", f"data.size={size}", "progress=false",
+    cfg = compose("train_surrogate", ["network=case33bw", "surrogate=xgb", f"data.size={size}", "progress=false",
                                        "n_jobs=1", "overwrite_cache=true", "models.xgb.num_boost_round=5",
                                        "terminal.num_boost_round=5"])
-    (metrics,) = _recipe("train_surrogate").run(cfg)
+    (metrics,) = load_recipe("train_surrogate").run(cfg)
     assert metrics["in_dataset"]["r2"] > 0.0  # better than predicting the mean: the fit saw this network's data
     assert (for_network(surrogate_dir("xgb", "generative"), case33) / "surrogate.json").is_file()
     assert not surrogate_dir("xgb", "generative").exists()
@@ -176,10 +160,10 @@ def test_recipe_trained_surrogate_loads_through_make_env(tmp_path, monkeypatch):
     monkeypatch.setenv("ANM_TORCHRL_HOME", str(tmp_path))
     assert network_key(make_env("none", network="case33bw").sim) == network_key(simulator_for("case33bw"))
     size = 200  # below the default data.size: overwrite_cache=true lets it into the default folder make_env reads
-    cfg = _compose("train_surrogate", ["network=case33bw", "surrogate=xgb", "surrogate.dataset=generative",
+    cfg = compose("train_surrogate", ["network=case33bw", "surrogate=xgb", "surrogate.dataset=generative",
                                        f"data.size={size}", "progress=false", "n_jobs=1", "overwrite_cache=true",
                                        "models.xgb.num_boost_round=3", "terminal.num_boost_round=3"])
-    _recipe("train_surrogate").run(cfg)
+    load_recipe("train_surrogate").run(cfg)
     env = make_env("xgb", network="case33bw", dataset="generative", seed=0)
     td = env.reset()
     td["action"] = env.action_spec.rand()
