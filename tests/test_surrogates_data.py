@@ -426,3 +426,29 @@ def test_pinn_next_state_follows_scaled_loads(surrogate_options):
     assert not torch.allclose(a.get(("pinn", "p_load")), b.get(("pinn", "p_load")))
     dp_bus = (b.get(("pinn", "p_load")) - a.get(("pinn", "p_load"))) @ base.net.incidence[base.load_ids]
     torch.testing.assert_close(b.get(("pinn", "p_bus")) - a.get(("pinn", "p_bus")), dp_bus)
+
+
+def _mlp_data(seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    x, xv = torch.randn(300, 5, generator=g), torch.randn(60, 5, generator=g)
+    w = torch.randn(5, 2, generator=g)
+    return x, x @ w, xv, xv @ w
+
+
+def test_dnn_budget_is_epochs_not_wall_time():
+    """The DNN's budget is counted in epochs: the same seed gives the same weights whatever the machine's speed
+    (a wall-clock budget made the model depend on load: 8 epochs instead of ~150), and the wall-clock safety cap
+    fails loudly instead of returning a model cut short."""
+    from anm_torchrl.surrogates.dnn import TrainingBudgetError, train_mlp
+
+    params = {"hidden": 8, "depth": 1, "max_epochs": 6, "patience": 100, "batch_size": 64}
+    m1, info1 = train_mlp(*_mlp_data(), params, seed=3)
+    m2, info2 = train_mlp(*_mlp_data(), params, seed=3)
+    assert (info1["epochs"], info1["stop"]) == (6, "max_epochs")
+    assert all(torch.equal(a, b) for a, b in zip(m1.state_dict().values(), m2.state_dict().values()))
+    # a cap of 0 minutes is reached after the first epoch, before the 6-epoch budget is spent
+    with pytest.raises(TrainingBudgetError, match=r"max_minutes=0.*after 1 of 6 epochs"):
+        train_mlp(*_mlp_data(), {**params, "max_minutes": 0}, seed=3)
+    # the cap is not checked once the epoch budget is spent: a run that finished its budget is kept
+    _, info = train_mlp(*_mlp_data(), {**params, "max_epochs": 1, "max_minutes": 0}, seed=3)
+    assert info["epochs"] == 1
