@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 
 import numpy as np
 import torch
@@ -65,19 +66,23 @@ class ACMPCPolicy(TensorDictModuleBase):
         in_key: TensorDict key of the gym-anm state (..., state_dim).
         soc_tol: MWh, how close a state's SoC must be to the previous plan's to reuse it as a warm start.
         ipopt: IPOPT option overrides.
+        warm_start: start each solve from the previous one shifted by a step (False: always from N simulated
+            do-nothing steps; to measure what the shifted start saves).
 
     ``forward`` writes ``"action"`` (..., action_dim) float32 MW/MVAr; ``last_info`` holds one dict per state of
-    the last call (``status``, ``iterations``, ``solve_time``, ``warm``, ``fallback``); ``solve_times`` all of them.
+    the last call (``status``, ``iterations``, ``solve_time``, ``cpu_time``, ``warm``, ``fallback``); ``infos``
+    those of every call, ``solve_times`` their wall seconds.
     """
 
     def __init__(self, sim: GridSimulator, horizon: int = DEFAULT_HORIZON, forecast: str = "perfect",
                  gamma: float = EVAL_GAMMA, formulation: str = "polar", in_key: str = "state", soc_tol: float = 1e-2,
-                 ipopt: dict | None = None):
+                 ipopt: dict | None = None, warm_start: bool = True):
         super().__init__()
         if forecast not in FORECASTS:
             raise ValueError(f"forecast must be one of {FORECASTS}, got {forecast!r}")
         self.in_keys, self.out_keys = [in_key], ["action"]
         self.sim, self.horizon, self.forecast, self.soc_tol = sim, int(horizon), forecast, float(soc_tol)
+        self.warm_start = bool(warm_start)
         self.nlp = ACHorizonNLP(sim, horizon, gamma, formulation, ipopt)
         sl = sim.state_slices()
         self._sl = sl
@@ -85,6 +90,7 @@ class ACMPCPolicy(TensorDictModuleBase):
         self._lo, self._hi = lo.cpu().numpy(), hi.cpu().numpy()
         self._plans: list[_Plan] = []  # the last call's solutions, as warm starts for the states that follow
         self.last_info: list[dict] = []
+        self.infos: list[dict] = []
         self.solve_times: list[float] = []
 
     def forecasts(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,18 +112,22 @@ class ACMPCPolicy(TensorDictModuleBase):
     def plan(self, state: np.ndarray, prev: _Plan | None = None) -> tuple[NLPResult, dict]:
         """Solve the N-step NLP at one state (state_dim,) MW…, warm-started from ``prev`` when given.
 
-        Returns the last solve (``success`` False if IPOPT failed from both starts) and its info dict.
+        Returns the last solve (``success`` False if IPOPT failed from both starts) and its info dict
+        (``warm_status``: IPOPT's status from the shifted start, None without one; ``status`` the last solve's).
         """
+        c0 = time.process_time()
         soc0 = state[self._sl["des_soc"]] / self.sim.net.base_mva
         p_load, p_pot = self.forecasts(state)
-        res = None
+        res, warm_status = None, None
         if prev is not None:
             res = self.nlp.solve(soc0, p_load, p_pot, prev.x, lam_x0=prev.lam_x, lam_g0=prev.lam_g)
+            warm_status = res.status
         if res is None or not res.success:
             res = self.nlp.solve(soc0, p_load, p_pot, self._cold_guess(state))
         self.solve_times.append(res.solve_time)
         return res, {"status": res.status, "iterations": res.iterations, "solve_time": res.solve_time,
-                     "warm": prev is not None, "fallback": False}
+                     "cpu_time": time.process_time() - c0, "warm": prev is not None, "warm_status": warm_status,
+                     "fallback": False}
 
     def act(self, states: torch.Tensor) -> torch.Tensor:
         """Actions (..., action_dim) float32 MW/MVAr for states (..., state_dim); one NLP per state."""
@@ -126,7 +136,7 @@ class ACMPCPolicy(TensorDictModuleBase):
         n, b, t_len = self.horizon, self.sim.net.base_mva, self.sim.n_time
         old, new, self.last_info = self._plans, [], []
         for i, s in enumerate(flat):
-            prev = self._match(s, old)
+            prev = self._match(s, old) if self.warm_start else None
             res, info = self.plan(s, prev)
             aux = (int(round(s[self._sl["aux"]][0])) + 1) % t_len
             if res.success:
@@ -145,6 +155,7 @@ class ACMPCPolicy(TensorDictModuleBase):
             new.append(nxt)
             self.last_info.append(info)
         self._plans = new
+        self.infos.extend(self.last_info)
         out = np.clip(out, self._lo, self._hi)  # inside the polygons up to round-off; the env raises outside
         return torch.as_tensor(out, dtype=torch.float32, device=states.device).reshape(
             *states.shape[:-1], self.sim.action_dim)

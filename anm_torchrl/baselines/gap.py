@@ -1,17 +1,29 @@
-"""The gap table: every classical controller against the perfect-foresight optimum, on the same test states.
+"""The gap table: every controller against the perfect-foresight optimum, on the same test states.
 
-    python -m anm_torchrl.baselines.optimal --episodes 4 --seed 0 --steps 3000 --out results/optimal_gap.json
-    python -m anm_torchrl.baselines.optimal --rows acmpc_16 --out results/optimal_gap.json   # add a row
+    python -m anm_torchrl.baselines.optimal --episodes 8 --seed 0 --steps 3000 --rows optimal --out rec.json
+    python -m anm_torchrl.baselines.optimal --episodes 8 --seed 0 --steps 3000 --rows acmpc_64 --only 0,1 \
+        --out part.json                                            # a costly row on some of the states
+    python -m anm_torchrl.baselines.optimal --episodes 8 --seed 0 --steps 3000 --merge part.json --out rec.json
+    python -m anm_torchrl.baselines.optimal --combine rec.json --test-returns results/test_returns.json \
+        --readme README.md docs/OPTIMAL.md --out results/optimal_gap_table.json   # the published table
 
 Rows (``--rows``, comma-separated): ``optimal`` (:class:`~anm_torchrl.baselines.optimal.OptimalPolicy`),
-``acmpc_<N>`` (AC-MPC, perfect forecast), ``mpc_<N>`` (gym-anm's DC-OPF MPC, perfect forecast, β = 0.92),
-``do_nothing``. Every row is evaluated by :func:`~anm_torchrl.training.evaluation.evaluate_policy` on ``ANM6Env``
-from the states ``draw_initial_states(episodes, seed)`` (seed 0: the PPO recipe's test states), deterministic,
-T = ``steps``, γ = 0.995. ``stability`` re-solves the first states' optimum from the do-nothing and a random warm
-start. An existing ``--out`` record of the same protocol keeps its other rows (rows can be measured in separate
-runs). The record also holds, per state, the optimum's IPOPT status, KKT residuals, rounds, solve times and its
-float64 replay through ``ANM6Env``; and each row's loss as a percentage of the optimum's
-(``loss_pct_of_optimum`` = 100 · return / optimum's return: 100 % is optimal, 200 % loses twice as much).
+``acmpc_<N>`` (AC-MPC, perfect forecast; ``acmpc_<N>_cold``: every solve from N simulated do-nothing steps instead
+of the previous solution shifted, to measure that warm start), ``mpc_<N>`` (gym-anm's DC-OPF MPC, perfect forecast, β = 0.92),
+``do_nothing``. Every row is evaluated by :func:`~anm_torchrl.training.evaluation.evaluate_policy` on the
+network's true env (``--network``; ``ANM6Env`` for ANM6-Easy, else ``ANMEnv`` of the registered network) from the
+states ``draw_initial_states(episodes, seed, sim, init)`` (the env's reset distribution; seed 0: the PPO recipe's
+test states), deterministic, T = ``steps``, γ = 0.995; ``--only`` restricts a row to some of those states (the row
+records their indices). ``stability`` re-solves the first states' optimum from the do-nothing and a random warm
+start. An existing ``--out`` record of the same protocol keeps its other rows. The record also holds, per state,
+the optimum's IPOPT status, KKT residuals, rounds, solve times and its float64 replay through the env; per
+AC-MPC row its IPOPT statuses and CPU seconds per solve.
+
+**Loss, % of the optimum's** = 100 · (mean return of the row) / (mean return of the optimum on the same states):
+100 % is optimal, 200 % loses twice as much. It is a ratio of means over the states a row covers (a row measured
+on fewer states is compared with the optimum on those states only). ``--combine`` builds the published table from
+gap records and the PPO rows of ``results/test_returns.json`` (same protocol, checked), and ``--readme`` rewrites
+the ``<!-- optimum:gap -->`` block of the named pages from it.
 """
 
 from __future__ import annotations
@@ -36,6 +48,9 @@ GAMMA = 0.995
 MPC_MARGIN = 0.92
 
 
+ANM6 = "anm6_easy"
+
+
 def _policy(name: str, sim, steps: int):
     from anm_torchrl.baselines import make_baseline
 
@@ -43,11 +58,11 @@ def _policy(name: str, sim, steps: int):
         return make_baseline("optimal", sim, horizon=steps)
     if name == "do_nothing":
         return make_baseline("do_nothing", sim)
-    m = re.fullmatch(r"(acmpc|mpc)_(\d+)", name)
-    if m is None:
-        raise ValueError(f"unknown row {name!r}; expected optimal, do_nothing, acmpc_<N> or mpc_<N>")
+    m = re.fullmatch(r"(acmpc|mpc)_(\d+)(_cold)?", name)
+    if m is None or (m.group(3) and m.group(1) == "mpc"):
+        raise ValueError(f"unknown row {name!r}; expected optimal, do_nothing, acmpc_<N>[_cold] or mpc_<N>")
     if m.group(1) == "acmpc":
-        return make_baseline("acmpc", sim, horizon=int(m.group(2)), forecast="perfect")
+        return make_baseline("acmpc", sim, horizon=int(m.group(2)), forecast="perfect", warm_start=not m.group(3))
     return make_baseline("mpc_perfect", sim, horizon=int(m.group(2)), safety_margin=MPC_MARGIN, gamma=GAMMA)
 
 
@@ -56,25 +71,50 @@ def _machine() -> dict:
             "torch_threads": torch.get_num_threads()}
 
 
-def evaluate_row(name: str, sim, states: torch.Tensor, steps: int) -> dict:
-    """One row: per-episode discounted returns and timings of policy ``name`` on ``ANM6Env``."""
+def true_env(network: str, n: int):
+    """The network's true env with batch size ``n`` (``ANM6Env`` for ANM6-Easy, else ``ANMEnv``), as PPO's."""
+    from anm_torchrl.training.factory import make_true_env
+
+    return make_true_env(n, "cpu", seed=0, network=None if network == ANM6 else network)
+
+
+def _acmpc_stats(pol) -> dict:
+    """IPOPT statuses, iterations and CPU seconds of every AC-MPC solve of a row."""
+    infos = pol.infos
+    statuses = [i["status"] for i in infos] + [i["warm_status"] for i in infos if i["warm_status"]]
+    cpu = np.array([i["cpu_time"] for i in infos])
+    warm = np.array([i["warm"] for i in infos])
+    return {"solves": len(infos), "solve_time_s": {"mean": float(np.mean(pol.solve_times)),
+                                                   "max": float(np.max(pol.solve_times))},
+            "cpu_s_per_solve": {"mean": float(cpu.mean()), "max": float(cpu.max()),
+                                "warm_mean": float(cpu[warm].mean()) if warm.any() else None,
+                                "cold_mean": float(cpu[~warm].mean()) if (~warm).any() else None},
+            "iterations_mean": float(np.mean([i["iterations"] for i in infos])),
+            "warm_started": int(warm.sum()),
+            "warm_start_failed": sum(1 for i in infos if i["warm_status"] not in (None, "Solve_Succeeded")),
+            "not_solve_succeeded": sum(1 for x in statuses if x != "Solve_Succeeded"),
+            "statuses": {x: statuses.count(x) for x in sorted(set(statuses))},
+            "fallbacks": sum(1 for i in infos if i["fallback"])}
+
+
+def evaluate_row(name: str, sim, states: torch.Tensor, steps: int, network: str = ANM6) -> dict:
+    """One row: per-episode discounted returns and timings of policy ``name`` on the network's true env."""
     from anm_torchrl.baselines.optimal import replay_in_env
     from anm_torchrl.training.evaluation import evaluate_policy
 
     pol = _policy(name, sim, steps)
     t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
-    res = evaluate_policy(pol, states, max_steps=steps, gamma=GAMMA)
+    res = evaluate_policy(pol, states, max_steps=steps, gamma=GAMMA, env=true_env(network, len(states)))
     row = {"discounted_return": res.discounted_returns.tolist(), "return": res.returns.tolist(),
            "terminated": res.terminated.tolist(), "mean_discounted_return": float(res.discounted_returns.mean()),
            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
            "load_avg_1min": [load0, os.getloadavg()[0]]}
     if name.startswith("acmpc"):
-        row["solve_time_s"] = {"mean": float(np.mean(pol.solve_times)), "max": float(np.max(pol.solve_times)),
-                               "count": len(pol.solve_times)}
+        row.update(_acmpc_stats(pol))
     if name == "optimal":
         plans = []
         for plan, s in zip(pol.plans, states):
-            env = replay_in_env(plan.setpoints, s.numpy(), GAMMA, sim)
+            env = replay_in_env(plan.setpoints, s.numpy(), GAMMA, env=true_env(network, 1))
             plans.append({**plan.summary(), "env_replay_return": env["discounted_return"],
                           "env_replay_gap": abs(env["discounted_return"] - plan.discounted_return)
                           / abs(plan.discounted_return), "env_replay_terminated": env["terminated"]})
@@ -119,38 +159,150 @@ def compare_formulations(sim, state: torch.Tensor, steps: int) -> dict:
     return out
 
 
-def table(rows: dict) -> list[dict]:
-    """Mean return and loss as % of the optimum's per row (empty percentages without an ``optimal`` row), best
-    first."""
-    opt = np.asarray(rows["optimal"]["discounted_return"]) if "optimal" in rows else None
+def _covered(row: dict, episodes: int) -> list[int]:
+    """Indices of the protocol's states a row was measured on (all of them unless ``--only`` was used)."""
+    return list(row.get("episode_index", range(episodes)))
+
+
+def table(rows: dict, episodes: int | None = None) -> list[dict]:
+    """Per row: mean return and loss as % of the optimum's on the states it covers (None without an ``optimal``
+    row covering them, or with an optimum whose mean return is ≥ 0: no loss to compare with), best first."""
+    n = episodes if episodes is not None else max(len(r["discounted_return"]) for r in rows.values())
+    opt = rows.get("optimal")
+    opt_by_state = dict(zip(_covered(opt, n), opt["discounted_return"])) if opt else {}
     out = []
     for name, r in rows.items():
-        ret = np.asarray(r["discounted_return"])
-        pct = 100.0 * ret / opt if opt is not None else None
-        out.append({"policy": name, "mean_discounted_return": float(ret.mean()),
-                    "loss_pct_of_optimum": None if pct is None else float(np.mean(pct)),
-                    "loss_pct_of_optimum_per_episode": None if pct is None else pct.tolist()})
+        idx, ret = _covered(r, n), np.asarray(r["discounted_return"])
+        pct = None
+        if idx and all(i in opt_by_state for i in idx):
+            ref = float(np.mean([opt_by_state[i] for i in idx]))
+            pct = 100.0 * float(ret.mean()) / ref if ref < 0 else None
+        out.append({"policy": name, "episode_index": idx, "mean_discounted_return": float(ret.mean()),
+                    "loss_pct_of_optimum": pct})
     return sorted(out, key=lambda t: -t["mean_discounted_return"])
 
 
 def markdown(rec: dict) -> str:
     """The gap table of a record as Markdown: per row the mean return, per-episode returns and loss vs optimum."""
-    rec = {**rec, "table": table(rec["rows"])}
-    lines = ["| policy | discounted return (mean) | per episode | loss, % of the optimum's |", "|---|---|---|---|"]
-    for t in rec["table"]:
+    lines = ["| policy | states | discounted return (mean) | per episode | loss, % of the optimum's |",
+             "|---|---|---|---|---|"]
+    for t in table(rec["rows"], rec["protocol"]["episodes"]):
         per = ", ".join(f"{v:.4f}" for v in rec["rows"][t["policy"]]["discounted_return"])
         pct = "–" if t["loss_pct_of_optimum"] is None else f"{t['loss_pct_of_optimum']:.1f} %"
-        lines.append(f"| {t['policy']} | {t['mean_discounted_return']:.4f} | {per} | {pct} |")
+        idx = ",".join(map(str, t["episode_index"]))
+        lines.append(f"| {t['policy']} | {idx} | {t['mean_discounted_return']:.4f} | {per} | {pct} |")
     return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------ the published table
+LABELS = {"optimal": "perfect-foresight AC optimum", "do_nothing": "do-nothing"}
+PPO_ROWS = {"none": "PPO trained on the true env", "pinn": "PPO trained on the PINN"}
+README_BLOCK = re.compile(r"(<!-- optimum:gap -->\n)(.*?)(<!-- /optimum:gap -->)", re.S)
+
+
+def _label(name: str) -> str:
+    m = re.fullmatch(r"(acmpc|mpc)_(\d+)(_cold)?", name)
+    if m is None:
+        return LABELS[name]
+    if m.group(3):
+        return f"AC-MPC, perfect forecast, N = {m.group(2)}, cold starts"
+    if m.group(1) == "acmpc":
+        return f"AC-MPC, perfect forecast, N = {m.group(2)}"
+    return f"DC-OPF MPC, perfect forecast, N = {m.group(2)}, β = {MPC_MARGIN}"
+
+
+def combine(gap_rec: dict, test_returns: dict | None = None) -> dict:
+    """The published gap table from a gap record and (optionally) the PPO rows and the β = 0.96 DC-MPC row of a
+    ``test_returns`` record measured on the same states (protocol checked).
+
+    Rows: ``policy`` (label), ``source``, ``states`` (how many), ``episode_index``, ``discounted_return`` (mean
+    over the states; for PPO the mean over seeds of each seed's mean), ``std_over_seeds``, ``seeds``,
+    ``loss_pct_of_optimum`` (100 · mean return / the optimum's mean return on the same states) and its
+    ``loss_pct_std`` (PPO: the std over seeds in the same units).
+    """
+    pr = gap_rec["protocol"]
+    n = int(pr["episodes"])
+    opt = gap_rec["rows"].get("optimal")
+    if opt is None or len(_covered(opt, n)) != n:
+        raise ValueError("combine: the gap record needs an 'optimal' row on all of its states")
+    opt_mean = float(np.mean(opt["discounted_return"]))
+    rows = []
+    for t in table(gap_rec["rows"], n):
+        r = gap_rec["rows"][t["policy"]]
+        extra = {k: r[k] for k in ("not_solve_succeeded", "cpu_s_per_solve", "solves") if k in r}
+        rows.append({"policy": _label(t["policy"]), "row": t["policy"], "source": "gap",
+                     "states": len(t["episode_index"]), "episode_index": t["episode_index"],
+                     "discounted_return": t["mean_discounted_return"], "std_over_seeds": None, "seeds": None,
+                     "loss_pct_of_optimum": t["loss_pct_of_optimum"], "loss_pct_std": None, **extra})
+    tr_meta = None
+    if test_returns is not None:
+        d = test_returns["data"]
+        want = {"test_episodes": n, "test_seed": int(pr["seed"]), "max_steps": int(pr["steps"]),
+                "gamma": float(pr["gamma"])}
+        if pr.get("network", ANM6) != ANM6 or d["protocol"] != want:
+            raise ValueError(f"combine: test_returns protocol {d['protocol']} differs from the gap record's {want} "
+                             f"(network {pr.get('network')})")
+        for r in d["rows"]:
+            if r["policy"] == "mpc_perfect_N16":
+                label, seeds, std = "DC-OPF MPC, perfect forecast, N = 16, β = 0.96 (gym-anm-exp's tuned β)", None, None
+            elif r["policy"] == "ppo_best" and r.get("trained_on") in PPO_ROWS:
+                label = f"{PPO_ROWS[r['trained_on']]} (`best.pt`, {int(r['frames']):,} frames)"
+                seeds, std = int(r["seeds"]), float(r.get("discounted_return_std") or 0.0)
+            else:
+                continue
+            ret = float(r["discounted_return"])
+            rows.append({"policy": label, "row": r["policy"] + (f"_{r['trained_on']}" if r.get("trained_on") else ""),
+                         "source": "test_returns", "states": n, "episode_index": list(range(n)),
+                         "discounted_return": ret, "std_over_seeds": std, "seeds": seeds,
+                         "loss_pct_of_optimum": 100.0 * ret / opt_mean,
+                         "loss_pct_std": None if std is None else 100.0 * std / abs(opt_mean)})
+        meta = test_returns.get("meta", {})
+        tr_meta = {"git_commit": (meta.get("versions") or {}).get("git_commit"), "date": meta.get("date")}
+    rows.sort(key=lambda r: -r["discounted_return"])
+    return {"protocol": pr, "optimum_mean": opt_mean, "rows": rows, "test_returns": tr_meta}
+
+
+def render_block(table_rec: dict) -> str:
+    """The Markdown of the ``<!-- optimum:gap -->`` block (README, docs/OPTIMAL.md) from a :func:`combine` record."""
+    pr = table_rec["protocol"]
+    lines = [f"{pr['episodes']} test states (`draw_initial_states({pr['episodes']}, seed={pr['seed']})`), "
+             f"T = {pr['steps']:,}, γ = {pr['gamma']}, discounted return on the true env; loss as % of the "
+             "optimum's on the same states (ratio of means; PPO: mean ± std over seeds):", "",
+             "| policy | states | discounted return | loss, % of the optimum's |", "|---|---:|---:|---:|"]
+    for r in table_rec["rows"]:
+        ret = f"{r['discounted_return']:.2f}" + (f" ± {r['std_over_seeds']:.2f}" if r["seeds"] else "")
+        pct = "–" if r["loss_pct_of_optimum"] is None else f"{r['loss_pct_of_optimum']:,.0f} %" + (
+            f" ± {r['loss_pct_std']:,.0f}" if r["seeds"] else "")
+        states = f"{r['states']}" if r["states"] == pr["episodes"] else \
+            f"{r['states']} (#{', #'.join(map(str, r['episode_index']))})"
+        seeds = f", {r['seeds']} seed{'s' if r['seeds'] != 1 else ''}" if r["seeds"] else ""
+        lines.append(f"| {r['policy']}{seeds} | {states} | {ret} | {pct} |")
+    tr = table_rec.get("test_returns")
+    src = "_From `results/optimal_gap_table.json`"
+    if tr:
+        src += f" (PPO and β = 0.96 rows: `results/test_returns.json`, git commit `{str(tr['git_commit'])[:7]}`)"
+    return "\n".join(lines) + "\n\n" + src + "._\n"
+
+
+def update_pages(pages: list[str | Path], table_rec: dict) -> None:
+    """Rewrite the ``<!-- optimum:gap -->`` block of every page; a page without the block is an error."""
+    body = render_block(table_rec)
+    for page in map(Path, pages):
+        text = page.read_text()
+        if not README_BLOCK.search(text):
+            raise ValueError(f"{page}: no <!-- optimum:gap --> ... <!-- /optimum:gap --> block")
+        page.write_text(README_BLOCK.sub(lambda m: m.group(1) + body + m.group(3), text))
 
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(prog="python -m anm_torchrl.baselines.optimal", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--network", default=ANM6, help="registered network (default anm6_easy)")
     ap.add_argument("--episodes", type=int, default=4, help="number of test states (default 4)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the test states (default 0, the test seed)")
     ap.add_argument("--steps", type=int, default=3000, help="episode length T (default 3000)")
     ap.add_argument("--rows", default=",".join(DEFAULT_ROWS), help="comma-separated rows (default: all)")
+    ap.add_argument("--only", default="", help="comma-separated state indices the rows run on (default: all)")
     ap.add_argument("--stability", type=int, default=0,
                     help="re-solve the optimum of this many first states from every warm start (default 0)")
     ap.add_argument("--formulations", type=int, default=0,
@@ -158,21 +310,38 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--merge", nargs="*", default=[],
                     help="records of the same protocol (e.g. rows measured in parallel runs) whose rows are merged "
                          "into --out")
+    ap.add_argument("--combine", default="",
+                    help="build the published table from this gap record into --out (no evaluation)")
+    ap.add_argument("--test-returns", default="", help="with --combine: the test_returns record (PPO rows)")
+    ap.add_argument("--readme", nargs="*", default=[],
+                    help="with --combine: pages whose <!-- optimum:gap --> block is rewritten")
     ap.add_argument("--markdown", action="store_true", help="print the record's table as Markdown and exit")
     ap.add_argument("--out", required=True, help="JSON record (rows of an existing record are kept)")
     args = ap.parse_args(argv)
     if args.markdown:
         sys.stdout.write(markdown(json.loads(Path(args.out).read_text())) + "\n")
         return {}
+    command = "python -m anm_torchrl.baselines.optimal " + " ".join(argv if argv is not None else sys.argv[1:])
+    if args.combine:
+        tr = json.loads(Path(args.test_returns).read_text()) if args.test_returns else None
+        rec = {**combine(json.loads(Path(args.combine).read_text()), tr), "command": command}
+        _write(Path(args.out), rec)
+        update_pages(args.readme, rec)
+        return rec
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     torch.set_num_threads(1)
-    from anm_torchrl.grid.simulator import anm6_easy_simulator
+    from anm_torchrl.data.generic import simulator_for
     from anm_torchrl.training.evaluation import draw_initial_states
 
-    sim = anm6_easy_simulator()
-    states = draw_initial_states(args.episodes, args.seed, sim)
-    protocol = {"network": "anm6_easy", "episodes": args.episodes, "seed": args.seed, "steps": args.steps,
+    sim, env = simulator_for(args.network), true_env(args.network, 1)
+    states = draw_initial_states(args.episodes, args.seed, sim, env.init)
+    protocol = {"network": args.network, "episodes": args.episodes, "seed": args.seed, "steps": args.steps,
                 "gamma": GAMMA, "states": "training.evaluation.draw_initial_states(episodes, seed)"}
+    if args.network != ANM6:  # ANM6-Easy's records predate this key (gym-anm's reset distribution)
+        protocol.update(init=env.init, states="training.evaluation.draw_initial_states(episodes, seed, sim, init)")
+    only = [int(i) for i in args.only.split(",") if i]
+    if any(not 0 <= i < args.episodes for i in only):
+        raise SystemExit(f"--only {only}: indices must lie in [0, {args.episodes})")
     out = Path(args.out)
     rec = json.loads(out.read_text()) if out.exists() else {}
     if rec and rec.get("protocol") != protocol:
@@ -188,7 +357,8 @@ def main(argv: list[str] | None = None) -> dict:
         rec.setdefault("commands", []).extend(other.get("commands", []))
     for name in [r for r in args.rows.split(",") if r and not args.merge]:
         log.info("row %s ...", name)
-        rec["rows"][name] = {**evaluate_row(name, sim, states, args.steps), "machine": _machine()}
+        row = evaluate_row(name, sim, states[only] if only else states, args.steps, args.network)
+        rec["rows"][name] = {**row, **({"episode_index": only} if only else {}), "machine": _machine()}
         log.info("row %s: %s", name, rec["rows"][name]["discounted_return"])
         _write(out, rec)
     if args.formulations:
@@ -196,9 +366,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.stability:
         rec["stability"] = {"episodes": stability(sim, states, args.steps, args.stability, args.seed),
                             "machine": _machine()}
-    rec["table"] = table(rec["rows"])
-    rec.setdefault("commands", []).append("python -m anm_torchrl.baselines.optimal " + " ".join(
-        argv if argv is not None else sys.argv[1:]))
+    rec["table"] = table(rec["rows"], args.episodes)
+    rec.setdefault("commands", []).append(command)
     _write(out, rec)
     return rec
 

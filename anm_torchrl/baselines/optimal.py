@@ -192,15 +192,24 @@ def _check(res: NLPResult, k: int) -> None:
 
 
 def replay_in_env(setpoints: np.ndarray, state: np.ndarray, gamma: float = EVAL_GAMMA,
-                  sim: GridSimulator | None = None) -> dict:
-    """Step set-points (T, action_dim) MW/MVAr (float64) through ``ANM6Env`` from ``state`` (set with
+                  sim: GridSimulator | None = None, env=None) -> dict:
+    """Step set-points (T, action_dim) MW/MVAr (float64) through an env from ``state`` (set with
     ``reset(..., set_state=True)``); returns the ``discounted_return``, the ``rewards`` (T,) and ``terminated``.
+
+    Args:
+        sim: simulator of the default env, ``ANM6Env(1, sim=sim)`` (None: ANM6-Easy's).
+        env: an env of batch size 1 to replay in instead (e.g. ``ANMEnv`` of another network); not with ``sim``.
     """
     from tensordict import TensorDict
 
     from anm_torchrl.envs import ANM6Env
 
-    env = ANM6Env(1, seed=0, sim=sim)
+    if env is not None and sim is not None:
+        raise ValueError("replay_in_env: pass sim= (for ANM6Env) or env=, not both")
+    if env is None:
+        env = ANM6Env(1, seed=0, sim=sim)
+    elif tuple(env.batch_size) != (1,):
+        raise ValueError(f"replay_in_env: env batch size must be (1,), got {tuple(env.batch_size)}")
     td = env.reset(TensorDict({"state": torch.as_tensor(state, dtype=torch.float64).reshape(1, -1)}, [1]),
                    set_state=True)
     rewards, terminated = [], False
