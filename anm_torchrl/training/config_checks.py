@@ -96,6 +96,8 @@ def check_ppo_config(cfg: Mapping) -> None:
     _in_range(cfg, "model.max_obs_scale", 0, math.inf, True, True, optional=True)
     _in_range(cfg, "model.obs_clip", 0, math.inf, True, True)
     _number(cfg, "model.init_log_std")
+    _choice(cfg, "model.init_action", ("center", "do_nothing"))
+    _in_range(cfg, "model.init_action_clip", 0, 1, True, True)
     # collector
     fpb, total = _int(cfg, "collector.frames_per_batch"), _int(cfg, "collector.total_frames")
     workers = _int(cfg, "collector.num_workers")
@@ -116,7 +118,11 @@ def check_ppo_config(cfg: Mapping) -> None:
     _in_range(cfg, "loss.critic_coeff", 0, math.inf, False, True)
     _in_range(cfg, "loss.entropy_coeff", 0, math.inf, False, True)
     _choice(cfg, "loss.loss_critic_type", ("l2", "l1", "smooth_l1"))
-    _in_range(cfg, "loss.reward_scale", 0, math.inf, True, True)
+    if isinstance(_get(cfg, "loss.reward_scale"), str) and _get(cfg, "loss.reward_scale") != "auto":
+        raise ValueError(f"loss.reward_scale must be a number > 0 or auto, got {_get(cfg, 'loss.reward_scale')!r}")
+    if _get(cfg, "loss.reward_scale") != "auto":
+        _in_range(cfg, "loss.reward_scale", 0, math.inf, True, True)
+    _in_range(cfg, "loss.auto_step_reward", 0, math.inf, True, True)
     # optim
     _in_range(cfg, "optim.lr", 0, math.inf, True, True)
     _in_range(cfg, "optim.eps", 0, math.inf, True, True)
@@ -131,6 +137,7 @@ def check_ppo_config(cfg: Mapping) -> None:
     _int(cfg, "eval.num_episodes")
     _int(cfg, "eval.test_episodes")
     _int(cfg, "eval.max_steps")
+    _int(cfg, "eval.test_max_steps", optional=True)
     _in_range(cfg, "eval.gamma", 0, 1, True, False)
     if _int(cfg, "eval.render_interval", low=0) and _get(cfg, "logger.backend") != "tensorboard":
         raise ValueError(f"eval.render_interval > 0 logs figures to TensorBoard: it needs logger.backend=tensorboard, "

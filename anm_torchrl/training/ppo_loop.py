@@ -46,6 +46,20 @@ def make_train_env(surrogate: dict, num_envs: int, max_steps: int | None, seed: 
     return env.append_transform(RewardSum()) if isinstance(env, TransformedEnv) else TransformedEnv(env, RewardSum())
 
 
+def initial_action_kwargs(cfg: DictConfig) -> dict:
+    """``make_ppo_models`` keywords of ``model.init_action``: ``center`` → none (bias 0, the box centre, today's
+    behaviour; nothing is built), ``do_nothing`` → the do-nothing action of ``cfg.network``'s true simulator
+    (renewables at their maximum, no reactive power, storage idle) as the untrained policy's deterministic action,
+    edge values ``model.init_action_clip`` inside the box."""
+    if cfg.model.init_action == "center":
+        return {}
+    from anm_torchrl.baselines.simple import DoNothingPolicy
+    from anm_torchrl.training.factory import make_true_env
+
+    sim = make_true_env(1, cfg.env.device, network=cfg.network).sim
+    return {"init_action": DoNothingPolicy(sim).action_value, "init_action_clip": float(cfg.model.init_action_clip)}
+
+
 def budget_mask(batch_size, remaining: int):
     """Frames of a collected batch ``[..., T]`` that fit in the remaining budget of ``remaining`` frames.
 
@@ -128,7 +142,8 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
     actor, critic, normalizer = make_ppo_models(
         train_env, actor_cells=cfg.model.actor_cells, critic_cells=cfg.model.critic_cells,
         activation=cfg.model.activation, max_obs_scale=cfg.model.max_obs_scale, obs_clip=cfg.model.obs_clip,
-        init_log_std=cfg.model.init_log_std, obs_stats=resume["obs_norm"] if resume else None)
+        init_log_std=cfg.model.init_log_std, obs_stats=resume["obs_norm"] if resume else None,
+        **initial_action_kwargs(cfg))
     actor, critic = actor.to(device), critic.to(device)
     if resume:
         actor.load_state_dict(resume["actor"])
@@ -141,6 +156,14 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
     val_states = draw_initial_states(int(cfg.eval.num_episodes), int(cfg.eval.seed), eval_env.sim, eval_env.init)
     test_states = draw_initial_states(int(cfg.eval.test_episodes), int(cfg.eval.test_seed), test_env.sim,
                                       test_env.init)
+    reward_scale_info = None
+    if cfg.loss.reward_scale == "auto":  # derived once per run from do-nothing on the validation states
+        from anm_torchrl.training.reward_scale import do_nothing_reward_scale
+
+        reward_scale_info = do_nothing_reward_scale(eval_env, val_states, int(cfg.eval.max_steps),
+                                                    float(cfg.loss.auto_step_reward))
+        log.info("loss.reward_scale=auto: %.4g (do-nothing mean step reward %.4g on the validation states)",
+                 reward_scale_info["reward_scale"], reward_scale_info["do_nothing_step_reward"])
 
     # ---- collector ------------------------------------------------------------------------------------------
     total_frames = int(cfg.collector.total_frames)
@@ -201,18 +224,21 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
                 "update": update, "logger_step": frames, "best_eval": best, "evals_since_best": evals_since_best,
                 "wall_time": wall_before + time.perf_counter() - t_start}
 
-    def run_eval(policy, states, env, trained: tuple[int, int] | None = None) -> dict:
-        """Metrics of ``policy`` on ``states``, tagged with the (frames, update) it was trained for."""
+    test_max_steps = int(cfg.eval.max_steps if cfg.eval.test_max_steps is None else cfg.eval.test_max_steps)
+
+    def run_eval(policy, states, env, trained: tuple[int, int] | None = None, steps: int = int(cfg.eval.max_steps)
+                 ) -> dict:
+        """Metrics of ``policy`` on ``states`` over ``steps`` steps, tagged with the (frames, update) it was trained
+        for."""
         policy.eval()
-        result = evaluate_policy(policy, states, max_steps=int(cfg.eval.max_steps), gamma=float(cfg.eval.gamma),
-                                 env=env)
+        result = evaluate_policy(policy, states, max_steps=steps, gamma=float(cfg.eval.gamma), env=env)
         policy.train()
         at_frames, at_update = trained if trained is not None else (frames, update)
         return {**result.metrics(), "frames": at_frames, "update": at_update, "seconds": result.wall_time}
 
     # ---- training loop ----------------------------------------------------------------------------------------
     lr0 = float(cfg.optim.lr)
-    reward_scale = float(cfg.loss.reward_scale)
+    reward_scale = float(cfg.loss.reward_scale if reward_scale_info is None else reward_scale_info["reward_scale"])
     eval_interval, patience = cfg.eval.interval, cfg.eval.patience
     render_interval = int(cfg.eval.render_interval)
     max_minutes = cfg.collector.max_minutes
@@ -324,7 +350,7 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
 
     # ---- test states: best.pt and last.pt, once -----------------------------------------------------------------
     test = {"seed": int(cfg.eval.test_seed), "num_episodes": int(cfg.eval.test_episodes),
-            "max_steps": int(cfg.eval.max_steps), "gamma": float(cfg.eval.gamma)}
+            "max_steps": test_max_steps, "gamma": float(cfg.eval.gamma)}
     try:
         policies = {}
         if (ckpt_dir / "best.pt").is_file():
@@ -333,7 +359,7 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
             policies["best"][0].load_state_dict(best_ckpt["actor"])
         policies["last"] = (actor, (frames, update))
         for name, (policy, trained) in policies.items():
-            test[name] = run_eval(policy, test_states, test_env, trained=trained)
+            test[name] = run_eval(policy, test_states, test_env, trained=trained, steps=test_max_steps)
             log_metrics({f"test/{name}/{k}": test[name][k] for k in EVAL_KEYS}, step=frames)
     except KeyboardInterrupt:
         interrupted = True
@@ -344,7 +370,7 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
                "wall_time": wall_before + time.perf_counter() - t_start, "run_dir": str(run_dir),
                "validation": {"seed": int(cfg.eval.seed), "num_episodes": int(cfg.eval.num_episodes),
                               "max_steps": int(cfg.eval.max_steps), "gamma": float(cfg.eval.gamma)},
-               "test": test,
+               "test": test, "reward_scale": reward_scale_info or {"reward_scale": reward_scale},
                "checkpoints": {name: str(ckpt_dir / f"{name}.pt") if (ckpt_dir / f"{name}.pt").is_file() else None
                                for name in ("best", "last")},
                "config": config}

@@ -69,6 +69,27 @@ def observation_stats(spec: Bounded, max_scale: float | None = 50.0) -> tuple[to
     return loc.float(), scale.float()
 
 
+def initial_mean_bias(action: torch.Tensor, low: torch.Tensor, high: torch.Tensor, clip: float) -> torch.Tensor:
+    """Pre-tanh bias (A,) that makes the actor's deterministic action (its ``TanhNormal`` mean mapped into the box,
+    ``low + (high - low)(1 + tanh(b)) / 2``) equal ``action`` (A,), with ``|tanh(b)|`` capped at ``clip`` < 1
+    (a target on the box's edge would need an infinite bias; ``clip`` = 0.98 puts it 1 % of the width inside).
+
+    Raises:
+        ValueError: shapes differ, ``clip`` is not in (0, 1), or ``action`` lies outside [low, high].
+    """
+    action, low, high = (torch.as_tensor(x, dtype=torch.float64) for x in (action, low, high))
+    if not action.shape == low.shape == high.shape or action.ndim != 1:
+        raise ValueError(f"action, low and high must be 1-D of equal shape, got {tuple(action.shape)}, "
+                         f"{tuple(low.shape)}, {tuple(high.shape)}")
+    if not 0.0 < float(clip) < 1.0:
+        raise ValueError(f"clip must be in (0, 1), got {clip}")
+    if ((action < low) | (action > high)).any():
+        raise ValueError(f"initial action {action.tolist()} lies outside the action box [{low.tolist()}, "
+                         f"{high.tolist()}]")
+    u = (2 * (action - low) / (high - low) - 1).clamp(-float(clip), float(clip))
+    return torch.atanh(u).float()
+
+
 def _unbatched(spec, key: str):
     spec = spec[key] if key in spec.keys() else spec
     return spec[(0,) * (spec.ndim - 1)] if spec.ndim > 1 else spec
@@ -77,6 +98,7 @@ def _unbatched(spec, key: str):
 def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), activation: str = "tanh",
                     max_obs_scale: float | None = 50.0, obs_clip: float = 5.0, init_log_std: float = -2.0,
                     obs_stats: dict[str, torch.Tensor] | None = None, obs_key: str = "observation",
+                    init_action: torch.Tensor | None = None, init_action_clip: float = 0.98,
                     ) -> tuple[ProbabilisticActor, ValueOperator, ObservationNormalizer]:
     """Actor, critic and observation normaliser for ``env``.
 
@@ -89,6 +111,10 @@ def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), a
         init_log_std: initial state-independent log standard deviation of the pre-tanh Gaussian.
         obs_stats: ``{"loc", "scale"}`` to use instead of the spec's (e.g. from a checkpoint).
         obs_key: observation key read by both networks.
+        init_action: (A,) action in MW/MVAr that the untrained policy's deterministic action should be (e.g. the
+            do-nothing action); its last layer's bias is set by :func:`initial_mean_bias`. None: bias 0, the centre
+            of the box (the weights are drawn identically either way).
+        init_action_clip: ``clip`` of :func:`initial_mean_bias`.
 
     Returns:
         ``actor``: ``ProbabilisticActor`` writing ``"action"`` (…, A) within the action box (a ``TanhNormal``
@@ -117,10 +143,14 @@ def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), a
         for i, layer in enumerate(layers):
             nn.init.orthogonal_(layer.weight, last_gain if i == len(layers) - 1 else 2 ** 0.5)
             nn.init.zeros_(layer.bias)
+    low, high = act_spec.space.low.float(), act_spec.space.high.float()
+    if init_action is not None:
+        last = [m for m in actor_mlp.modules() if isinstance(m, nn.Linear)][-1]
+        with torch.no_grad():
+            last.bias.copy_(initial_mean_bias(init_action, low, high, init_action_clip))
 
     policy_net = nn.Sequential(normalizer, actor_mlp,
                                AddStateIndependentNormalScale(act_dim, scale_lb=1e-4, init_value=float(init_log_std)))
-    low, high = act_spec.space.low.float(), act_spec.space.high.float()
     actor = ProbabilisticActor(
         TensorDictModule(policy_net, in_keys=[obs_key], out_keys=["loc", "scale"]),
         in_keys=["loc", "scale"],

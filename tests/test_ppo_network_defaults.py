@@ -1,0 +1,136 @@
+"""PPO's per-network settings: the do-nothing initial action (``model.init_action``), the derived reward scale
+(``loss.reward_scale=auto``) and the test episode length (``eval.test_max_steps``) — derived as documented, and
+ANM6-Easy's defaults unchanged (they select none of it)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from recipe_utils import ROOT, compose
+
+from anm_torchrl.baselines.simple import DoNothingPolicy
+from anm_torchrl.training.config_checks import check_ppo_config
+from anm_torchrl.training.ppo_loop import initial_action_kwargs, make_train_env
+from anm_torchrl.training.ppo_models import initial_mean_bias, make_ppo_models
+
+CLIP = 0.98
+
+
+def test_anm6_defaults_select_the_old_behaviour():
+    """The default config (ANM6-Easy) keeps the hand-tuned scale 0.01, the box-centre start and T_test = T_val."""
+    cfg = compose("config", [])
+    assert cfg.network == "anm6_easy"
+    assert cfg.loss.reward_scale == 0.01 and cfg.model.init_action == "center" and cfg.eval.test_max_steps is None
+    assert initial_action_kwargs(cfg) == {}  # nothing built, make_ppo_models called exactly as before
+
+
+def _models(network: str, cfg_overrides: list[str], seed: int = 0):
+    cfg = compose("config", [f"network={network}", *cfg_overrides])
+    env = make_train_env({"name": "none"}, 3, None, 0, "raise", None, "cpu", 1, network=network)
+    torch.manual_seed(seed)
+    actor, _, _ = make_ppo_models(env, **initial_action_kwargs(cfg))
+    return env, actor
+
+
+def test_do_nothing_start_is_the_do_nothing_action():
+    """With ``model.init_action=do_nothing`` the untrained deterministic action is do-nothing's on case33bw: zero Q
+    and idle storage exactly (interior targets), renewables at the box top less 1 % of the width (the edge is capped
+    at |tanh| = 0.98); the weights are drawn as with the box-centre start, only the last bias differs."""
+    env, actor = _models("case33bw", ["model.init_action=do_nothing"])
+    _, centre = _models("case33bw", [])
+    td = env.reset()
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        a = actor(td)["action"]
+    low, high = env.sim.action_bounds()
+    target = DoNothingPolicy(env.sim).action_value.to(torch.float64)
+    u = (2 * (target - low) / (high - low) - 1).clamp(-CLIP, CLIP)  # the box edge is reached as |u| = CLIP
+    expected = low + (high - low) * (1 + u) / 2
+    assert (expected[:env.sim.n_gen] < high[:env.sim.n_gen]).all() and (expected[env.sim.n_gen:] == 0).all()
+    # float32 network outputs plus the last layer's 0.01-gain weights on the normalised observation: ~1e-2 of the
+    # box at most (the centre start has the same spread around the centre)
+    spread = (high - low) * 1e-2
+    assert ((a.double() - expected).abs() <= spread).all(), (a, expected)
+    sd, sd_centre = actor.state_dict(), centre.state_dict()
+    differ = [k for k in sd if not torch.equal(sd[k], sd_centre[k])]
+    assert len(differ) == 1 and differ[0].endswith("bias")
+
+
+def test_initial_mean_bias_maps_back_and_rejects_bad_input():
+    low, high = torch.tensor([0.0, -1.0, -2.0]), torch.tensor([1.0, 1.0, 2.0])
+    b = initial_mean_bias(torch.tensor([1.0, 0.0, -0.5]), low, high, CLIP)
+    back = low + (high - low) * (1 + torch.tanh(b)) / 2
+    assert torch.allclose(back, torch.tensor([0.5 + 0.5 * CLIP, 0.0, -0.5]), atol=1e-6)  # float32 atanh/tanh
+    with pytest.raises(ValueError, match="outside the action box"):
+        initial_mean_bias(torch.tensor([2.0, 0.0, 0.0]), low, high, CLIP)
+    with pytest.raises(ValueError, match="clip must be in"):
+        initial_mean_bias(torch.tensor([0.5, 0.0, 0.0]), low, high, 1.0)
+
+
+def test_auto_reward_scale_is_derived_from_do_nothing():
+    """scale = auto_step_reward / |do-nothing's mean step reward|, on both networks; on ANM6-Easy the documented
+    step reward 0.043 gives back the hand-tuned 0.01 (do-nothing's mean step is -4.29 there, almost all penalty)."""
+    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.training.factory import make_true_env
+    from anm_torchrl.training.reward_scale import do_nothing_reward_scale
+
+    for network, steps in (("anm6_easy", 1000), ("case33bw", 50)):
+        env = make_true_env(4, seed=1, network=network)
+        states = draw_initial_states(4, 1, env.sim, env.init)
+        info = do_nothing_reward_scale(env, states, steps, 0.043)
+        # independent rollout of the do-nothing action from the same states
+        from tensordict import TensorDict
+
+        td = env.reset(TensorDict({"state": states.double()}, [4]), set_state=True)
+        roll = env.rollout(steps, DoNothingPolicy(env.sim), tensordict=td, auto_reset=False,
+                           break_when_any_done=False)
+        mean_step = float(roll["next", "reward"].double().mean())
+        assert info["do_nothing_step_reward"] == pytest.approx(mean_step, rel=1e-6)  # float32 rewards summed
+        assert info["reward_scale"] == pytest.approx(0.043 / abs(mean_step), rel=1e-6)
+        if network == "anm6_easy":  # the states and length 0.043 was derived on: 0.043 / 4.289 = 0.01003
+            assert info["reward_scale"] == pytest.approx(0.01, rel=0.005)
+        else:  # case33bw's steps are pure line losses, ~2.5e-4: a scale 4 orders of magnitude above ANM6's
+            assert 50 < info["reward_scale"] < 500
+
+
+@pytest.mark.parametrize("override, message", [
+    ("loss.reward_scale=big", "loss.reward_scale must be a number > 0 or auto"),
+    ("loss.reward_scale=0", "loss.reward_scale must be in"),
+    ("model.init_action=middle", "model.init_action must be one of"),
+    ("model.init_action_clip=1.0", "model.init_action_clip must be in"),
+    ("eval.test_max_steps=0", "eval.test_max_steps must be"),
+])
+def test_bad_values_fail_clearly(override, message):
+    with pytest.raises(ValueError, match=message):
+        check_ppo_config(compose("config", [override]))
+
+
+@pytest.mark.slow
+def test_recipe_on_case33bw_with_network_settings(tmp_path):
+    """A tiny case33bw run with the new keys records the derived scale and tests on eval.test_max_steps."""
+    run_dir = tmp_path / "run"
+    args = ["env.num_envs=4", "collector.frames_per_batch=32", "collector.total_frames=64", "eval.max_steps=10",
+            "eval.num_episodes=2", "eval.test_episodes=2", "eval.test_max_steps=15", "loss.mini_batch_size=16",
+            "loss.ppo_epochs=2", "logger.progress=false", "network=case33bw", "model.init_action=do_nothing",
+            "loss.reward_scale=auto", f"hydra.run.dir={run_dir}"]
+    proc = subprocess.run([sys.executable, str(ROOT / "recipes" / "ppo.py"), *args], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    rs = summary["reward_scale"]
+    assert rs["max_steps"] == 10 and rs["episodes"] == 2 and 50 < rs["reward_scale"] < 500
+    assert summary["test"]["max_steps"] == 15 and summary["test"]["best"]["steps"] == 15
+    assert summary["validation"]["max_steps"] == 10
+    from anm_torchrl.training.checkpoint import load_actor
+
+    from anm_torchrl.training.factory import make_true_env
+
+    actor = load_actor(run_dir / "checkpoints" / "best.pt")  # rebuilt from a config with the new keys
+    env = make_true_env(1, network="case33bw")
+    assert actor(env.reset())["action"].shape == (1, 10)  # case33bw: 3 DG x (P, Q) + 2 storage x (P, Q)
