@@ -164,6 +164,23 @@ def _covered(row: dict, episodes: int) -> list[int]:
     return list(row.get("episode_index", range(episodes)))
 
 
+PER_EPISODE = ("discounted_return", "return", "terminated")
+
+
+def merge_rows(a: dict, b: dict, episodes: int) -> dict:
+    """One row from two measurements of it on disjoint states (``--only`` chunks): per-episode lists joined in
+    state order, each chunk's own fields kept under ``chunks``."""
+    ia, ib = _covered(a, episodes), _covered(b, episodes)
+    if set(ia) & set(ib):
+        raise ValueError(f"merge_rows: states {sorted(set(ia) & set(ib))} measured twice")
+    order = np.argsort(ia + ib)
+    out = {k: [(a[k] + b[k])[i] for i in order] for k in PER_EPISODE}
+    out["episode_index"] = sorted(ia + ib)
+    out["mean_discounted_return"] = float(np.mean(out["discounted_return"]))
+    out["chunks"] = [c for r in (a, b) for c in r.get("chunks", [{k: v for k, v in r.items() if k not in PER_EPISODE}])]
+    return out
+
+
 def table(rows: dict, episodes: int | None = None) -> list[dict]:
     """Per row: mean return and loss as % of the optimum's on the states it covers (None without an ``optimal``
     row covering them, or with an optimum whose mean return is ≥ 0: no loss to compare with), best first."""
@@ -211,6 +228,16 @@ def _label(name: str) -> str:
     return f"DC-OPF MPC, perfect forecast, N = {m.group(2)}, β = {MPC_MARGIN}"
 
 
+def _solver_stats(row: dict) -> dict:
+    """AC-MPC rows: solves, IPOPT non-successes and mean CPU s per solve over all chunks of a row ({} otherwise)."""
+    parts = [c for c in row.get("chunks", [row]) if "solves" in c]
+    if not parts:
+        return {}
+    n = sum(c["solves"] for c in parts)
+    return {"solves": n, "not_solve_succeeded": sum(c["not_solve_succeeded"] for c in parts),
+            "cpu_s_per_solve": sum(c["cpu_s_per_solve"]["mean"] * c["solves"] for c in parts) / n}
+
+
 def combine(gap_rec: dict, test_returns: dict | None = None) -> dict:
     """The published gap table from a gap record and (optionally) the PPO rows and the β = 0.96 DC-MPC row of a
     ``test_returns`` record measured on the same states (protocol checked).
@@ -229,7 +256,7 @@ def combine(gap_rec: dict, test_returns: dict | None = None) -> dict:
     rows = []
     for t in table(gap_rec["rows"], n):
         r = gap_rec["rows"][t["policy"]]
-        extra = {k: r[k] for k in ("not_solve_succeeded", "cpu_s_per_solve", "solves") if k in r}
+        extra = _solver_stats(r)
         rows.append({"policy": _label(t["policy"]), "row": t["policy"], "source": "gap",
                      "states": len(t["episode_index"]), "episode_index": t["episode_index"],
                      "discounted_return": t["mean_discounted_return"], "std_over_seeds": None, "seeds": None,
@@ -270,9 +297,10 @@ def render_block(table_rec: dict) -> str:
              "optimum's on the same states (ratio of means; PPO: mean ± std over seeds):", "",
              "| policy | states | discounted return | loss, % of the optimum's |", "|---|---:|---:|---:|"]
     for r in table_rec["rows"]:
-        ret = f"{r['discounted_return']:.2f}" + (f" ± {r['std_over_seeds']:.2f}" if r["seeds"] else "")
+        spread = (r["seeds"] or 0) > 1  # a std over one seed says nothing
+        ret = f"{r['discounted_return']:.2f}" + (f" ± {r['std_over_seeds']:.2f}" if spread else "")
         pct = "–" if r["loss_pct_of_optimum"] is None else f"{r['loss_pct_of_optimum']:,.0f} %" + (
-            f" ± {r['loss_pct_std']:,.0f}" if r["seeds"] else "")
+            f" ± {r['loss_pct_std']:,.0f}" if spread else "")
         states = f"{r['states']}" if r["states"] == pr["episodes"] else \
             f"{r['states']} (#{', #'.join(map(str, r['episode_index']))})"
         seeds = f", {r['seeds']} seed{'s' if r['seeds'] != 1 else ''}" if r["seeds"] else ""
@@ -352,7 +380,8 @@ def main(argv: list[str] | None = None) -> dict:
         other = json.loads(Path(path).read_text())
         if other.get("protocol") != protocol:
             raise SystemExit(f"--merge: {path} holds protocol {other.get('protocol')}, this run {protocol}")
-        rec["rows"].update(other["rows"])
+        for name, row in other["rows"].items():
+            rec["rows"][name] = merge_rows(rec["rows"][name], row, args.episodes) if name in rec["rows"] else row
         rec.update({k: other[k] for k in ("stability", "formulations") if k in other})
         rec.setdefault("commands", []).extend(other.get("commands", []))
     for name in [r for r in args.rows.split(",") if r and not args.merge]:

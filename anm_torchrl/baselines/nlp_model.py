@@ -15,7 +15,8 @@ forecast: the state's values) and earns gym-anm's reward (spec §4.3); its weigh
   gym-anm's projection of the set-points is the identity;
 * SoC_{k+1} = SoC_k + Δt (EFF p_ch − p_dis / EFF) within [SOC_MIN, SOC_MAX];
 * |V_i| − u_i ≤ V_max,i, V_min,i − |V_i| ≤ l_i and |S_from|², |S_to|² ≤ (rate + o)² with u, l, o ≥ 0;
-* cost per step ΔE + λΦ with ΔE = Δt (Σ_{slack, loads, generators} P + Σ_g (P_pot − P_g)) and
+* cost per step ΔE + λΦ with ΔE = Δt (Σ_{slack, loads, generators} P + Σ_{g renewable} (P_pot − P_g)) (classical
+  generators are not curtailed, gym-anm) and
   λΦ = λ Δt (Σ (u + l) + Σ o), objective Σ_k γ^k (ΔE_k + λΦ_k) (minimised; the return is its negative).
 
 Splitting storage P into p_ch, p_dis is exact when at most one of them is non-zero per step (a step that charges
@@ -39,7 +40,7 @@ import numpy as np
 import torch
 
 from anm_torchrl.grid import devices as dv
-from anm_torchrl.grid.network import LOAD, RENEWABLE, SLACK, STORAGE, branch_flows
+from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STORAGE, branch_flows
 from anm_torchrl.grid.residuals import power_injection
 from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, penalty
 from anm_torchrl.grid.simulator import GridSimulator
@@ -156,7 +157,7 @@ def evaluate_operating_points(sim: GridSimulator, p_dev: np.ndarray, q_dev: np.n
     p_dev[:, slack] = s[:, 0].real.numpy() + off.p_slack - p_dev[:, others].sum(1)
     q_dev[:, slack] = s[:, 0].imag.numpy() - q_dev[:, others].sum(1)
     pd, pp = torch.as_tensor(p_dev), torch.as_tensor(p_pot, dtype=torch.float64)
-    curt = curtailment(pp, pd[:, sim.gen_ids])
+    curt = curtailment(pp, pd[:, sim.gen_ids], sim.renewable.cpu())
     e = energy_loss(pd, sim.counted.cpu(), curt, net.delta_t)
     fl = _flows(sim, v)
     s_max = np.maximum(fl["s_from"] + off.s_from, fl["s_to"] + off.s_to)
@@ -233,9 +234,10 @@ class ACHorizonNLP:
         if not 0.0 < float(gamma) <= 1.0:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
         kinds = set(sim.net.dev_type.tolist())
-        if not kinds <= {SLACK, LOAD, RENEWABLE, STORAGE}:
-            raise ValueError(f"device types {sorted(kinds - {SLACK, LOAD, RENEWABLE, STORAGE})} are not modelled "
-                             "(the simulator has slack, load, renewable and storage devices)")
+        if not kinds <= {SLACK, LOAD, CLASSICAL_GEN, RENEWABLE, STORAGE}:
+            raise ValueError(f"device types {sorted(kinds - {SLACK, LOAD, CLASSICAL_GEN, RENEWABLE, STORAGE})} are "
+                             "not modelled (the simulator has slack, load, classical and renewable generator and "
+                             "storage devices)")
         self.sim, self.horizon, self.gamma, self.formulation = sim, int(horizon), float(gamma), formulation
         unknown = set(ipopt or {}) - set(IPOPT_OPTIONS) - set(WARM_OPTIONS)
         if unknown:
@@ -279,6 +281,7 @@ class ACHorizonNLP:
         self._des_rows = [np.flatnonzero(np.isfinite(h0[k]) & ~((g[:, 0] == 0) & (self._des_hb[k] == 0)))
                           for k, g in enumerate(self._des_g)]  # every row touching P or the SoC
         self._q_over_p = dev[sim.load_ids, 3]
+        self._renewable = sim.renewable.cpu().numpy()  # (ng,) 1 renewable, 0 classical (no curtailment term)
 
     # ------------------------------------------------------------------------------------------ layout
     def _layout(self) -> dict[str, slice]:
@@ -361,9 +364,9 @@ class ACHorizonNLP:
                 ps, qs = e[s_bus] * ir + f[s_bus] * ii, f[s_bus] * ir - e[s_bus] * ii
                 flows.append(ps ** 2 + qs ** 2 - (self._rate[j] + ob[j] - d_s[side * self.nr + j]) ** 2)
         g_k = ca.vertcat(*balance, *poly, *chain, *volt, *flows)
-        # ΔE = Δt (P_slack + Σ loads + Σ_g P_g + Σ_g (P_pot − P_g)): the P_g cancel, Δt Σ P_pot is a constant
-        # added to the objective in ``solve``
-        counted = sum(p_dev[d] for d in sim.load_ids) + p_slack
+        # ΔE = Δt (P_slack + Σ loads + Σ_g P_g + Σ_{g renewable} (P_pot − P_g)): a renewable's P_g cancels and
+        # Δt Σ P_pot is a constant added to the objective in ``solve``; a classical generator's P_g stays
+        counted = sum(p_dev[d] for d in sim.load_ids) + p_slack + ca.dot(ca.DM(1.0 - self._renewable), pg)
         cost = dt * counted + self.sim.lamb * dt * (ca.sum1(vu) + ca.sum1(vl) + ca.sum1(ob) + self._bus0_pen)
         self._n_bal, self._n_poly, self._n_chain = len(balance), len(poly), len(chain)
         self._n_volt, self._n_flow = 2 * (self.nb - 1), len(flows)
@@ -528,7 +531,7 @@ class ACHorizonNLP:
         ret = float(np.dot(self._weights, points.reward))
         # the constant part of the objective: ΔE's Δt Σ P_pot (see ``_stage``) and the slack-P offsets
         off = np.zeros(self.horizon) if offsets is None else offsets.p_slack
-        curt = np.dot(self._weights, self.sim.net.delta_t * (p_pot.sum(1) + off))
+        curt = np.dot(self._weights, self.sim.net.delta_t * (p_pot @ self._renewable + off))
         return NLPResult(setpoints=setpoints, points=points, discounted_return=ret,
                          objective=float(sol["f"]) + float(curt), status=str(st["return_status"]),
                          success=bool(st["success"]), iterations=int(st["iter_count"]), inf_pr=inf_pr,
