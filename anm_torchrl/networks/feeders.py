@@ -8,14 +8,17 @@ its annual maximum is the feeder's nominal value (the nominal loads of these cas
 * ``case33bw`` — pandapower's Baran & Wu 33-bus feeder (M. E. Baran, F. F. Wu, "Network reconfiguration in
   distribution systems for loss reduction and load balancing", IEEE Trans. Power Delivery 4(2), 1989; 12.66 kV,
   3.715 MW / 2.3 MVAr peak, tie lines open). Three DG units at buses 14, 24 and 30 (1-based, pandapower
-  indices 13, 23, 29) of 0.754, 1.100 and 1.071 MW: the three-DG loss-minimising placement reported by
-  M. M. Aman, G. B. Jasmon, A. H. A. Bakar, H. Mokhlis, "A new approach for optimum simultaneous multi-DG
-  distributed generation units placement and sizing based on maximization of system loadability using HPSO
-  algorithm", Energy 66 (2014) 202–215 (placement as commonly cited for the 33-bus feeder; NOTE: this attribution
-  was written from memory and could not be checked against the paper here — the placement is the widely reported
-  three-DG loss-minimising one, which several 2013–2014 studies report; verify before quoting). Our choices, not the
-  study's: bus 14 and 30 units are PV (SimBench PV3), bus 24 is wind (WP4); two storage units of
-  0.5 MW / 2 MWh at the ends of the two longest laterals (buses 18 and 33, indices 17 and 32). Every load
+  indices 13, 23, 29) of 0.754, 1.100 and 1.071 MW: meant as the three-DG (unity power factor) loss-minimising
+  placement that the DG-placement literature reports for this feeder. SOURCE UNVERIFIED: it was written from
+  memory and attributed to M. M. Aman, G. B. Jasmon, A. H. A. Bakar, H. Mokhlis, Energy 66 (2014) 202–215; that
+  attribution could not be confirmed. Searched (2026-12-01, the project's reference search: stored web pages,
+  documentation, public source code and GitHub issues) for the bus triple 14/24/30 with the sizes 0.754 /
+  1.099(4) / 1.071(4) MW, for "33-bus" multi-DG placement by Aman et al., Hung & Mithulananthan (IEEE Trans.
+  Ind. Electron., 2013), Kansal et al. (IJEPES, 2013) and Mahmoud et al. (IEEE Trans. Power Syst., 2016), and
+  for the exact strings "1.0994", "754 kW" and "14, 24, 30": no stored page, document or file states this
+  placement with these sizes, so no study is cited here. Do not quote the placement as a published one until
+  its source is checked in the paper itself. Our choices, not any study's: bus 14 and 30 units are PV (SimBench
+  PV3), bus 24 is wind (WP4); two storage units of 0.5 MW / 2 MWh at the ends of the two longest laterals (buses 18 and 33, indices 17 and 32). Every load
   follows SimBench ``lv_semiurb5`` (peak-scaled); the case has no line ratings (no branch penalty).
 * ``cigre_mv`` — pandapower's ``create_cigre_network_mv(with_der="all")`` (CIGRE TB 575, 2014, European MV
   benchmark: 14 buses at 20 kV; 8 PV, 1 wind park, 2 fuel cells, 1 CHP diesel, 1 residential fuel cell pair,
