@@ -18,8 +18,9 @@ its annual maximum is the feeder's nominal value (the nominal loads of these cas
   for the exact strings "1.0994", "754 kW" and "14, 24, 30": no stored page, document or file states this
   placement with these sizes, so no study is cited here. Do not quote the placement as a published one until
   its source is checked in the paper itself. Our choices, not any study's: bus 14 and 30 units are PV (SimBench
-  PV3), bus 24 is wind (WP4); two storage units of 0.5 MW / 2 MWh at the ends of the two longest laterals (buses 18 and 33, indices 17 and 32). Every load
-  follows SimBench ``lv_semiurb5`` (peak-scaled); the case has no line ratings (no branch penalty).
+  PV3), bus 24 is wind (WP4); two storage units of 0.5 MW / 2 MWh at the ends of the two longest laterals
+  (buses 18 and 33, indices 17 and 32). Every load follows SimBench ``lv_semiurb5`` (peak-scaled); the case has
+  no line ratings (no branch penalty).
 * ``cigre_mv`` — pandapower's ``create_cigre_network_mv(with_der="all")`` (CIGRE TB 575, 2014, European MV
   benchmark: 14 buses at 20 kV; 8 PV, 1 wind park, 2 fuel cells, 1 CHP diesel, 1 residential fuel cell pair,
   2 batteries); its default switch states (S1–S3 open, radial). Residential loads take SimBench
