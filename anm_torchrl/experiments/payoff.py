@@ -170,14 +170,62 @@ def do_nothing_return(network: str, base: dict[str, Any]) -> dict[str, Any]:
             "max_steps": int(ev.max_steps), "eval_seed": int(ev.seed)}
 
 
+def test_baselines(network: str, base: dict[str, Any], specs: list) -> dict[str, Any]:
+    """Baselines (``do_nothing``, ``{name: mpc_perfect, horizon: 16}``...) on the PPO runs' TEST states and test
+    protocol (``eval.test_seed``, ``eval.test_episodes``, ``eval.test_max_steps`` or ``eval.max_steps``,
+    ``eval.gamma``): label -> metrics, wall and CPU seconds."""
+    from anm_torchrl.baselines import make_baseline
+    from anm_torchrl.experiments.ppo_runs import compose_ppo_config, ppo_overrides
+    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.training.factory import make_true_env
+
+    ev = compose_ppo_config(ppo_overrides({"name": "none"}, 0, {**base, "network": network})).eval
+    n, steps = int(ev.test_episodes), int(ev.max_steps if ev.test_max_steps is None else ev.test_max_steps)
+    env = make_true_env(n, seed=int(ev.test_seed), network=network)
+    states = draw_initial_states(n, int(ev.test_seed), env.sim, env.init)
+    out = {}
+    for spec in [{"name": x} if isinstance(x, str) else dict(x) for x in specs]:
+        kw = {k: v for k, v in spec.items() if k != "name"}
+        cpu0, load = time.process_time(), _load()
+        res = evaluate_policy(make_baseline(spec["name"], sim=env.sim, **kw), states, max_steps=steps,
+                              gamma=float(ev.gamma), env=env)
+        out[label(spec) + "".join(f"_{k}{v}" for k, v in kw.items())] = {
+            **res.metrics(), "seconds": res.wall_time, "cpu_s": time.process_time() - cpu0, "load_avg_1min": load,
+            "episodes": n, "max_steps": steps, "test_seed": int(ev.test_seed), "gamma": float(ev.gamma)}
+    return out
+
+
+def surrogate_model_ids(network: str, specs: list[dict]) -> dict[str, Any]:
+    """The default-cache PINN file a ``pinn`` spec without ``path`` uses on ``network``: its network key (the cache
+    folder) and the file's SHA-256, so a record says which model the runs were trained on."""
+    import hashlib
+
+    from anm_torchrl.envs.anm_env import build_simulator
+    from anm_torchrl.surrogates.pinn.cache import default_path
+    from anm_torchrl.training.factory import network_arguments
+
+    out = {}
+    for spec in specs:
+        if spec["name"] != "pinn":
+            continue
+        f = Path(spec["path"]) if spec.get("path") else default_path(build_simulator(**network_arguments(network)))
+        out[label(spec)] = {"file": str(f), "network_key": f.parent.name if not spec.get("path") else None,
+                            "sha256": hashlib.sha256(f.read_bytes()).hexdigest() if f.is_file() else None}
+    return out
+
+
 def ppo_part(cfg: dict[str, Any], out_dir: Path) -> dict[str, Any]:
-    """PPO time to ``threshold_fraction`` × do-nothing's return on ``network`` (see the module docstring)."""
+    """PPO time to ``threshold_fraction`` × do-nothing's return on ``network`` (see the module docstring), each
+    run's CPU seconds, and the baselines of ``test_baselines`` on the runs' test states (the reported figures:
+    ``test_fraction_of_do_nothing`` = a policy's test discounted return / do-nothing's; < 0.5 is "2× better")."""
     from anm_torchrl.experiments.ppo_curves import threshold_columns
     from anm_torchrl.experiments.ppo_runs import last_mean, ppo_overrides, run_ppo, time_to_reach
 
     network = str(cfg.get("network", "case33bw"))
     base = {**dict(cfg.get("base", {})), "network": network}
     dn = do_nothing_return(network, base)
+    baselines = test_baselines(network, base, list(cfg.get("test_baselines") or ["do_nothing"]))
+    dn_test = baselines.get("do_nothing", {}).get("discounted_return")
     fraction = float(cfg.get("threshold_fraction", 0.5))
     threshold = fraction * dn["return"]
     reuse = {k: [read_json(f) for f in v] for k, v in (cfg.get("reuse") or {}).items()}
@@ -193,8 +241,12 @@ def ppo_part(cfg: dict[str, Any], out_dir: Path) -> dict[str, Any]:
                 if not want <= set(r["overrides"]):
                     raise ValueError(f"ppo.reuse[{lab!r}]: a run lacks overrides {sorted(want - set(r['overrides']))}")
         else:
-            seed_runs = [run_ppo(ppo_overrides(spec, s, base), out_dir / "runs" / "payoff" / f"{lab}_s{s}",
-                                 timeout_s=cfg.get("timeout_s")) | {"seed": s} for s in cfg.get("seeds", [0])]
+            seed_runs = []
+            for s in cfg.get("seeds", [0]):  # in this process: its CPU time is the run's (one torch thread)
+                cpu0 = time.process_time()
+                r = run_ppo(ppo_overrides(spec, s, base), out_dir / "runs" / "payoff" / f"{lab}_s{s}",
+                            timeout_s=cfg.get("timeout_s"))
+                seed_runs.append(r | {"seed": s, "cpu_s": time.process_time() - cpu0})
         for r in seed_runs:
             r["time_to_threshold"] = time_to_reach(r["curve"], threshold)
             r["last_return"] = last_mean(r["curve"], "return", 1)
@@ -202,15 +254,22 @@ def ppo_part(cfg: dict[str, Any], out_dir: Path) -> dict[str, Any]:
         runs[lab] = seed_runs
         ok = [r for r in seed_runs if r["curve"]]
         first = lambda r, k: ((r.get("summary") or {}).get("test") or {}).get("best", {}).get(k)  # noqa: E731
+        test_disc = [first(r, "discounted_return") for r in ok]
         table.append({"env": lab, "network": network, "seeds": [r.get("seed") for r in ok],
                       "frames": [r["curve"][-1]["frames"] for r in ok],
                       "wall_s": [r["curve"][-1]["wall_s"] for r in ok],
                       "best_eval_return": [max(c["return"] for c in r["curve"]) for r in ok],
                       "test_best_return": [first(r, "return") for r in ok],
+                      "test_best_discounted_return": test_disc,
+                      "test_fraction_of_do_nothing": [None if x is None or not dn_test else x / dn_test
+                                                      for x in test_disc],
+                      "cpu_s": [r.get("cpu_s") for r in ok],
                       "load_avg_1min": [r.get("load_avg_1min") for r in ok],
                       **threshold_columns(ok, train_s.get(lab, 0.0 if lab == "none" else None))})
+    specs = [{"name": n} if isinstance(n, str) else dict(n) for n in cfg.get("envs", ["none"])]
     return {"network": network, "do_nothing": dn, "threshold_fraction": fraction, "threshold": threshold,
-            "base": base, "runs": runs, "table": table}
+            "base": base, "test_baselines": baselines, "surrogate_models": surrogate_model_ids(network, specs),
+            "runs": runs, "table": table}
 
 
 def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seed: int = 0) -> dict:
@@ -243,6 +302,26 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seed: 
                   f"{len(missing)} cost rows without a model or skipped; PINN accuracy record "
                   f"{'present' if data.get('pinn_accuracy', {}).get('available') else 'absent or not asked'}",
                   config=cfg, seeds={"seed": seed})
+
+
+def merge_ppo(src: str | Path, dst: str | Path) -> dict:
+    """Put the ``ppo`` part of the payoff record ``src`` (e.g. a ``preset.payoff.parts=[ppo]`` run) into the payoff
+    record ``dst`` in place, keeping ``dst``'s other parts; ``meta.ppo_from`` says where it came from.
+
+    Raises:
+        ValueError: ``src`` has no ``ppo`` part.
+    """
+    from anm_torchrl.experiments.io import write_json
+
+    new, rec = read_json(src), read_json(dst)
+    if "ppo" not in (new.get("data") or {}):
+        raise ValueError(f"{src}: no data.ppo to merge (parts {new.get('data', {}).get('parts')})")
+    rec["data"]["ppo"] = new["data"]["ppo"]
+    rec["data"]["parts"] = list(dict.fromkeys([*rec["data"].get("parts", []), "ppo"]))
+    rec["meta"]["ppo_from"] = {"file": str(src), "versions": new["meta"].get("versions"),
+                               "config": (new["meta"].get("config") or {}).get("ppo")}
+    write_json(dst, rec)
+    return rec
 
 
 def _f(x, fmt="{:,.1f}") -> str:
@@ -300,6 +379,23 @@ def markdown(rec: dict) -> str:
                        f"{[None if x is None else round(x, 4) for x in t['test_best_return']]} | "
                        f"{t['threshold_reached']}/{t['threshold_runs']} | {_f(t['threshold_wall_s'])} | "
                        f"{[round(x) for x in t['threshold_censored_at_s']]} |")
+        tb = ppo.get("test_baselines") or {}
+        if tb:
+            any_tb = next(iter(tb.values()))
+            out += ["", f"Test states ({any_tb['episodes']} states × {any_tb['max_steps']:,} steps, seed "
+                    f"{any_tb['test_seed']}, γ = {any_tb['gamma']}), discounted return and fraction of do-nothing's "
+                    "(< 0.5: at least 2× better than do-nothing; < 0: a net energy gain):", "",
+                    "| policy | discounted return | fraction of do-nothing | CPU s |", "|---|---|---|---|"]
+            dn_t = (tb.get("do_nothing") or {}).get("discounted_return")
+            for name, m in tb.items():
+                frac = m["discounted_return"] / dn_t if dn_t else None
+                out.append(f"| {name} | {m['discounted_return']:.4f} | {_f(frac, '{:.3f}')} | {m['cpu_s']:.0f} |")
+            for t in ppo["table"]:
+                if t.get("test_best_discounted_return"):
+                    out.append(f"| PPO {t['env']} (best.pt, seeds {t['seeds']}) | "
+                               f"{[None if x is None else round(x, 4) for x in t['test_best_discounted_return']]} | "
+                               f"{[None if x is None else round(x, 3) for x in t['test_fraction_of_do_nothing']]} | "
+                               f"{[None if x is None else round(x) for x in t['cpu_s']]} |")
     return "\n".join(out)
 
 
@@ -309,4 +405,8 @@ if __name__ == "__main__":
 
     parser = argparse.ArgumentParser(description="print the payoff study's tables from its record")
     parser.add_argument("record", nargs="?", default="results/payoff.json")
-    sys.stdout.write(markdown(read_json(parser.parse_args().record)) + "\n")
+    parser.add_argument("--merge-ppo", metavar="SRC", help="first replace the record's ppo part by SRC's (merge_ppo)")
+    args = parser.parse_args()
+    if args.merge_ppo:
+        merge_ppo(args.merge_ppo, args.record)
+    sys.stdout.write(markdown(read_json(args.record)) + "\n")
