@@ -10,7 +10,8 @@
 Rows (``--rows``, comma-separated): ``optimal`` (:class:`~anm_torchrl.baselines.optimal.OptimalPolicy`),
 ``acmpc_<N>`` (AC-MPC, perfect forecast; ``acmpc_<N>_cold``: every solve from N simulated do-nothing steps instead
 of the previous solution shifted, to measure that warm start), ``mpc_<N>`` (gym-anm's DC-OPF MPC, perfect forecast, β = 0.92),
-``do_nothing``. Every row is evaluated by :func:`~anm_torchrl.training.evaluation.evaluate_policy` on the
+``do_nothing``, ``optimal<K>_then_do_nothing`` (the K-step optimum, then do-nothing: a lower bound of the
+optimum when the full horizon is too costly). Every row is evaluated by :func:`~anm_torchrl.training.evaluation.evaluate_policy` on the
 network's true env (``--network``; ``ANM6Env`` for ANM6-Easy, else ``ANMEnv`` of the registered network) from the
 states ``draw_initial_states(episodes, seed, sim, init)`` (the env's reset distribution; seed 0: the PPO recipe's
 test states), deterministic, T = ``steps``, γ = 0.995; ``--only`` restricts a row to some of those states (the row
@@ -97,11 +98,41 @@ def _acmpc_stats(pol) -> dict:
             "fallbacks": sum(1 for i in infos if i["fallback"])}
 
 
+def optimum_then_do_nothing(sim, states: torch.Tensor, steps: int, k: int, network: str = ANM6) -> dict:
+    """A feasible ``steps``-step plan per state: the ``k``-step optimum, then do-nothing; its return (float64
+    set-points replayed in the network's true env) is a lower bound of the ``steps``-step optimum, cheap when the
+    full horizon is not.
+    """
+    from anm_torchrl.baselines.optimal import replay_in_env, solve_optimal, warm_start_actions
+
+    if not 0 < k < steps:
+        raise ValueError(f"optimum_then_do_nothing: k must lie in (0, {steps}), got {k}")
+    t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
+    rets, undiscounted, terms, plans = [], [], [], []
+    for s in states.numpy():
+        opt = solve_optimal(sim, s, k, GAMMA)
+        acts = np.concatenate([opt.setpoints, warm_start_actions(sim, opt.states[-1], steps - k, "do_nothing")])
+        rep = replay_in_env(acts, s, GAMMA, env=true_env(network, 1))
+        rets.append(rep["discounted_return"])
+        undiscounted.append(float(rep["rewards"].sum()))
+        terms.append(rep["terminated"])
+        plans.append({"k_step_return": opt.discounted_return, "k_step_replay_gap": opt.replay_gap,
+                      "statuses": [x["status"] for x in opt.rounds], "cpu_s": opt.cpu_time})
+    return {"discounted_return": rets, "return": undiscounted, "terminated": terms,
+            "mean_discounted_return": float(np.mean(rets)), "k": k, "plans": plans,
+            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+            "load_avg_1min": [load0, os.getloadavg()[0]]}
+
+
 def evaluate_row(name: str, sim, states: torch.Tensor, steps: int, network: str = ANM6) -> dict:
-    """One row: per-episode discounted returns and timings of policy ``name`` on the network's true env."""
+    """One row: per-episode discounted returns and timings of policy ``name`` on the network's true env
+    (``optimal<K>_then_do_nothing``: :func:`optimum_then_do_nothing`)."""
     from anm_torchrl.baselines.optimal import replay_in_env
     from anm_torchrl.training.evaluation import evaluate_policy
 
+    m = re.fullmatch(r"optimal(\d+)_then_do_nothing", name)
+    if m:
+        return optimum_then_do_nothing(sim, states, steps, int(m.group(1)), network)
     pol = _policy(name, sim, steps)
     t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
     res = evaluate_policy(pol, states, max_steps=steps, gamma=GAMMA, env=true_env(network, len(states)))
@@ -212,12 +243,15 @@ def markdown(rec: dict) -> str:
 
 
 # ------------------------------------------------------------------------------------------ the published table
-LABELS = {"optimal": "perfect-foresight AC optimum", "do_nothing": "do-nothing"}
+LABELS = {"optimal": "perfect-foresight AC optimum", "do_nothing": "do-nothing"}  # other rows: _label
 PPO_ROWS = {"none": "PPO trained on the true env", "pinn": "PPO trained on the PINN"}
 README_BLOCK = re.compile(r"(<!-- optimum:gap -->\n)(.*?)(<!-- /optimum:gap -->)", re.S)
 
 
 def _label(name: str) -> str:
+    k = re.fullmatch(r"optimal(\d+)_then_do_nothing", name)
+    if k:
+        return f"the {k.group(1)}-step optimum, then do-nothing (a lower bound of the optimum)"
     m = re.fullmatch(r"(acmpc|mpc)_(\d+)(_cold)?", name)
     if m is None:
         return LABELS[name]
