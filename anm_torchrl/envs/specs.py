@@ -25,9 +25,11 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import torch
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
+from anm_torchrl.grid import fastchecks
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.grid.state import _pairs
 
@@ -91,10 +93,15 @@ class ActionBox:
     high: torch.Tensor
     accept_low: torch.Tensor
     accept_high: torch.Tensor
+    arrays: tuple | None = None  # (accept_low, accept_high, low, high) as NumPy arrays for the compiled check
 
     @classmethod
     def of(cls, low: torch.Tensor, high: torch.Tensor) -> "ActionBox":
-        return cls(low, high, _f32_outward(low, -1), _f32_outward(high, 1))
+        acc_low, acc_high = _f32_outward(low, -1), _f32_outward(high, 1)
+        arrays = None
+        if low.device.type == "cpu":
+            arrays = tuple(np.ascontiguousarray(x.numpy(), dtype=np.float64) for x in (acc_low, acc_high, low, high))
+        return cls(low, high, acc_low, acc_high, arrays)
 
 
 def check_action(action: torch.Tensor, box: ActionBox, clip: bool) -> torch.Tensor:
@@ -107,6 +114,10 @@ def check_action(action: torch.Tensor, box: ActionBox, clip: bool) -> torch.Tens
     low, high = box.low, box.high
     if action.ndim != 2 or action.shape[-1] != low.shape[-1]:
         raise ValueError(f"action must have shape (num_envs, {low.shape[-1]}), got {tuple(action.shape)}")
+    if box.arrays is not None and fastchecks.usable(action):  # one compiled pass; on failure the checks below
+        out = fastchecks.clamp_action(action, *box.arrays, clip)  # name what is wrong
+        if out is not None:
+            return out
     a = action.to(torch.float64)
     bad = ~torch.isfinite(a)
     if bad.any():

@@ -31,7 +31,10 @@ class TransitionConstants(NamedTuple):
         gen_poly, des_poly: projection data of the generator / storage polygons (kernel layout).
         gen_h0, des_h0: (n_gen, 7), (n_des, 10) constant right-hand sides (+inf in state-dependent rows).
         gen_ppot_row, des_soc_rows: rows of ``h`` filled from P_pot and from the SoC.
-        y: (n_bus, n_bus) Y-bus; ycsr: its non-zeros as (row pointers, column indices, values).  lu0, piv0, ok0: LU factors of the flat-start Jacobian (shared by all envs).
+        y: (n_bus, n_bus) Y-bus; ycsr: its non-zeros as (row pointers, column indices, values).
+        dense: the ``"dense"`` layout (small networks): Y read densely, the Jacobian in gym-anm's layout, a dense
+            LU; no index indirection or band bounds in the Newton step.
+        lu0, piv0, ok0: LU factors of the flat-start Jacobian (shared by all envs).
         ix: (2 n_bus - 2,) position of each Newton–Raphson variable / equation ([θ, |V|] of the non-slack
             buses) in the Jacobian; kl, ku: its lower / upper bandwidth; parent: (k,) tree of the ``"tree"``
             solver (position of each bus's parent, -1 for roots), empty otherwise (see :func:`jacobian_ordering`).
@@ -57,6 +60,7 @@ class TransitionConstants(NamedTuple):
     des_soc_rows: np.ndarray
     y: np.ndarray
     ycsr: tuple
+    dense: bool
     lu0: np.ndarray
     piv0: np.ndarray
     ok0: bool
@@ -175,6 +179,7 @@ def build_constants(sim, solver: str = "auto") -> TransitionConstants:
     ys, ysh, tp = (_npy(x) for x in (br.y_series, br.y_shunt, br.tap))
     y_bus = _npy(net.y_bus)
     ix, kl, ku, parent = jacobian_ordering(y_bus, solver)
+    dense = parent.size == 0 and kl == ix.size - 1 and bool(np.array_equal(ix, np.arange(ix.size)))
     rows, cols = np.nonzero(y_bus)  # row-major: columns ascending within a row, as the dense loop visits them
     ycsr = (np.searchsorted(rows, np.arange(y_bus.shape[0] + 1)).astype(np.int64), cols.astype(np.int64),
             np.ascontiguousarray(y_bus[rows, cols]))
@@ -183,8 +188,9 @@ def build_constants(sim, solver: str = "auto") -> TransitionConstants:
         renewable=_npy(sim.renewable).astype(np.float64), slack=int(sim.slack_ids[0]), dev_bus=_npy(net.dev_bus),
         counted=_npy(sim.counted).astype(np.float64), gen_poly=gen_poly, des_poly=des_poly, gen_h0=gen_h0,
         des_h0=des_h0, gen_ppot_row=GEN_PPOT_ROW, des_soc_rows=np.array(DES_SOC_ROWS, dtype=np.int64), y=y_bus,
-        ycsr=ycsr, **dict(zip(("lu0", "piv0", "ok0"), _flat_start_lu(ycsr, ix, kl, ku, parent))), ix=ix, kl=kl, ku=ku,
-        parent=parent,
+        ycsr=ycsr, dense=dense,
+        **dict(zip(("lu0", "piv0", "ok0"), _flat_start_lu(y_bus, ycsr, dense, ix, kl, ku, parent))),
+        ix=ix, kl=kl, ku=ku, parent=parent,
         f_bus=_npy(br.f_bus), t_bus=_npy(br.t_bus),
         y_ff=np.ascontiguousarray((ys + ysh) / np.abs(tp) ** 2), y_ft=np.ascontiguousarray(ys / tp.conj()),
         y_tf=np.ascontiguousarray(ys / tp), y_tt=np.ascontiguousarray(ys + ysh), rate=_npy(br.rate),

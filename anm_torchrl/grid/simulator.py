@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import dataclasses
 
-import torch
-
 from collections.abc import Callable
 
+import numpy as np
+import torch
+
 from anm_torchrl.grid import devices as dv
+from anm_torchrl.grid import fastchecks
 from anm_torchrl.grid.constants import TransitionConstants, build_constants, content_key
 from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STORAGE, Network, branch_flows
 from anm_torchrl.grid.powerflow import newton_raphson
@@ -114,6 +116,13 @@ class GridSimulator:
         self.counted = (net.dev_type != STORAGE).to(net.dev.dtype)  # ΔE counts gens, slack and loads
         self.terminal_reward = terminal_reward(gamma, costs_clipping)
         self.backend = self._pick_backend(backend)
+        self._rows_key, self._rows = None, None  # see _series_rows
+        # check_state's compiled one-pass path (CPU): SoC columns and bounds (MWh), aux column
+        d, sl = net.dev[self._did], self.state_slices()
+        self._soc_cols = sl["des_soc"]
+        self._fast_state = None if net.dev.device.type != "cpu" else (
+            sl["des_soc"].start, *(np.ascontiguousarray((x * net.base_mva).numpy()) for x in
+                                   (d[:, dv.SOC_MIN], d[:, dv.SOC_MAX])), sl["aux"].start)
         self._kernel = None
         self._constants: TransitionConstants | None = None
 
@@ -186,8 +195,12 @@ class GridSimulator:
         """Raise ``ValueError`` (env index, entry) on a state no transition can start from
         (:func:`anm_torchrl.grid.state.check_state`; the time-index check applies without a ``next_vars_hook``)."""
         d, b = self.net.dev[self._did], self.net.base_mva
-        check_state(state, self.state_sizes, d[:, dv.SOC_MIN] * b, d[:, dv.SOC_MAX] * b,
-                    None if self.next_vars_hook is not None else self.n_time)
+        n_time = None if self.next_vars_hook is not None else self.n_time
+        if self._fast_state is not None and state.ndim == 2 and state.shape[1] == self.state_dim \
+                and state.dtype == torch.float64 and fastchecks.usable(state):
+            if fastchecks.state_ok(state, *self._fast_state, n_time):
+                return  # valid; otherwise the torch check below names what is wrong
+        check_state(state, self.state_sizes, d[:, dv.SOC_MIN] * b, d[:, dv.SOC_MAX] * b, n_time)
 
     def content_key(self) -> str:
         """sha256 of everything that defines this simulator's transitions: network tables, profiles, Δt, γ, λ,
@@ -259,7 +272,7 @@ class GridSimulator:
                 if tuple(x.shape) != (n, k):
                     raise ValueError(f"next_vars_hook must return {name} of shape ({n}, {k}), got {tuple(x.shape)}")
             return p_load.to(state), p_pot.to(state), aux.to(state)
-        t = (state[:, -1].round().long() + 1) % self.n_time
+        t = self._next_index(state)
         b = self.net.base_mva
         return self.load_series[:, t].T * b, self.p_max_series[:, t].T * b, t.unsqueeze(1).to(state)
 
@@ -395,9 +408,30 @@ class GridSimulator:
         variable come from :meth:`next_vars`.
         """
         b = self.net.base_mva
-        p_load, p_pot, aux = self.next_vars(state)
-        tr = self.apply(state[:, self.state_slices()["des_soc"]] / b, p_load / b, p_pot / b, action / b)
+        if self.next_vars_hook is None:
+            t = self._next_index(state)
+            load_pu, pot_pu = self._series_rows()
+            p_load, p_pot, aux = load_pu[t], pot_pu[t], t.unsqueeze(1).to(state)
+        else:
+            p_load, p_pot, aux = self.next_vars(state)
+            p_load, p_pot = p_load / b, p_pot / b
+        tr = self.apply(state[:, self._soc_cols] / b, p_load, p_pot, action / b)
         return self.build_state(tr, aux), tr
+
+    def _next_index(self, state: torch.Tensor) -> torch.Tensor:
+        """Time index (N,) long of the step leaving ``state``: (t + 1) mod T (the default ``next_vars`` rule)."""
+        return (state[:, -1].round().long() + 1) % self.n_time
+
+    def _series_rows(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The series as (T, n_load) and (T, n_gen) p.u. rows, holding exactly what :meth:`next_vars` (MW) then
+        ``/ base_mva`` give (bit for bit), so that :meth:`step` gathers contiguous rows instead. Recomputed when
+        a series is replaced or modified in place (experiments rescale them)."""
+        key = tuple((id(x), x._version) for x in (self.load_series, self.p_max_series))
+        if self._rows_key != key:
+            b = self.net.base_mva
+            self._rows = tuple((x * b / b).T.contiguous() for x in (self.load_series, self.p_max_series))
+            self._rows_key = key
+        return self._rows
 
     # --------------------------------------------------------------------------------------------- reset
     def sample_initial(self, n: int, generator: torch.Generator | None = None,
