@@ -32,6 +32,10 @@ def test_markdown_shows_test_fractions_of_do_nothing():
     assert "| do_nothing | -0.0500 | 1.000 | 1 |" in md
     assert "| mpc_perfect_horizon16 | 0.5000 | -10.000 | 1 |" in md  # a net gain: negative fraction of the loss
     assert "| PPO none (best.pt, seeds [0, 1]) | [0.1, -0.02] | [-2.0, 0.4] | [50, 52] |" in md
+    # 0.4 <= 0.5 and -2.0 (a gain) both count as at least 2x better than do-nothing
+    assert "PPO none: 2/2 seeds at least 2× better than do-nothing on the test states (fraction of its discounted " \
+           "loss -2.00 to 0.40" in md
+    assert "Target (issue 13): PPO none: 1/2" in payoff.markdown(_ppo_record(-0.05, [-0.04, 0.1]))
 
 
 def test_merge_ppo_replaces_only_the_ppo_part(tmp_path):

@@ -396,7 +396,26 @@ def markdown(rec: dict) -> str:
                                f"{[None if x is None else round(x, 4) for x in t['test_best_discounted_return']]} | "
                                f"{[None if x is None else round(x, 3) for x in t['test_fraction_of_do_nothing']]} | "
                                f"{[None if x is None else round(x) for x in t['cpu_s']]} |")
+            out += ["", ppo_verdict(ppo)]
     return "\n".join(out)
+
+
+def ppo_verdict(ppo: dict) -> str:
+    """The PPO target in words, from a ``ppo`` part: per training env, the seeds whose best.pt is at least 2× better
+    than do-nothing on the test states (fraction of do-nothing's discounted loss ≤ 0.5) and the time to the
+    validation threshold, surrogate training included."""
+    parts = []
+    for t in ppo["table"]:
+        fr = [x for x in t.get("test_fraction_of_do_nothing") or [] if x is not None]
+        if not fr:
+            continue
+        ok = sum(x <= 0.5 for x in fr)
+        wall = t.get("threshold_wall_with_training_s") or t.get("threshold_wall_s")
+        parts.append(f"PPO {t['env']}: {ok}/{len(fr)} seeds at least 2× better than do-nothing on the test states "
+                     f"(fraction of its discounted loss {min(fr):.2f} to {max(fr):.2f}; < 0: a net energy gain), "
+                     f"{t['threshold_reached']}/{t['threshold_runs']} reached the validation threshold, median time "
+                     f"{_f(wall, '{:,.0f}')} s with the surrogate's training ({_f(t.get('surrogate_train_s'), '{:,.0f}')} s)")
+    return "Target (issue 13): " + "; ".join(parts) + "." if parts else ""
 
 
 if __name__ == "__main__":
