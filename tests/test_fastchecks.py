@@ -1,5 +1,7 @@
-"""The compiled one-pass step checks (``grid/fastchecks.py``) accept exactly what the torch checks accept, return
-the same clamped action, and the small-network (dense) Newton path equals the generic one bit for bit."""
+"""The compiled CPU hot path equals the torch reference: the one-pass step checks (``grid/fastchecks.py``) accept
+exactly what the torch checks accept and return the same clamped action, the output assembly
+(``grid/fastoutput.py``) writes the same bits, and the small-network (dense) Newton path equals the generic one
+bit for bit."""
 
 import numpy as np
 import pytest
@@ -108,3 +110,52 @@ def test_dense_newton_path_is_bit_identical(sim):
     assert (~out_dense["converged"]).any() or out_dense["n_iter"].max() > 1  # the loop ran past its first step
     for k, v in out_dense.items():
         assert np.array_equal(v.numpy(), out_generic[k].numpy(), equal_nan=True), k
+
+
+def test_compiled_outputs_equal_the_torch_ops(sim):
+    """``fastoutput`` writes what GridSimulator.build_state's and ANMEnv._output's torch ops give, bit for bit
+    (terminal rows included: the batch below has non-converged rows)."""
+    from anm_torchrl.grid import fastoutput
+
+    gen = torch.Generator().manual_seed(3)
+    n = 2048
+    state, _ = sim.reset(n, gen)
+    low, high = sim.action_bounds()
+    a = low + torch.rand(n, low.numel(), generator=gen, dtype=torch.float64) * (high - low) * 1.5  # some collapse
+    t = torch.randint(0, sim.n_time, (n,), generator=gen)
+    b = sim.net.base_mva
+    tr = sim.apply(state[:, sim.state_slices()["des_soc"]] / b, sim.load_series[:, t].T, sim.p_max_series[:, t].T,
+                   a / b)
+    assert (~tr.converged).any() and tr.converged.any()
+    ref = torch.cat([tr.p_dev * b, tr.q_dev * b, tr.soc * b, tr.p_pot * b, t.reshape(-1, 1).to(tr.p_dev)], 1)
+    ref = torch.where(tr.converged.unsqueeze(1), ref, torch.zeros_like(ref))
+    built = fastoutput.build_state(tr, t, b)
+    assert torch.equal(built, ref)
+    o_low, o_high = sim.state_bounds()
+    out = fastoutput.env_outputs(built, tr, b, o_low.numpy(), o_high.numpy())
+    obs = torch.minimum(torch.maximum(built, o_low), o_high)
+    obs = torch.where(tr.converged.unsqueeze(1), obs, torch.zeros_like(obs)).to(torch.float32)
+    expected = {"observation": obs, "v_magn": tr.v.abs().float(), "branch_s": (tr.s_apparent_max * b).float(),
+                "e_loss": tr.e_loss.float().unsqueeze(1), "penalty": tr.penalty.float().unsqueeze(1),
+                "curtailment": (tr.curtailment * b).float().unsqueeze(1), "reward": tr.reward.float().unsqueeze(1),
+                "terminated": (~tr.converged).unsqueeze(1)}
+    for k, v in expected.items():
+        assert torch.equal(out[k], v), k
+
+
+def test_step_follows_replaced_and_rescaled_series():
+    """GridSimulator.step gathers the exogenous rows from a cached copy of the series: replacing a series (as
+    experiments do) or scaling it in place must show in the next step, exactly as next_vars gives it."""
+    sim = anm6_easy.simulator(backend="numba")
+    state, _ = sim.reset(8, torch.Generator().manual_seed(4))
+    a = torch.zeros(8, sim.action_dim, dtype=torch.float64)
+    lid = sim.state_slices()["dev_p"].start + sim._lid
+    for change in (lambda: None, lambda: setattr(sim, "load_series", sim.load_series * 1.1),
+                   lambda: sim.load_series.mul_(0.9)):
+        change()
+        nxt, tr = sim.step(state, a)
+        p_load = sim.next_vars(state)[0]
+        dev = sim.net.dev[sim._lid]
+        expected = torch.clamp(p_load / sim.net.base_mva, dev[:, dv.PMIN], dev[:, dv.PMAX])
+        ok = tr.converged
+        assert torch.equal(nxt[ok][:, lid], (expected * sim.net.base_mva)[ok])

@@ -6,12 +6,14 @@ import math
 from collections.abc import Callable
 from typing import Literal
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from anm_torchrl.envs.observation import ObservationMap
 from anm_torchrl.envs.specs import GRID_KEYS, ActionBox, check_action, make_specs
+from anm_torchrl.grid import fastoutput
 from anm_torchrl.grid.simulator import GridSimulator, Transition
 
 INITS = ("uniform", "gym_anm", "intended")
@@ -139,6 +141,11 @@ class ANMEnv(EnvBase):
         self.sim = sim
         self.action_mode, self.init = action_mode, init
         self.obs_map = ObservationMap(sim, observation, (0.0, float(sim.n_time - 1)))
+        # the "state" observation's bounds for the compiled output pass (numba backend); (None, None): the map's
+        self._obs_bounds = (None, None)
+        if self.obs_map.is_state and sim.backend == "numba":
+            self._obs_bounds = tuple(np.ascontiguousarray(x.numpy(), dtype=np.float64)
+                                     for x in (self.obs_map.low, self.obs_map.high))
         for name, spec in make_specs(sim, self.batch_size, self.device, self.obs_map).items():
             setattr(self, name, spec)
         self._a_low, self._a_high = sim.action_bounds()
@@ -154,24 +161,36 @@ class ANMEnv(EnvBase):
             self.rng.manual_seed(int(seed))
 
     # ------------------------------------------------------------------------------------------------------
-    def _output(self, state: torch.Tensor, tr: Transition) -> TensorDict:
+    def _output(self, state: torch.Tensor, tr: Transition) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:
+        """The TensorDict of ``state`` and ``tr`` (state, observation, grid), and tr's reward (N, 1) float32 and
+        ``terminated`` (N, 1). On the numba backend one compiled pass (:mod:`anm_torchrl.grid.fastoutput`)
+        writes what the torch ops below would, bit for bit."""
         f32, b = torch.float32, self.sim.net.base_mva
-        grid = {
-            "e_loss": tr.e_loss.unsqueeze(-1), "penalty": tr.penalty.unsqueeze(-1),
-            "curtailment": (tr.curtailment * b).unsqueeze(-1), "v_magn": tr.v.abs(),
-            "branch_s": tr.s_apparent_max * b,
-        }
-        obs = self.obs_map.observe(state, tr.v if self.obs_map.needs_grid else None, ~tr.converged)
-        return TensorDict({"state": state, "observation": obs, "grid": {k: grid[k].to(f32) for k in GRID_KEYS}},
-                          batch_size=self.batch_size, device=self.device)
+        obs = None
+        if self.sim.backend == "numba":
+            out = fastoutput.env_outputs(state, tr, b, *self._obs_bounds)
+            grid = {k: out[k] for k in GRID_KEYS}
+            obs, reward, terminated = out.get("observation"), out["reward"], out["terminated"]
+        else:
+            grid = {
+                "e_loss": tr.e_loss.unsqueeze(-1), "penalty": tr.penalty.unsqueeze(-1),
+                "curtailment": (tr.curtailment * b).unsqueeze(-1), "v_magn": tr.v.abs(),
+                "branch_s": tr.s_apparent_max * b,
+            }
+            grid = {k: grid[k].to(f32) for k in GRID_KEYS}
+            reward, terminated = tr.reward.to(f32).unsqueeze(-1), (~tr.converged).unsqueeze(-1)
+        if obs is None:
+            obs = self.obs_map.observe(state, tr.v if self.obs_map.needs_grid else None, ~tr.converged)
+        td = TensorDict({"state": state, "observation": obs, "grid": grid}, batch_size=self.batch_size,
+                        device=self.device)
+        return td, reward, terminated
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = check_action(tensordict.get("action"), self._a_box, clip=self.action_mode == "clip")
         state = self.validate_state(tensordict.get("state"))
         next_state, tr = self.sim.step(state, action)
-        out = self._output(next_state, tr)
-        terminated = (~tr.converged).unsqueeze(-1)
-        out.set("reward", tr.reward.to(torch.float32).unsqueeze(-1))
+        out, reward, terminated = self._output(next_state, tr)
+        out.set("reward", reward)
         out.set("terminated", terminated)
         out.set("done", terminated.clone())
         return out
@@ -204,7 +223,7 @@ class ANMEnv(EnvBase):
             else:  # values of rows not reset are discarded by TorchRL; only the masked rows are solved
                 state, tr = self._scatter_rows(mask, state_rows, tr_rows)
                 tr.converged = tr.converged | ~mask  # rows left alone are not made terminal by the fill
-        out = self._output(state, tr)
+        out = self._output(state, tr)[0]
         out.set("terminated", terminated)
         out.set("done", terminated.clone())
         return out

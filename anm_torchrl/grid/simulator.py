@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from anm_torchrl.grid import devices as dv
-from anm_torchrl.grid import fastchecks
+from anm_torchrl.grid import fastchecks, fastoutput
 from anm_torchrl.grid.constants import TransitionConstants, build_constants, content_key
 from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STORAGE, Network, branch_flows
 from anm_torchrl.grid.powerflow import newton_raphson
@@ -116,7 +116,7 @@ class GridSimulator:
         self.counted = (net.dev_type != STORAGE).to(net.dev.dtype)  # ΔE counts gens, slack and loads
         self.terminal_reward = terminal_reward(gamma, costs_clipping)
         self.backend = self._pick_backend(backend)
-        self._rows_key, self._rows = None, None  # see _series_rows
+        self._rows_src, self._rows_key, self._rows = None, None, None  # see _series_rows
         # check_state's compiled one-pass path (CPU): SoC columns and bounds (MWh), aux column
         d, sl = net.dev[self._did], self.state_slices()
         self._soc_cols = sl["des_soc"]
@@ -397,6 +397,8 @@ class GridSimulator:
         """State (N, state_dim) in MW/MVAr/MWh after ``tr`` and ``aux`` (N,) or (N, 1); zeros where the power flow
         did not converge."""
         b = self.net.base_mva
+        if self.backend == "numba":  # one compiled pass, the same values bit for bit
+            return fastoutput.build_state(tr, aux, b)
         state = torch.cat([tr.p_dev * b, tr.q_dev * b, tr.soc * b, tr.p_pot * b, aux.reshape(-1, 1).to(tr.p_dev)], 1)
         return torch.where(tr.converged.unsqueeze(1), state, torch.zeros_like(state))
 
@@ -426,11 +428,12 @@ class GridSimulator:
         """The series as (T, n_load) and (T, n_gen) p.u. rows, holding exactly what :meth:`next_vars` (MW) then
         ``/ base_mva`` give (bit for bit), so that :meth:`step` gathers contiguous rows instead. Recomputed when
         a series is replaced or modified in place (experiments rescale them)."""
-        key = tuple((id(x), x._version) for x in (self.load_series, self.p_max_series))
-        if self._rows_key != key:
+        src = (self.load_series, self.p_max_series)
+        key = tuple(x._version for x in src)
+        if self._rows_src is None or any(a is not c for a, c in zip(src, self._rows_src)) or self._rows_key != key:
             b = self.net.base_mva
-            self._rows = tuple((x * b / b).T.contiguous() for x in (self.load_series, self.p_max_series))
-            self._rows_key = key
+            self._rows = tuple((x * b / b).T.contiguous() for x in src)
+            self._rows_src, self._rows_key = src, key  # holding the tensors: their ids cannot be reused
         return self._rows
 
     # --------------------------------------------------------------------------------------------- reset
