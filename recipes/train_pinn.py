@@ -1,7 +1,7 @@
 """Train the physics-informed surrogate of a network without a single simulator sample, then evaluate it.
 
     python recipes/train_pinn.py                                   # default preset -> the network's default cache
-    python recipes/train_pinn.py network=case33bw                  # any registered network (list_networks())
+    python recipes/train_pinn.py network=case33bw                  # any registered network; default = feeder preset
     python recipes/train_pinn.py pinn_preset=paper path=artifacts/pinn_paper
     python recipes/train_pinn.py eval_only=true path=artifacts/pinn_paper
     python recipes/train_pinn.py pinn_preset=smoke path=/tmp/pinn eval.n_random=1000   # seconds
@@ -45,7 +45,7 @@ def main(cfg: DictConfig) -> dict:
     from anm_torchrl.surrogates.pinn.cache import default_path, train_and_save
     from anm_torchrl.surrogates.pinn.chain import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
-    from anm_torchrl.surrogates.pinn.train import PINNTrainConfig, resolve_path
+    from anm_torchrl.surrogates.pinn.train import from_composed, resolve_path
 
     torch.set_num_threads(int(cfg.threads))
     run_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -53,9 +53,10 @@ def main(cfg: DictConfig) -> dict:
     file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
     out: dict = {"path": str(file)}
     if not cfg.eval_only:
-        preset = OmegaConf.to_container(cfg.pinn_preset, resolve=True)
-        name = preset.pop("name")
-        train_cfg = PINNTrainConfig.from_dict({**preset, "preset": name, "seed": int(cfg.seed)})
+        # ``default`` stands for the network's own default (the feeder preset off ANM6-Easy), with the command
+        # line's changes to the composed preset kept
+        train_cfg = from_composed(OmegaConf.to_container(cfg.pinn_preset, resolve=True), sim, seed=int(cfg.seed))
+        name = train_cfg.preset
         log_dir = Path(to_absolute_path(cfg.log_dir)) if cfg.log_dir is not None else run_dir / "tb"
         log.info("training the %r preset -> %s (TensorBoard: %s)", name, file, log_dir)
         file, report = train_and_save(train_cfg, sim, path=file, overwrite_cache=bool(cfg.overwrite_cache),

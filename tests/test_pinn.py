@@ -35,6 +35,7 @@ from anm_torchrl.surrogates.pinn.power_balance import bus_injection_box
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
 P = "pinn"
+ANM6_DEFAULT_DIGEST = "e39cb1b15b325daf"  # sha256[:16] of preset("default").to_dict() at 4a933d7
 
 
 @pytest.fixture(scope="module")
@@ -420,9 +421,71 @@ def test_recipe_composes_the_package_presets(name):
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
         cfg = compose("train_pinn", overrides=[f"pinn_preset={name}"])
     data = OmegaConf.to_container(cfg.pinn_preset, resolve=True)
-    assert data.pop("name") == name
-    assert tr.PINNTrainConfig.from_dict({**data, "preset": name}).to_dict() == tr.preset(name).to_dict()
+    assert data["name"] == name
+    assert tr.from_composed(data).to_dict() == tr.preset(name).to_dict()  # on ANM6-Easy: no resolution
     assert not (ROOT / "recipes" / "conf" / "pinn_preset").exists()  # no second copy
+
+
+def test_anm6_default_preset_is_unchanged(sim):
+    """ANM6-Easy's default PINN (its cache, the paper reproduction) keeps its preset: ``default`` resolves to
+    itself there, and its options are the ones it had before the feeder preset and ``refine_steps`` existed
+    (hash of the options as of commit 4a933d7; the new option is off)."""
+    import hashlib
+    import json
+
+    cfg = tr.preset_for("default", sim)
+    assert cfg.preset == "default" and tr.network_preset_name("default", None) == "default"
+    d = cfg.to_dict()
+    for m in tr.MODULES:
+        assert d[m].pop("refine_steps") == 0
+    digest = hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+    assert digest == ANM6_DEFAULT_DIGEST, "the ANM6-Easy default PINN preset changed"
+
+
+def test_feeder_preset_selection():
+    """Off ANM6-Easy ``default`` is the feeder preset (``make_env``/``load_pinn``, the recipe, generic_accuracy):
+    the default's networks and steps, the residual in units of the feeder's injections and one chord-Newton step;
+    other names are never rewritten, and the
+    recipe keeps command-line changes to the composed default."""
+    from anm_torchrl.data.generic import simulator_for
+
+    feeder = simulator_for("case33bw")
+    assert tr.network_preset_name("default", feeder) == tr.FEEDER_DEFAULT == "feeder"
+    assert tr.network_preset_name("smoke", feeder) == "smoke"
+    cfg, base = tr.preset_for("default", feeder).to_dict(), tr.preset("default").to_dict()
+    assert cfg.pop("preset") == "feeder" and base.pop("preset") == "default"
+    changed = {k: (base["power_balance"][k], v) for k, v in cfg["power_balance"].items() if base["power_balance"][k] != v}
+    assert changed == {"refine_steps": (0, 1), "residual_unit": ("pu", "box"), "robust_scale": (0.01, 0.0125)}
+    cfg.pop("power_balance"), base.pop("power_balance")
+    assert cfg == base
+    composed = {**tr.preset("default").to_dict(), "name": "default"}
+    composed["power_balance"] = {**composed["power_balance"], "max_steps": 7}
+    got = tr.from_composed(composed, feeder, seed=3)
+    assert (got.preset, got.seed, got.power_balance.max_steps, got.power_balance.refine_steps) == ("feeder", 3, 7, 1)
+
+
+@pytest.mark.parametrize("network", ["case33bw", "cigre_mv"])
+def test_chord_refinement_converges_to_newton_raphson(network):
+    """``refine_steps``: chord-Newton steps from an untrained network's output contract towards the exact power
+    flow (each step at least 5× closer on these light-load injections; a wrong Jacobian or sign diverges), and
+    ``refine=False`` is the raw network."""
+    from anm_torchrl.data.generic import simulator_for
+    from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
+
+    sim = simulator_for(network)
+    state, action = random_transitions(sim, 200, seed=5)
+    _, trn = sim.step(state, action)
+    p, q = trn.p_dev @ sim.net.incidence, trn.q_dev @ sim.net.incidence
+    ok = trn.converged
+    errs = []
+    for k in (0, 1, 2):
+        torch.manual_seed(0)
+        pb = PowerBalanceNet(sim, hidden=16, depth=2, refine_steps=k)
+        with torch.no_grad():
+            errs.append(float((pb(p, q)[0] - trn.v.abs())[ok].abs().mean()))
+            raw = float((pb(p, q, refine=False)[0] - trn.v.abs())[ok].abs().mean())
+        assert raw == errs[0]
+    assert errs[1] < errs[0] / 5 and errs[2] < errs[1] / 5, errs
 
 
 def test_unknown_option_is_rejected():

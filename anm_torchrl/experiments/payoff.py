@@ -304,6 +304,64 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seed: 
                   config=cfg, seeds={"seed": seed})
 
 
+def accuracy_table(acc: dict) -> str:
+    """Markdown table of the generic PINN's record (:mod:`anm_torchrl.surrogates.pinn.generic_accuracy`): per
+    network, test-transition |V| MAE and largest device P/Q MAE relative to its rating (random / expert), the
+    terminal check's precision/recall on random transitions, and the training's CPU and wall seconds."""
+    def pair(e, k, fmt):
+        return " / ".join("—" if e["eval"].get(s, {}).get(k) is None else fmt.format(e["eval"][s][k])
+                          for s in ("random", "expert"))
+
+    out = ["| network | buses | preset | |V| MAE p.u. (random / expert) | device P/Q MAE / rating (max) | "
+           "terminal precision / recall (random; sim rate) | meets targets | train CPU s (wall s, load) |",
+           "|---|---:|---|---|---|---|---|---|"]
+    for e in acc.get("networks", []):
+        r = e["eval"].get("random", {})
+        meets = all(all(v for v in m.values()) for m in e.get("meets_targets", {}).values())
+        out.append(f"| {e['network']} | {e['n_bus']} | {e['preset']} | {pair(e, 'vmag_mae_pu', '{:.1e}')} | "
+                   f"{pair(e, 'next_pq_rel_mae_max', '{:.1e}')} | {_f(r.get('terminal_precision'), '{:.2f}')} / "
+                   f"{_f(r.get('terminal_recall'), '{:.2f}')} ({_f(r.get('terminal_rate_sim'), '{:.2%}')}) | "
+                   f"{'yes' if meets else 'no'} | {e['train_cpu_s']:,.0f} ({e['train_wall_s']:,.0f}, "
+                   f"L{e['loadavg_before'][0]:.0f}) |")
+    return "\n".join(out)
+
+
+def cost_verdict(rec: dict) -> str:
+    """The cost and accuracy findings of a ``payoff`` record in words (generated; the PPO part is not read):
+    the cheapest implementation per network and batch, the crossovers, and which networks' PINN meets the
+    accuracy targets."""
+    d = rec.get("data") or {}
+    rows = [r for r in d.get("rows") or [] if r.get("us_per_transition")]
+    out = []
+    if rows:
+        parts = []
+        for b in sorted({r["batch"] for r in rows}):
+            best = {}
+            for r in rows:
+                if r["batch"] == b and (r["network"] not in best
+                                        or r["us_per_transition"] < best[r["network"]]["us_per_transition"]):
+                    best[r["network"]] = r
+            nets = sorted(best.values(), key=lambda r: r["n_bus"])
+            parts.append(f"batch {b:,}: " + ", ".join(f"{r['impl']} on {r['network']} ({r['us_per_transition']:,.1f} µs)"
+                                                   for r in nets))
+        out.append("Cheapest per transition — " + "; ".join(parts) + ".")
+        cross = [c for c in d.get("crossover", []) if c["crossover_n_bus"]]
+        out.append("Crossover: " + ("; ".join(f"{c['impl']} at batch {c['batch']:,} from {c['crossover_n_bus']} buses"
+                                             for c in cross) if cross else
+                                   "none — no surrogate is cheaper per transition than the cheaper exact backend at "
+                                   "any network and batch measured") + ".")
+    acc = d.get("pinn_accuracy") or {}
+    if acc.get("available"):
+        nets = acc["data"].get("networks", [])
+        ok = [e["network"] for e in nets
+              if all(all(v for v in m.values()) for m in e.get("meets_targets", {}).values())]
+        miss = [e["network"] for e in nets if e["network"] not in ok]
+        out.append(f"The PINN (physics only) meets the |V| ≤ 1e-3 p.u. and device P/Q ≤ 1 % of rating targets on "
+                   f"held-out test transitions on {', '.join(ok) or 'no network'}"
+                   + (f"; not on {', '.join(miss)}" if miss else "") + ".")
+    return " ".join(out)
+
+
 def merge_ppo(src: str | Path, dst: str | Path) -> dict:
     """Put the ``ppo`` part of the payoff record ``src`` (e.g. a ``preset.payoff.parts=[ppo]`` run) into the payoff
     record ``dst`` in place, keeping ``dst``'s other parts; ``meta.ppo_from`` says where it came from.
@@ -365,6 +423,8 @@ def markdown(rec: dict) -> str:
     if acc is not None:
         out += ["", "PINN accuracy vs bus count: " + (f"from `results/{Path(acc['file']).name}`." if acc["available"]
                                                      else re.sub(r"\S*/(\S+)", r"\1", acc["reason"]))]
+        if acc["available"]:
+            out += ["", accuracy_table(acc["data"])]
     ppo = d.get("ppo")
     if ppo:
         dn = ppo["do_nothing"]

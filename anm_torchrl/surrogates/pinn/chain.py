@@ -271,7 +271,8 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
             :data:`DEFAULT_RESIDUAL_THRESHOLD` (p.u.) and :data:`DEFAULT_V_RANGE` (p.u.), their one home.
         train_if_missing: train when nothing is saved there; default True for the default cache and False for
             an explicit ``path`` (a mistyped path is an error, not a multi-minute training).
-        preset: training preset used when training (``default``, ``paper``, ``smoke``).
+        preset: training preset used when training (``default``, ``paper``, ``smoke``...; ``default`` is the
+            feeder preset on a network other than ANM6-Easy: :func:`.presets.network_preset_name`).
         overwrite_cache: let a training without (or failing) its acceptance bar replace the default cache.
         progress: show a tqdm bar while training.
         log_dir: TensorBoard folder for that training (default ``<folder>/tb``).
@@ -308,6 +309,7 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
         if not train:
             raise FileNotFoundError(f"no trained PINN at {file}; train one with: python recipes/train_pinn.py "
                                     f"path={file} (or pass train_if_missing=True)")
+        preset = tr.network_preset_name(preset, sim)
         log.warning("no trained PINN at %s: training the %r preset from physics alone (a few minutes)", file, preset)
         cache.train_and_save(tr.preset(preset, seed=seed), sim, path=file, overwrite_cache=overwrite_cache,
                              log_dir=log_dir if log_dir is not None else file.parent / "tb", progress=progress)

@@ -36,7 +36,8 @@ from anm_torchrl.data.generic import is_anm6, simulator_for
 from anm_torchrl.surrogates.pinn import cache
 from anm_torchrl.surrogates.pinn.chain import load_pinn
 from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets
-from anm_torchrl.surrogates.pinn.train import MODULES, build_modules, check_acceptance, preset, save_pinn, train_module
+from anm_torchrl.surrogates.pinn.train import (MODULES, build_modules, check_acceptance, network_preset_name, preset,
+                                              save_pinn, train_module)
 
 log = logging.getLogger(__name__)
 
@@ -51,8 +52,10 @@ TARGETS = {"vmag_mae_pu": 1e-3, "next_pq_rel_mae_max": 0.01}
 def measure_network(network: str, preset_name: str = "default", seed: int = 0, n_random: int = 10_000,
                     expert_envs: int = 8, expert_steps: int = 125, eval_seed: int = 12345,
                     model_dir: str | Path = "outputs/pinn_generic") -> dict[str, Any]:
-    """Train, store and evaluate the PINN of ``network``; returns its record entry (JSON-ready)."""
+    """Train, store and evaluate the PINN of ``network``; returns its record entry (JSON-ready). ``default``
+    stands for the network's own default (:func:`.presets.network_preset_name`: ``feeder`` off ANM6-Easy)."""
     sim = simulator_for(network)
+    preset_name = network_preset_name(preset_name, sim)
     cfg = preset(preset_name, seed=seed)
     load0 = os.getloadavg()
     wall0 = time.perf_counter()

@@ -30,7 +30,8 @@ from torch import nn
 
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 from anm_torchrl.surrogates.pinn.model import build_modules
-from anm_torchrl.surrogates.pinn.presets import MODULES, ModuleTrainConfig, PINNTrainConfig, check_acceptance, preset
+from anm_torchrl.surrogates.pinn.presets import (MODULES, ModuleTrainConfig, PINNTrainConfig, check_acceptance,
+                                                 preset_for)
 from anm_torchrl.surrogates.pinn.tasks import TASKS, _Task
 
 log = logging.getLogger(__name__)
@@ -160,7 +161,7 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
     """Train the three PINN modules from physics alone.
 
     Args:
-        cfg: training configuration (default: the ``default`` preset).
+        cfg: training configuration (default: the ``default`` preset of ``sim``'s network, :func:`.presets.preset_for`).
         sim: the simulator providing the physics constants (default ANM6-Easy on CPU).
         log_dir: TensorBoard folder (None: no logging).
         progress: show a tqdm progress bar over all Adam steps.
@@ -170,8 +171,8 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
         times and validation errors against the exact solvers; ``accepted`` and ``acceptance_failures``
         against the preset's bar).
     """
-    cfg = cfg if cfg is not None else preset("default")
     sim = sim if sim is not None else anm6_easy_simulator()
+    cfg = cfg if cfg is not None else preset_for("default", sim)
     torch.manual_seed(cfg.seed)
     modules = build_modules(cfg, sim)
     writer = None

@@ -21,6 +21,7 @@ def build_modules(cfg: PINNTrainConfig, sim: GridSimulator) -> dict[str, nn.Modu
         "storage": StorageKKT(sim, s.hidden, s.depth, s.activation, s.dual_activation,
                               hard_constraints=s.hard_constraints, gated=s.gated, separate_dual=s.separate_dual,
                               dual_gate=s.dual_gate),
-        "power_balance": PowerBalanceNet(sim, p.hidden, p.depth, p.activation, p.v_scale, p.ang_scale),
+        "power_balance": PowerBalanceNet(sim, p.hidden, p.depth, p.activation, p.v_scale, p.ang_scale,
+                                         refine_steps=p.refine_steps),
     }
     return {k: m.to(sim.net.dev.device) for k, m in mods.items()}

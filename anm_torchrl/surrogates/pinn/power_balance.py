@@ -8,6 +8,13 @@ and the branch flows then follow from the predicted voltages (:mod:`.chain`).
 Inputs are normalised to [−1, 1] by that box (buses without devices have a zero-width box and feed 0); the
 outputs are ``|V| = 1 + v_scale·y[:n−1]`` and ``θ = ang_scale·y[n−1:]`` (rad) of a :class:`ResidualMLP`, whose
 linear input→output connection starts the network as a linearised (DC-like) power flow.
+
+``refine_steps`` > 0 follows the network with that many chord-Newton steps on the same power-flow equations:
+``x ← x − J₀⁻¹ F(x)`` with ``x = [θ, |V|]`` of the non-slack buses, ``F`` the residual of
+:func:`.losses.power_balance_residuals` and ``J₀`` its Jacobian at the flat start (a constant, inverted once at
+construction). Physics only, no data; each step costs one residual evaluation and one (2n−2)² matrix product
+per sample, against one Jacobian factorisation per Newton iteration of the exact solver. The network itself is
+trained on its raw output (:mod:`.tasks`); the refinement shrinks what is left of the residual.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ from torch import nn
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.network import LOAD, SLACK
 from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.surrogates.pinn.losses import power_balance_residuals
 from anm_torchrl.surrogates.pinn.nets import ResidualMLP, box_normalise
 
 
@@ -51,13 +59,15 @@ class PowerBalanceNet(nn.Module):
         sim: the simulator (network, device bounds for the input box).
         hidden, depth, activation: the :class:`ResidualMLP`.
         v_scale: p.u. of |V| per unit network output; ang_scale: rad of θ per unit output.
+        refine_steps: chord-Newton steps after the network (module docstring; 0: none).
 
-    ``forward(p_bus (N, n_bus) p.u., q_bus (N, n_bus) p.u.) -> (v_magn (N, n_bus) p.u., v_ang (N, n_bus) rad)``,
-    float64; entry 0 of the inputs (the slack bus) is ignored.
+    ``forward(p_bus (N, n_bus) p.u., q_bus (N, n_bus) p.u., refine=True) -> (v_magn (N, n_bus) p.u.,
+    v_ang (N, n_bus) rad)``, float64; entry 0 of the inputs (the slack bus) is ignored; ``refine=False`` skips
+    the refinement (the raw network, as trained).
     """
 
     def __init__(self, sim: GridSimulator, hidden: int = 128, depth: int = 3, activation: str = "silu",
-                 v_scale: float = 0.1, ang_scale: float = 0.1):
+                 v_scale: float = 0.1, ang_scale: float = 0.1, refine_steps: int = 0):
         super().__init__()
         p_lo, p_hi, q_lo, q_hi = bus_injection_box(sim)
         self.register_buffer("in_low", torch.cat([p_lo[1:], q_lo[1:]]), persistent=False)
@@ -67,6 +77,11 @@ class PowerBalanceNet(nn.Module):
         self.v_scale, self.ang_scale = float(v_scale), float(ang_scale)
         n = self.n_bus - 1
         self.net = ResidualMLP(2 * n, 2 * n, hidden=hidden, depth=depth, activation=activation, out_scale=0.1)
+        if isinstance(refine_steps, bool) or not isinstance(refine_steps, int) or refine_steps < 0:
+            raise ValueError(f"refine_steps must be an integer >= 0, got {refine_steps!r}")
+        self.refine_steps = refine_steps
+        if refine_steps:
+            self.register_buffer("chord", self._flat_start_inverse_jacobian().T.contiguous(), persistent=False)
 
     def input_box(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Training box (2(n_bus − 1),) p.u. of ``[P_1..P_{n−1}, Q_1..Q_{n−1}]``."""
@@ -77,12 +92,35 @@ class PowerBalanceNet(nn.Module):
         (ANM6-Easy: 0.8 p.u.; a 1 MVA-base feeder can have 45 p.u.), the unit of ``residual_unit="box"``."""
         return float(torch.maximum(self.in_low.abs(), self.in_high.abs()).max())
 
-    def forward(self, p_bus: torch.Tensor, q_bus: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _residual(self, x: torch.Tensor, p_bus: torch.Tensor, q_bus: torch.Tensor) -> torch.Tensor:
+        """``F(x)`` (N, 2n−2) p.u.: [ΔP, ΔQ] at the non-slack buses of ``x = [θ_1.., |V|_1..]`` (N, 2n−2)."""
+        n = self.n_bus - 1
+        zero = torch.zeros_like(x[..., :1])
+        dp, dq = power_balance_residuals(torch.cat([zero + 1, x[..., n:]], -1), torch.cat([zero, x[..., :n]], -1),
+                                         p_bus, q_bus, self.y_bus)
+        return torch.cat([dp, dq], -1)
+
+    def _flat_start_inverse_jacobian(self) -> torch.Tensor:
+        """J₀⁻¹ (2n−2, 2n−2): the inverse Jacobian of ``F`` at the flat start (it does not depend on the
+        injections, which enter ``F`` additively)."""
+        n = self.n_bus - 1
+        x0 = torch.cat([torch.zeros(1, n), torch.ones(1, n)], -1).double()
+        zero = torch.zeros(1, self.n_bus, dtype=torch.float64, device=self.y_bus.device)
+        jac = torch.autograd.functional.jacobian(lambda x: self._residual(x, zero, zero), x0.to(zero.device))
+        return torch.linalg.inv(jac.reshape(2 * n, 2 * n))
+
+    def forward(self, p_bus: torch.Tensor, q_bus: torch.Tensor, refine: bool = True
+                ) -> tuple[torch.Tensor, torch.Tensor]:
         x = torch.cat([p_bus[..., 1:], q_bus[..., 1:]], -1).to(torch.float64)
         dtype = self.net.skip.weight.dtype
         y = self.net(box_normalise(x, self.in_low, self.in_high).to(dtype)).to(torch.float64)
         n = self.n_bus - 1
+        state = torch.cat([self.ang_scale * y[..., n:], 1 + self.v_scale * y[..., :n]], -1)  # [θ, |V|]
+        if refine and self.refine_steps:
+            p64, q64 = p_bus.to(torch.float64), q_bus.to(torch.float64)
+            for _ in range(self.refine_steps):
+                state = state - self._residual(state, p64, q64) @ self.chord
         one = torch.ones_like(y[..., :1])
-        v_magn = torch.cat([one, 1 + self.v_scale * y[..., :n]], -1)
-        v_ang = torch.cat([torch.zeros_like(one), self.ang_scale * y[..., n:]], -1)
+        v_magn = torch.cat([one, state[..., n:]], -1)
+        v_ang = torch.cat([torch.zeros_like(one), state[..., :n]], -1)
         return v_magn, v_ang

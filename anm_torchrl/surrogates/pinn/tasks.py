@@ -106,7 +106,7 @@ class _PowerBalanceTask(_Task):
         return torch.cat([zero, x[:, :n]], 1), torch.cat([zero, x[:, n:]], 1)
 
     def losses(self, inputs, cfg):
-        v_magn, v_ang = self.module(*inputs)
+        v_magn, v_ang = self.module(*inputs, refine=False)  # the network is trained on its raw output
         unit = self.module.injection_scale() if cfg.residual_unit == "box" else 1.0
         return power_balance_losses(v_magn, v_ang, *inputs, self.module.y_bus, cfg.robust, cfg.robust_scale, unit)
 
