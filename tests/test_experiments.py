@@ -89,6 +89,25 @@ def test_accuracy_rows_name_the_dataset_evaluated_on(tmp_path: Path):
     assert rows["cross_dataset"]["r2"] == 0.7 and rows["cross_dataset"]["train_dataset"] == "agent"
 
 
+def test_accuracy_records_what_shaped_each_model(tmp_path: Path):
+    """The accuracy record names each model's dataset (checksum) and the training budget it reached, read from the
+    surrogate.json beside its metrics (a DNN cut short by wall time was invisible in the metrics alone)."""
+    from anm_torchrl.experiments import accuracy
+
+    folder = tmp_path / "dnn_agent"
+    folder.mkdir()
+    (folder / "metrics.json").write_text(json.dumps({"kind": "dnn", "dataset": "agent",
+                                                     "in_dataset": {"r2": 0.99, "mae": 0.16}}))
+    ds = {"kind": "agent", "size": 100000, "seed": 0, "checksum": "b525b868"}
+    (folder / "surrogate.json").write_text(json.dumps({
+        "dataset_meta": ds, "simulator": {"network_key": "k1"}, "seed": 0, "params": {"max_epochs": 150},
+        "train_info": {"epochs": 150, "stop": "max_epochs", "params": {"max_epochs": 150}}}))
+    rec = accuracy.run({"paths": [str(folder / "metrics.json")]})
+    m = rec["data"]["models"]["dnn_agent"]
+    assert m["dataset_meta"] == ds and m["network_key"] == "k1"
+    assert m["train_info"] == {"epochs": 150, "stop": "max_epochs"}  # hyper-parameters once, under "params"
+
+
 def test_run_ppo_starts_from_an_empty_run_dir(tmp_path: Path, monkeypatch):
     """Logs left by an earlier run of the same cell are not read back as part of the new run's curve; the run is
     the recipe's loop called in-process (no subprocess), and a failing run is recorded with its error."""

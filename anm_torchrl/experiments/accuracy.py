@@ -4,6 +4,9 @@ Nothing is recomputed here: the numbers are those the data-driven training recip
 each trained surrogate's folder, or any JSON given in ``paths``). The reader walks each JSON and collects every
 object holding numeric ``r2`` and ``mae``; the key path tells the split and the evaluation dataset
 (``generative``/``agent``; absent = the model's own training dataset). Per-output entries are skipped.
+Beside each ``metrics.json``, the model's ``surrogate.json`` says what shaped it: the dataset (kind, size, seed,
+checksum), the network key and the training budget reached (epochs or boosting rounds, and why training stopped);
+the record keeps that per model (``data["models"]``).
 """
 
 from __future__ import annotations
@@ -59,21 +62,37 @@ def rows_from_metrics(path: str | Path) -> list[dict[str, Any]]:
     return rows
 
 
+def provenance(metrics_path: str | Path) -> dict[str, Any]:
+    """What shaped the model whose ``metrics.json`` is at ``metrics_path``: its training dataset (``dataset_meta``:
+    kind, size, seed, checksum), ``network_key``, ``seed``, the hyper-parameters ``params`` and the training
+    summary (``train_info``: epochs / rounds reached, ``stop``, seconds), read from the ``surrogate.json`` beside it;
+    ``{}`` when there is none (a metrics file given alone)."""
+    path = Path(metrics_path).parent / "surrogate.json"
+    if not path.is_file():
+        return {}
+    meta = json.loads(path.read_text())
+    info = {k: v for k, v in (meta.get("train_info") or {}).items() if k != "params"}
+    return {"dataset_meta": meta.get("dataset_meta"), "network_key": (meta.get("simulator") or {}).get("network_key"),
+            "seed": meta.get("seed"), "params": meta.get("params"), "train_info": info}
+
+
 def run(cfg: dict[str, Any]) -> dict:
     """cfg keys: ``paths`` (globs of metrics JSON; default ``<artifact home>/surrogates/*/metrics.json``)."""
     from anm_torchrl.paths import artifact_home
 
     pats = list(cfg.get("paths") or []) or [str(artifact_home() / "surrogates" / "*" / "metrics.json")]
     files = sorted({f for p in pats for f in glob.glob(str(p))})
-    rows, errors = [], {}
+    rows, errors, models = [], {}, {}
     for f in files:
         try:
             rows += rows_from_metrics(f)
+            models[str(Path(f).parent.name)] = provenance(f)
         except (OSError, ValueError) as err:
             errors[f] = str(err)
     if not rows:
         return result("accuracy", "not available",
                       reason=f"no data-driven metrics found (searched {pats}); train them with "
                              "recipes/train_surrogate.py", config=cfg)
-    return result("accuracy", "ok" if not errors else "partial", {"rows": rows, "files": files, "errors": errors},
+    return result("accuracy", "ok" if not errors else "partial", {"rows": rows, "files": files, "errors": errors,
+                                                                "models": models},
                   config=cfg)
