@@ -127,13 +127,19 @@ def _mismatch_inf(s, s_bus, f, ix):
     """F = [Re, Im] of the non-slack mismatch into ``f`` (variable ``j`` at ``f[ix[j]]``); returns ||F||_inf."""
     n = s.shape[0]
     k = n - 1
-    worst = 0.0
     for i in range(1, n):
         m = s[i] - s_bus[i]
         f[ix[i - 1]], f[ix[k + i - 1]] = m.real, m.imag
-    for i in range(2 * k):
+    return _inf_norm(f)
+
+
+@_njit(inline="always")
+def _inf_norm(f):
+    """max |f| (NaN sticks, as ``amax``)."""
+    worst = 0.0
+    for i in range(f.shape[0]):
         a = abs(f[i])
-        if a > worst or a != a:  # NaN sticks, as amax
+        if a > worst or a != a:
             worst = a
             if a != a:
                 break
@@ -353,17 +359,10 @@ def _dense_injection(vm, va, y, s, v):
 def _dense_mismatch_inf(s, s_bus, f):
     """:func:`_mismatch_inf` in gym-anm's layout (variable ``j`` at ``f[j]``)."""
     k = s.shape[0] - 1
-    worst = 0.0
     for i in range(1, k + 1):
         m = s[i] - s_bus[i]
         f[i - 1], f[k + i - 1] = m.real, m.imag
-    for i in range(2 * k):
-        a = abs(f[i])
-        if a > worst or a != a:  # NaN sticks, as amax
-            worst = a
-            if a != a:
-                break
-    return worst
+    return _inf_norm(f)
 
 
 @_njit(inline="always")
