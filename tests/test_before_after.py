@@ -1,8 +1,15 @@
 """``benchmarks/before_after.py``: the per-round pairing and its summary (no worker processes here)."""
 
+import importlib.util
+from pathlib import Path
+
 import pytest
 
-from anm_torchrl.benchmarks.before_after import main, markdown_table, summarise
+_spec = importlib.util.spec_from_file_location(
+    "before_after", Path(__file__).resolve().parents[1] / "benchmarks" / "before_after.py")
+_mod = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_mod)
+main, markdown_table, summarise = _mod.main, _mod.markdown_table, _mod.summarise
 
 
 def _rec(tree, k, batch, rate, cpu):

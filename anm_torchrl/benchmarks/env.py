@@ -7,7 +7,7 @@ Usage::
                                          [--backends auto|numba|torch|numba,torch]
     python -m anm_torchrl.benchmarks.env --network <name|all> [...]   # any network: see env_networks.py
     python -m anm_torchrl.benchmarks.env --solver-sweep [...]          # dense vs band LU crossover
-    python -m anm_torchrl.benchmarks.before_after [...]                # ANM6Env vs an earlier commit, interleaved
+    python benchmarks/before_after.py [...]                            # ANM6Env vs an earlier commit, interleaved
 
 Without ``--network``: the ANM6-Easy table below.
 

@@ -1,8 +1,8 @@
 """``ANM6Env`` throughput of this tree against an earlier commit, measured interleaved (issue 12, item 2).
 
-Usage::
+Usage (from the repository root)::
 
-    python -m anm_torchrl.benchmarks.before_after [--rev bef482b] [--worktree /tmp/wt_before]
+    python benchmarks/before_after.py [--rev bef482b] [--worktree /tmp/wt_before]
         [--batch-sizes 1,4096,16384] [--threads 2] [--rounds 7] [--min-time 1.0]
         [--out results/bench_anm6_before_after]
 
@@ -16,7 +16,8 @@ load on the other cores affects less) and summarised by its median and range ove
 average is recorded at every measurement. About 1 min on a quiet 2-core machine, 2 min under load 6.
 
 Logs a markdown table (and the load average); ``--out`` writes ``<out>.json`` with the summary and every
-measurement.
+measurement. It lives outside the package because it runs a second interpreter on another source tree (the
+package itself starts no processes but ``git``); it imports nothing from ``anm_torchrl``.
 """
 
 from __future__ import annotations
@@ -150,7 +151,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.rounds < 1 or args.min_time <= 0:
         raise ValueError(f"--rounds must be >= 1 and --min-time > 0, got {args.rounds} and {args.min_time}")
     batches = [int(b) for b in args.batch_sizes.split(",") if b.strip()]
-    here = Path(__file__).resolve().parents[2]
+    here = Path(__file__).resolve().parents[1]
     before_commit = ensure_worktree(here, args.rev, Path(args.worktree))
     after_commit = subprocess.run(["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True,
                                   check=True).stdout.strip()
@@ -173,7 +174,7 @@ def main(argv: list[str] | None = None) -> dict:
     rows = summarise(records, batches)
     loads = [r["load1"] for r in records]
     result = {
-        "command": "python -m anm_torchrl.benchmarks.before_after " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": "python benchmarks/before_after.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "before": {"rev": args.rev, "commit": before_commit}, "after": {"commit": after_commit, "dirty": dirty},
         "threads": args.threads, "rounds": args.rounds, "min_time_s": args.min_time,
         "machine": {"cpu": _cpu_model(), "cores": os.cpu_count(),
