@@ -194,12 +194,12 @@ class GridSimulator:
     def check_state(self, state: torch.Tensor) -> None:
         """Raise ``ValueError`` (env index, entry) on a state no transition can start from
         (:func:`anm_torchrl.grid.state.check_state`; the time-index check applies without a ``next_vars_hook``)."""
-        d, b = self.net.dev[self._did], self.net.base_mva
         n_time = None if self.next_vars_hook is not None else self.n_time
         if self._fast_state is not None and state.ndim == 2 and state.shape[1] == self.state_dim \
                 and state.dtype == torch.float64 and fastchecks.usable(state):
             if fastchecks.state_ok(state, *self._fast_state, n_time):
                 return  # valid; otherwise the torch check below names what is wrong
+        d, b = self.net.dev[self._did], self.net.base_mva
         check_state(state, self.state_sizes, d[:, dv.SOC_MIN] * b, d[:, dv.SOC_MAX] * b, n_time)
 
     def content_key(self) -> str:
