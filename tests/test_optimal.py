@@ -1,5 +1,8 @@
 """The perfect-foresight AC optimum and AC-MPC (CasADi + IPOPT): replay agreement, bounds, warm-start stability."""
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -7,6 +10,7 @@ import torch
 pytest.importorskip("casadi")
 
 from anm_torchrl.baselines import available_baselines, make_baseline  # noqa: E402
+from anm_torchrl.baselines import gap  # noqa: E402
 from anm_torchrl.baselines.acmpc import ACMPCPolicy  # noqa: E402
 from anm_torchrl.baselines.mpc import MPCPolicy  # noqa: E402
 from anm_torchrl.baselines.nlp_model import ACHorizonNLP, rollout  # noqa: E402
@@ -17,6 +21,7 @@ from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
 
 torch.set_num_threads(1)
 
+REPO = Path(__file__).resolve().parents[1]
 GAMMA = 0.995
 T = 24  # short horizon: ~1 s per solve, still crossing penalties and storage use
 # Replay agreement target of issue 15: the NLP's return and the env's, relative.
@@ -131,6 +136,89 @@ def test_acmpc_constant_forecast_runs(sim, states):
     pol = ACMPCPolicy(sim, horizon=4, forecast="constant")
     res = evaluate_policy(pol, states[:1], max_steps=6, gamma=GAMMA)
     assert not res.terminated.any() and sum(i["warm"] for i in pol.last_info) == 1  # later steps warm-started
+    assert [i["warm"] for i in pol.infos] == [False] + [True] * 5  # the first state has no earlier plan
+
+
+def test_acmpc_shifted_warm_start_same_actions(sim, states):
+    """The shifted warm start changes where IPOPT starts, not where it ends: the same actions as cold starts."""
+    runs = {}
+    for warm in (True, False):
+        pol = ACMPCPolicy(sim, horizon=8, warm_start=warm)
+        s, acts = states[:1], []
+        for _ in range(4):
+            a = pol.act(s)
+            acts.append(a)
+            s, _ = sim.step(s, a.double())
+        runs[warm] = (torch.cat(acts), pol.infos)
+    assert all(i["warm"] for i in runs[True][1][1:]) and not any(i["warm"] for i in runs[False][1])
+    assert all(i["status"] == "Solve_Succeeded" for r in runs.values() for i in r[1])
+    # IPOPT tol 1e-9 on set-points of order 1-30 MW: the two local solutions agree far below 1e-4 MW (float32 actions)
+    torch.testing.assert_close(runs[True][0], runs[False][0], rtol=0.0, atol=1e-4)
+
+
+# ------------------------------------------------------------------------------------------ other networks
+@pytest.mark.parametrize("network, steps", [
+    ("case33bw", 12),  # 33 buses, 3 renewables, 2 storage units, no rated branches
+    ("cigre_mv", 4),  # classical generators (P counted in ΔE, not curtailed), off-nominal taps, rated branches
+    ("simbench_mv_semiurb", 4),  # 115 buses, no storage
+])
+def test_other_network_optimum_replays_in_anmenv(network, steps):
+    """The NLP built from a feeder's tables solves, its objective is gym-anm's cost, and its set-points stepped
+    through ANMEnv(network=...) give the NLP's return."""
+    from anm_torchrl.data.generic import simulator_for
+
+    sim_n = simulator_for(network)
+    env = gap.true_env(network, 1)
+    s0 = draw_initial_states(1, 0, sim_n, env.init)[0].numpy()
+    opt = solve_optimal(sim_n, s0, steps, GAMMA, warm_start="do_nothing")
+    assert opt.result.status == "Solve_Succeeded" and opt.replay_gap <= REPLAY_RTOL
+    # IPOPT's objective vs the reward terms recomputed from the solution: the slacks' barrier round-off (~1e-8)
+    assert abs(opt.result.objective + opt.discounted_return) <= 1e-6 * max(1.0, abs(opt.discounted_return))
+    rep = replay_in_env(opt.setpoints, s0, GAMMA, env=env)
+    assert not rep["terminated"]
+    # float32 rewards of order 1e-3-1e-1 summed over a few steps: round-off ~1e-9 relative, inside the target
+    assert abs(rep["discounted_return"] - opt.discounted_return) <= REPLAY_RTOL * abs(opt.discounted_return)
+    dn = rollout(sim_n, s0, warm_start_actions(sim_n, s0, steps, "do_nothing"))
+    assert opt.replay_return >= _discounted(dn.reward) - 1e-9  # the optimum bounds do-nothing
+
+
+# ------------------------------------------------------------------------------------------ the gap table
+def test_table_compares_rows_on_the_states_they_cover():
+    rows = {"optimal": {"discounted_return": [-2.0, -4.0, -6.0]},
+            "a": {"discounted_return": [-4.0, -8.0, -12.0]},
+            "b": {"discounted_return": [-3.0], "episode_index": [1]}}
+    t = {r["policy"]: r for r in gap.table(rows, 3)}
+    assert t["a"]["loss_pct_of_optimum"] == pytest.approx(200.0)
+    assert t["b"]["loss_pct_of_optimum"] == pytest.approx(75.0)  # against the optimum's -4 on state 1 only
+    assert t["optimal"]["loss_pct_of_optimum"] == pytest.approx(100.0)
+    rows["optimal"]["discounted_return"] = [0.1, 0.2, 0.3]  # a gain: there is no loss to compare with
+    assert gap.table(rows, 3)[0]["loss_pct_of_optimum"] is None
+
+
+def test_optimum_then_do_nothing_is_a_lower_bound(sim, states):
+    """The k-step optimum followed by do-nothing: feasible, so between do-nothing and the full-horizon optimum."""
+    s0, steps = states[:1], 12
+    row = gap.optimum_then_do_nothing(sim, s0, steps, 6)
+    full = solve_optimal(sim, s0[0].numpy(), steps, GAMMA, warm_start="do_nothing")
+    dn = rollout(sim, s0[0].numpy(), warm_start_actions(sim, s0[0].numpy(), steps, "do_nothing"))
+    # 1e-6 relative: the replay agreement target (the bound is replayed, the optimum is the NLP's)
+    assert _discounted(dn.reward) - 1e-9 <= row["discounted_return"][0] <= full.discounted_return + 1e-6 * abs(
+        full.discounted_return)
+    with pytest.raises(ValueError, match="k must lie"):
+        gap.optimum_then_do_nothing(sim, s0, steps, steps)
+
+
+def test_gap_block_is_rendered_from_the_record():
+    """README's and docs/OPTIMAL.md's gap tables are the committed record's rendering, and the record's own rows
+    are what the committed gap record gives."""
+    rec = json.loads((REPO / "results" / "optimal_gap_table.json").read_text())
+    src = json.loads((REPO / "results" / "optimal_gap_8states.json").read_text())
+    mine = [r for r in rec["rows"] if r["source"] == "gap"]
+    assert mine == [r for r in gap.combine(src)["rows"] if r["source"] == "gap"]
+    body = gap.render_block(rec)
+    for page in ("README.md", "docs/OPTIMAL.md"):
+        m = gap.README_BLOCK.search((REPO / page).read_text())
+        assert m is not None and m.group(2) == body, page
 
 
 @pytest.mark.slow

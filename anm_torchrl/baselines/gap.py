@@ -212,9 +212,17 @@ def merge_rows(a: dict, b: dict, episodes: int) -> dict:
     return out
 
 
+def _rank(t: dict) -> tuple:
+    """Best first: by loss vs the optimum on each row's own states (rows on fewer states compare fairly), then
+    rows without one by mean return."""
+    pct = t["loss_pct_of_optimum"]
+    return (pct is None, pct if pct is not None else 0.0, -t["mean_discounted_return"])
+
+
 def table(rows: dict, episodes: int | None = None) -> list[dict]:
     """Per row: mean return and loss as % of the optimum's on the states it covers (None without an ``optimal``
-    row covering them, or with an optimum whose mean return is ≥ 0: no loss to compare with), best first."""
+    row covering them, or with an optimum whose mean return is ≥ 0: no loss to compare with), best first
+    (:func:`_rank`)."""
     n = episodes if episodes is not None else max(len(r["discounted_return"]) for r in rows.values())
     opt = rows.get("optimal")
     opt_by_state = dict(zip(_covered(opt, n), opt["discounted_return"])) if opt else {}
@@ -227,7 +235,7 @@ def table(rows: dict, episodes: int | None = None) -> list[dict]:
             pct = 100.0 * float(ret.mean()) / ref if ref < 0 else None
         out.append({"policy": name, "episode_index": idx, "mean_discounted_return": float(ret.mean()),
                     "loss_pct_of_optimum": pct})
-    return sorted(out, key=lambda t: -t["mean_discounted_return"])
+    return sorted(out, key=_rank)
 
 
 def markdown(rec: dict) -> str:
@@ -272,6 +280,18 @@ def _solver_stats(row: dict) -> dict:
             "cpu_s_per_solve": sum(c["cpu_s_per_solve"]["mean"] * c["solves"] for c in parts) / n}
 
 
+def _order(row: str) -> tuple:
+    """The published table's fixed row order (the issue's): optimum, AC-MPC, DC-MPC (larger N first), the β = 0.96
+    DC-MPC, PPO on the PINN, PPO on the true env, do-nothing. Not a ranking: rows may cover different states."""
+    m = re.fullmatch(r"(optimal\d+_then_do_nothing|acmpc|mpc)_?(\d*)(_cold)?", row)
+    groups = {"acmpc": 2, "mpc": 3}
+    if m and m.group(1) in groups:
+        return groups[m.group(1)], -int(m.group(2)), bool(m.group(3))
+    fixed = ["optimal", "optimal_then", "", "", "mpc_perfect_N16", "ppo_best_pinn", "ppo_best_none", "do_nothing"]
+    key = "optimal_then" if m else row
+    return (fixed.index(key) if key in fixed else len(fixed), 0, False)
+
+
 def combine(gap_rec: dict, test_returns: dict | None = None) -> dict:
     """The published gap table from a gap record and (optionally) the PPO rows and the β = 0.96 DC-MPC row of a
     ``test_returns`` record measured on the same states (protocol checked).
@@ -287,14 +307,21 @@ def combine(gap_rec: dict, test_returns: dict | None = None) -> dict:
     if opt is None or len(_covered(opt, n)) != n:
         raise ValueError("combine: the gap record needs an 'optimal' row on all of its states")
     opt_mean = float(np.mean(opt["discounted_return"]))
+    # the states every gap row covers: there all of them compare on equal terms
+    common = sorted(set.intersection(*(set(_covered(r, n)) for r in gap_rec["rows"].values())))
     rows = []
     for t in table(gap_rec["rows"], n):
         r = gap_rec["rows"][t["policy"]]
         extra = _solver_stats(r)
+        on_common = table({"optimal": opt, "row": {"discounted_return": [
+            dict(zip(t["episode_index"], r["discounted_return"]))[i] for i in common], "episode_index": common}},
+            n)
         rows.append({"policy": _label(t["policy"]), "row": t["policy"], "source": "gap",
                      "states": len(t["episode_index"]), "episode_index": t["episode_index"],
                      "discounted_return": t["mean_discounted_return"], "std_over_seeds": None, "seeds": None,
-                     "loss_pct_of_optimum": t["loss_pct_of_optimum"], "loss_pct_std": None, **extra})
+                     "loss_pct_of_optimum": t["loss_pct_of_optimum"], "loss_pct_std": None,
+                     "loss_pct_on_common": next(x["loss_pct_of_optimum"] for x in on_common if x["policy"] == "row"),
+                     **extra})
     tr_meta = None
     if test_returns is not None:
         d = test_returns["data"]
@@ -315,21 +342,29 @@ def combine(gap_rec: dict, test_returns: dict | None = None) -> dict:
             rows.append({"policy": label, "row": r["policy"] + (f"_{r['trained_on']}" if r.get("trained_on") else ""),
                          "source": "test_returns", "states": n, "episode_index": list(range(n)),
                          "discounted_return": ret, "std_over_seeds": std, "seeds": seeds,
-                         "loss_pct_of_optimum": 100.0 * ret / opt_mean,
+                         "loss_pct_of_optimum": 100.0 * ret / opt_mean, "loss_pct_on_common": None,
                          "loss_pct_std": None if std is None else 100.0 * std / abs(opt_mean)})
         meta = test_returns.get("meta", {})
         tr_meta = {"git_commit": (meta.get("versions") or {}).get("git_commit"), "date": meta.get("date")}
-    rows.sort(key=lambda r: -r["discounted_return"])
-    return {"protocol": pr, "optimum_mean": opt_mean, "rows": rows, "test_returns": tr_meta}
+    rows.sort(key=lambda r: _order(r["row"]))
+    return {"protocol": pr, "optimum_mean": opt_mean, "common_states": common, "rows": rows, "test_returns": tr_meta}
 
 
 def render_block(table_rec: dict) -> str:
-    """The Markdown of the ``<!-- optimum:gap -->`` block (README, docs/OPTIMAL.md) from a :func:`combine` record."""
-    pr = table_rec["protocol"]
-    lines = [f"{pr['episodes']} test states (`draw_initial_states({pr['episodes']}, seed={pr['seed']})`), "
-             f"T = {pr['steps']:,}, γ = {pr['gamma']}, discounted return on the true env; loss as % of the "
-             "optimum's on the same states (ratio of means; PPO: mean ± std over seeds):", "",
-             "| policy | states | discounted return | loss, % of the optimum's |", "|---|---:|---:|---:|"]
+    """The Markdown of the ``<!-- optimum:gap -->`` block (README, docs/OPTIMAL.md) from a :func:`combine` record.
+
+    A second loss column, on the states every measured row covers, appears when some rows cover fewer states."""
+    pr, common = table_rec["protocol"], table_rec["common_states"]
+    partial = len(common) < pr["episodes"]
+    on = f"#{', #'.join(map(str, common))}"
+    lines = [f"{pr['episodes']} test states (`draw_initial_states({pr['episodes']}, seed={pr['seed']})`, numbered "
+             f"#0–#{pr['episodes'] - 1}), T = {pr['steps']:,}, γ = {pr['gamma']}, discounted return on the true env; "
+             "loss as % of the optimum's loss on the same states (ratio of means; PPO: mean ± std over seeds)"
+             + (f"; the last column compares every row measured per state on state{'s' if len(common) > 1 else ''} "
+                f"{on} alone" if partial else "") + ":", "",
+             "| policy | states | discounted return | loss, % of the optimum's |"
+             + (f" on {on} |" if partial else ""),
+             "|---|---:|---:|---:|" + ("---:|" if partial else "")]
     for r in table_rec["rows"]:
         spread = (r["seeds"] or 0) > 1  # a std over one seed says nothing
         ret = f"{r['discounted_return']:.2f}" + (f" ± {r['std_over_seeds']:.2f}" if spread else "")
@@ -338,7 +373,10 @@ def render_block(table_rec: dict) -> str:
         states = f"{r['states']}" if r["states"] == pr["episodes"] else \
             f"{r['states']} (#{', #'.join(map(str, r['episode_index']))})"
         seeds = f", {r['seeds']} seed{'s' if r['seeds'] != 1 else ''}" if r["seeds"] else ""
-        lines.append(f"| {r['policy']}{seeds} | {states} | {ret} | {pct} |")
+        last = ""
+        if partial:
+            last = " – |" if r["loss_pct_on_common"] is None else f" {r['loss_pct_on_common']:,.0f} % |"
+        lines.append(f"| {r['policy']}{seeds} | {states} | {ret} | {pct} |{last}")
     tr = table_rec.get("test_returns")
     src = "_From `results/optimal_gap_table.json`"
     if tr:
