@@ -32,8 +32,8 @@ class TransitionConstants(NamedTuple):
         gen_h0, des_h0: (n_gen, 7), (n_des, 10) constant right-hand sides (+inf in state-dependent rows).
         gen_ppot_row, des_soc_rows: rows of ``h`` filled from P_pot and from the SoC.
         y: (n_bus, n_bus) Y-bus; ycsr: its non-zeros as (row pointers, column indices, values).
-        dense: the ``"dense"`` layout (small networks): Y read densely, the Jacobian in gym-anm's layout, a dense
-            LU; no index indirection or band bounds in the Newton step.
+        dense: the ``"dense"`` layout (small networks): the kernel's Newton step reads Y densely, with the
+            Jacobian in gym-anm's layout and no index indirection.
         lu0, piv0, ok0: LU factors of the flat-start Jacobian (shared by all envs).
         ix: (2 n_bus - 2,) position of each Newton–Raphson variable / equation ([θ, |V|] of the non-slack
             buses) in the Jacobian; kl, ku: its lower / upper bandwidth; parent: (k,) tree of the ``"tree"``

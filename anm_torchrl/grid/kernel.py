@@ -296,7 +296,7 @@ def _flat_start_lu(y, ycsr, dense, ix, kl, ku, parent):
     if dense:
         _dense_injection(vm, va, y, s, v)
         _dense_jacobian(y, v, vm, s, lu)
-        return lu, piv, _dense_lu_factor(lu, piv)
+        return lu, piv, _lu_factor(lu, piv, 2 * n - 3, 2 * n - 3)
     _injection(vm, va, ycsr, s, v)
     _jacobian(ycsr, v, vm, s, lu, ix, kl, ku)
     return lu, piv, _factor(lu, piv, kl, ku, parent)
@@ -337,10 +337,10 @@ def _newton_raphson(ycsr, lu0, piv0, ok0, ix, kl, ku, parent, s_bus, tol, max_it
 
 # ------------------------------------------------------------------------------- small-network power flow
 # The dense layout (``TransitionConstants.dense``: gym-anm's Jacobian layout, full band, no tree) gets its own
-# Newton–Raphson: Y read densely, no index indirection, a fixed-size LU (``getrf``). It performs the same
-# operations on the same numbers as the generic path with that layout (bit-identical results, tested), and is
-# ~10 % faster on ANM6-Easy, where the Newton step is most of a transition. Kept as separate functions rather
-# than branches inside the generic ones: measured, a runtime flag inside them recovered only a third of it.
+# Newton–Raphson: Y read densely and no index indirection (the LU is the band LU at full bandwidth). It performs
+# the same operations on the same numbers as the generic path with that layout (bit-identical results, tested),
+# and is ~10 % faster on ANM6-Easy, where the Newton step is most of a transition. Kept as separate functions
+# rather than branches inside the generic ones: measured, a runtime flag inside them recovered a third of it.
 @_njit(inline="always")
 def _dense_injection(vm, va, y, s, v):
     """:func:`_injection` with Y (n, n) read densely (exact zeros skipped: the same terms in the same order)."""
@@ -387,51 +387,8 @@ def _dense_jacobian(y, v, vm, s, jac):
 
 
 @_njit(inline="always")
-def _dense_lu_factor(a, piv):
-    """In-place dense LU with partial pivoting, LAPACK ``getrf`` layout (whole rows swapped): the operations of
-    :func:`_lu_factor` at full bandwidth without its band bounds. False when a pivot is exactly 0 (singular)."""
-    n = a.shape[0]
-    for c in range(n):
-        p, pv = c, abs(a[c, c])
-        for r in range(c + 1, n):
-            if abs(a[r, c]) > pv:
-                p, pv = r, abs(a[r, c])
-        piv[c] = p
-        if pv == 0.0:
-            return False
-        if p != c:
-            for q in range(n):
-                a[c, q], a[p, q] = a[p, q], a[c, q]
-        for r in range(c + 1, n):
-            f = a[r, c] / a[c, c]
-            a[r, c] = f
-            if f != 0.0:
-                for q in range(c + 1, n):
-                    a[r, q] -= f * a[c, q]
-    return True
-
-
-@_njit(inline="always")
-def _dense_lu_solve(a, piv, b):
-    """b <- A⁻¹ b from :func:`_dense_lu_factor`'s ``a``, ``piv`` (all interchanges first, ``getrs``)."""
-    n = b.shape[0]
-    for c in range(n):
-        p = piv[c]
-        if p != c:
-            b[c], b[p] = b[p], b[c]
-    for c in range(n):
-        for r in range(c + 1, n):
-            b[r] -= a[r, c] * b[c]
-    for c in range(n - 1, -1, -1):
-        acc = b[c]
-        for q in range(c + 1, n):
-            acc -= a[c, q] * b[q]
-        b[c] = acc / a[c, c]
-
-
-@_njit(inline="always")
 def _dense_newton_raphson(y, lu0, piv0, ok0, s_bus, tol, max_iter, vm, va, s, v, f, jac, piv):
-    """:func:`_newton_raphson` for the dense layout (``lu0``, ``piv0`` from :func:`_dense_lu_factor`)."""
+    """:func:`_newton_raphson` for the dense layout (Jacobian (2n-2, 2n-2), full bandwidth)."""
     n = s_bus.shape[0]
     k = n - 1
     for i in range(n):
@@ -445,9 +402,9 @@ def _dense_newton_raphson(y, lu0, piv0, ok0, s_bus, tol, max_iter, vm, va, s, v,
             lu, pv, ok = lu0, piv0, ok0
         else:
             _dense_jacobian(y, v, vm, s, jac)
-            lu, pv, ok = jac, piv, _dense_lu_factor(jac, piv)
+            lu, pv, ok = jac, piv, _lu_factor(jac, piv, 2 * k - 1, 2 * k - 1)
         if ok:
-            _dense_lu_solve(lu, pv, f)
+            _lu_solve(lu, pv, f, 2 * k - 1, 2 * k - 1)
         else:
             f[:] = np.nan
         for i in range(k):
