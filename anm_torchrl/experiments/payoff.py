@@ -350,6 +350,11 @@ def cost_verdict(rec: dict) -> str:
                                              for c in cross) if cross else
                                    "none — no surrogate is cheaper per transition than the cheaper exact backend at "
                                    "any network and batch measured") + ".")
+        out.append("For cost alone, a user should " + (
+            "train on the exact batched simulator (`make_env(\"none\", network=...)`, numba): on every network and "
+            "batch measured it is the cheapest env, and a surrogate needs training before its first step."
+            if not cross else "prefer the surrogate only where a crossover is listed above, and count its training "
+            "time; elsewhere the exact batched simulator is cheaper."))
     acc = d.get("pinn_accuracy") or {}
     if acc.get("available"):
         nets = acc["data"].get("networks", [])
