@@ -11,9 +11,10 @@ the whole chain against the exact simulator on held-out ``random`` and MPC-``exp
 devices; target ≤ 0.01), the slack's relative to the peak load, the terminal check's precision/recall against
 the simulator's non-convergence, inference cost.
 
-Commands (each network in its own process, then one merge)::
+Commands (each network in its own process, then one merge; ``--preset default`` is each network's default:
+``default`` on ANM6-Easy, ``feeder`` elsewhere)::
 
-    python -m anm_torchrl.surrogates.pinn.generic_accuracy --networks case33bw --preset quick \
+    python -m anm_torchrl.surrogates.pinn.generic_accuracy --networks case33bw --preset default \
         --expert-envs 4 --expert-steps 50 --out /tmp/acc_case33bw.json
     python -m anm_torchrl.surrogates.pinn.generic_accuracy --merge /tmp/acc_*.json \
         --out results/pinn_generic_accuracy.json
