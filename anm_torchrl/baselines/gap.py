@@ -350,6 +350,11 @@ def combine(gap_rec: dict, test_returns: dict | None = None) -> dict:
     return {"protocol": pr, "optimum_mean": opt_mean, "common_states": common, "rows": rows, "test_returns": tr_meta}
 
 
+def _pct(v: float) -> str:
+    """A loss percentage: one decimal below 1,000 % (near-optimal rows differ in tenths), none above."""
+    return f"{v:.1f} %" if v < 1000 else f"{v:,.0f} %"
+
+
 def render_block(table_rec: dict) -> str:
     """The Markdown of the ``<!-- optimum:gap -->`` block (README, docs/OPTIMAL.md) from a :func:`combine` record.
 
@@ -368,14 +373,14 @@ def render_block(table_rec: dict) -> str:
     for r in table_rec["rows"]:
         spread = (r["seeds"] or 0) > 1  # a std over one seed says nothing
         ret = f"{r['discounted_return']:.2f}" + (f" ± {r['std_over_seeds']:.2f}" if spread else "")
-        pct = "–" if r["loss_pct_of_optimum"] is None else f"{r['loss_pct_of_optimum']:,.0f} %" + (
+        pct = "–" if r["loss_pct_of_optimum"] is None else _pct(r["loss_pct_of_optimum"]) + (
             f" ± {r['loss_pct_std']:,.0f}" if spread else "")
         states = f"{r['states']}" if r["states"] == pr["episodes"] else \
             f"{r['states']} (#{', #'.join(map(str, r['episode_index']))})"
         seeds = f", {r['seeds']} seed{'s' if r['seeds'] != 1 else ''}" if r["seeds"] else ""
         last = ""
         if partial:
-            last = " – |" if r["loss_pct_on_common"] is None else f" {r['loss_pct_on_common']:,.0f} % |"
+            last = " – |" if r["loss_pct_on_common"] is None else f" {_pct(r['loss_pct_on_common'])} |"
         lines.append(f"| {r['policy']}{seeds} | {states} | {ret} | {pct} |{last}")
     tr = table_rec.get("test_returns")
     src = "_From `results/optimal_gap_table.json`"
