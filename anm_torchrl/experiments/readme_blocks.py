@@ -28,11 +28,12 @@ def _source(rec: dict | None, run: dict | None) -> str:
         return "_(no record)_"
     meta = rec.get("meta", {})
     commit = (meta.get("versions") or {}).get("git_commit") or "unknown"
-    preset = (run or {}).get("preset")
-    for u in (run or {}).get("updates", []):
+    preset, date = (run or {}).get("preset"), (run or {}).get("date")
+    for u in (run or {}).get("updates", []):  # the last update that re-ran this experiment made its record
         if rec["name"] in u.get("experiments", {}):
-            preset = u.get("preset") or preset
-    return f"_From `results/{rec['name']}.json` (preset `{preset}`, git commit `{commit[:7]}`)._"
+            preset, date = u.get("preset") or preset, u.get("date") or date
+    when = f", run on {str(date)[:10]}" if date else ""
+    return f"_From `results/{rec['name']}.json` (preset `{preset}`, git commit `{commit[:7]}`{when})._"
 
 
 def block_claims(res: dict[str, Any]) -> str:
