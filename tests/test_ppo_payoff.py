@@ -39,13 +39,14 @@ def test_markdown_shows_test_fractions_of_do_nothing():
 
 
 def test_merge_ppo_replaces_only_the_ppo_part(tmp_path):
-    full = {"name": "payoff", "status": "ok", "meta": {"versions": {}},
+    full = {"name": "payoff", "status": "ok", "meta": {"versions": {}, "notes": {"cost": "c", "ppo_runs": "old"}},
             "data": {"parts": ["cost", "ppo"], "rows": [{"impl": "x"}], "ppo": {"old": True}}}
     dst, src = tmp_path / "payoff.json", tmp_path / "ppo.json"
     dst.write_text(json.dumps(full))
     src.write_text(json.dumps(_ppo_record(-0.05, [0.1, 0.1])))
-    payoff.merge_ppo(src, dst)
+    payoff.merge_ppo(src, dst, note="made by X")
     rec = json.loads(dst.read_text())
+    assert rec["meta"]["notes"] == {"cost": "c", "ppo": "made by X"}
     assert rec["data"]["rows"] == [{"impl": "x"}] and rec["data"]["parts"] == ["cost", "ppo"]
     assert rec["data"]["ppo"]["network"] == "case33bw" and rec["meta"]["ppo_from"]["file"] == str(src)
     src.write_text(json.dumps({"meta": {}, "data": {"parts": ["cost"]}}))

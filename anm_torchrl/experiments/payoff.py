@@ -367,9 +367,10 @@ def cost_verdict(rec: dict) -> str:
     return " ".join(out)
 
 
-def merge_ppo(src: str | Path, dst: str | Path) -> dict:
+def merge_ppo(src: str | Path, dst: str | Path, note: str | None = None) -> dict:
     """Put the ``ppo`` part of the payoff record ``src`` (e.g. a ``preset.payoff.parts=[ppo]`` run) into the payoff
-    record ``dst`` in place, keeping ``dst``'s other parts; ``meta.ppo_from`` says where it came from.
+    record ``dst`` in place, keeping ``dst``'s other parts; ``meta.ppo_from`` says where it came from, and ``note``
+    (how ``src`` was made) replaces ``dst``'s notes about its former ppo part (``meta.notes`` keys ``ppo*``).
 
     Raises:
         ValueError: ``src`` has no ``ppo`` part.
@@ -383,6 +384,11 @@ def merge_ppo(src: str | Path, dst: str | Path) -> dict:
     rec["data"]["parts"] = list(dict.fromkeys([*rec["data"].get("parts", []), "ppo"]))
     rec["meta"]["ppo_from"] = {"file": str(src), "versions": new["meta"].get("versions"),
                                "config": (new["meta"].get("config") or {}).get("ppo")}
+    if note is not None:
+        notes = rec["meta"].setdefault("notes", {})
+        for k in [k for k in notes if k.startswith("ppo")]:
+            del notes[k]
+        notes["ppo"] = note
     write_json(dst, rec)
     return rec
 
@@ -490,7 +496,8 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description="print the payoff study's tables from its record")
     parser.add_argument("record", nargs="?", default="results/payoff.json")
     parser.add_argument("--merge-ppo", metavar="SRC", help="first replace the record's ppo part by SRC's (merge_ppo)")
+    parser.add_argument("--note", help="with --merge-ppo: how SRC was made (replaces the record's ppo notes)")
     args = parser.parse_args()
     if args.merge_ppo:
-        merge_ppo(args.merge_ppo, args.record)
+        merge_ppo(args.merge_ppo, args.record, args.note)
     sys.stdout.write(markdown(read_json(args.record)) + "\n")
