@@ -47,6 +47,13 @@ One chord step from the trained network is 40–180× closer to the exact power 
 the second step was not worth its cost (one more residual and matrix product per sample) with the first already
 ≥ 70× under the 1e-3 p.u. target.
 
+Not solved: the 115-bus SimBench feeder (1 MVA base). Its ``feeder`` power-balance network (10,000 steps, 462 CPU s
+with the KKT-NNs) is worse than the flat start (validation |V| MAE 3.8e-2 vs 2.3e-2); after its chord step |V| is
+within 3.1e-4 p.u. (test) but the power-flow residual stays ~0.6 p.u. (stiff lines), above the terminal check's
+0.005 p.u., so every transition is flagged terminal. On validation transitions 2 / 3 / 5 chord steps give |V|
+MAE 2.3e-5 / 1.4e-6 / 5e-9 and residual 2.9e-2 / 1.4e-3 / 3.5e-6 p.u. (flagged 100 % / 0 % / 0 %) — from the flat
+start alike: there the refinement, not the network, does the work.
+
 Measurements behind ``default`` (2-core shared CPU, torch 1 thread; times are wall-clock and noisy, ±30 %).
 Held-out validation set: 4,096 scrambled-Sobol points of the module's input box, errors against the exact
 projection / a 1e-10 Newton–Raphson (converged points). Batch 1024, lr 3e-3 cosine unless noted.
