@@ -17,7 +17,7 @@ from recipe_utils import ROOT, compose
 
 from anm_torchrl.baselines.simple import DoNothingPolicy
 from anm_torchrl.training.config_checks import check_ppo_config
-from anm_torchrl.training.ppo_loop import initial_action_kwargs, make_train_env
+from anm_torchrl.training.ppo_loop import make_train_env
 from anm_torchrl.training.ppo_models import initial_mean_bias, make_ppo_models
 
 CLIP = 0.98
@@ -28,14 +28,19 @@ def test_anm6_defaults_select_the_old_behaviour():
     cfg = compose("config", [])
     assert cfg.network == "anm6_easy"
     assert cfg.loss.reward_scale == 0.01 and cfg.model.init_action == "center" and cfg.eval.test_max_steps is None
-    assert initial_action_kwargs(cfg) == {}  # nothing built, make_ppo_models called exactly as before
+    env = make_train_env({"name": "none"}, 2, None, 0, "raise", None, "cpu", 1)
+    torch.manual_seed(0)
+    before = make_ppo_models(env)[0].state_dict()  # the call as it was before the key existed
+    torch.manual_seed(0)
+    now = make_ppo_models(env, **cfg.model)[0].state_dict()  # every model key, as checkpoints rebuild actors
+    assert before.keys() == now.keys() and all(torch.equal(before[k], now[k]) for k in before)
 
 
 def _models(network: str, cfg_overrides: list[str], seed: int = 0):
     cfg = compose("config", [f"network={network}", *cfg_overrides])
     env = make_train_env({"name": "none"}, 3, None, 0, "raise", None, "cpu", 1, network=network)
     torch.manual_seed(seed)
-    actor, _, _ = make_ppo_models(env, **initial_action_kwargs(cfg))
+    actor, _, _ = make_ppo_models(env, **cfg.model)
     return env, actor
 
 
@@ -71,6 +76,9 @@ def test_initial_mean_bias_maps_back_and_rejects_bad_input():
         initial_mean_bias(torch.tensor([2.0, 0.0, 0.0]), low, high, CLIP)
     with pytest.raises(ValueError, match="clip must be in"):
         initial_mean_bias(torch.tensor([0.5, 0.0, 0.0]), low, high, 1.0)
+    env = make_train_env({"name": "none"}, 1, None, 0, "raise", None, "cpu", 1)
+    with pytest.raises(ValueError, match="init_action must be"):
+        make_ppo_models(env, init_action="middle")
 
 
 def test_auto_reward_scale_is_derived_from_do_nothing():

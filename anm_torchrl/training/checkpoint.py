@@ -146,8 +146,7 @@ def load_actor(checkpoint: str | os.PathLike | dict[str, Any], env=None, map_loc
         from anm_torchrl.training.factory import make_true_env
 
         env = make_true_env(1, seed=0, network=ckpt["config"].get("network"))
-    # the initial-action keys only set the untrained bias, which the saved weights replace
-    model = {k: v for k, v in ckpt["config"].get("model", {}).items() if k not in ("init_action", "init_action_clip")}
+    model = dict(ckpt["config"].get("model", {}))
     actor, _, _ = make_ppo_models(env, obs_stats=ckpt["obs_norm"], **model)
     actor.load_state_dict(ckpt["actor"])
     return actor.eval()

@@ -46,20 +46,6 @@ def make_train_env(surrogate: dict, num_envs: int, max_steps: int | None, seed: 
     return env.append_transform(RewardSum()) if isinstance(env, TransformedEnv) else TransformedEnv(env, RewardSum())
 
 
-def initial_action_kwargs(cfg: DictConfig) -> dict:
-    """``make_ppo_models`` keywords of ``model.init_action``: ``center`` → none (bias 0, the box centre, today's
-    behaviour; nothing is built), ``do_nothing`` → the do-nothing action of ``cfg.network``'s true simulator
-    (renewables at their maximum, no reactive power, storage idle) as the untrained policy's deterministic action,
-    edge values ``model.init_action_clip`` inside the box."""
-    if cfg.model.init_action == "center":
-        return {}
-    from anm_torchrl.baselines.simple import DoNothingPolicy
-    from anm_torchrl.training.factory import make_true_env
-
-    sim = make_true_env(1, cfg.env.device, network=cfg.network).sim
-    return {"init_action": DoNothingPolicy(sim).action_value, "init_action_clip": float(cfg.model.init_action_clip)}
-
-
 def budget_mask(batch_size, remaining: int):
     """Frames of a collected batch ``[..., T]`` that fit in the remaining budget of ``remaining`` frames.
 
@@ -143,7 +129,7 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
         train_env, actor_cells=cfg.model.actor_cells, critic_cells=cfg.model.critic_cells,
         activation=cfg.model.activation, max_obs_scale=cfg.model.max_obs_scale, obs_clip=cfg.model.obs_clip,
         init_log_std=cfg.model.init_log_std, obs_stats=resume["obs_norm"] if resume else None,
-        **initial_action_kwargs(cfg))
+        init_action=cfg.model.init_action, init_action_clip=cfg.model.init_action_clip)
     actor, critic = actor.to(device), critic.to(device)
     if resume:
         actor.load_state_dict(resume["actor"])

@@ -90,6 +90,24 @@ def initial_mean_bias(action: torch.Tensor, low: torch.Tensor, high: torch.Tenso
     return torch.atanh(u).float()
 
 
+def _initial_action(env: EnvBase, init_action: torch.Tensor | str | None) -> torch.Tensor | None:
+    """``make_ppo_models``' ``init_action`` as an action tensor (A,) MW/MVAr, or None for the box centre."""
+    if init_action is None or isinstance(init_action, torch.Tensor):
+        return init_action
+    if init_action == "center":
+        return None
+    if init_action != "do_nothing":
+        raise ValueError(f"init_action must be 'center', 'do_nothing', an action tensor or None; got {init_action!r}")
+    from torchrl.envs import TransformedEnv
+
+    from anm_torchrl.baselines.simple import DoNothingPolicy
+
+    sim = getattr(env.base_env if isinstance(env, TransformedEnv) else env, "sim", None)
+    if sim is None:
+        raise ValueError(f"init_action='do_nothing' needs an env with a simulator (.sim), got {type(env).__name__}")
+    return DoNothingPolicy(sim).action_value
+
+
 def _unbatched(spec, key: str):
     spec = spec[key] if key in spec.keys() else spec
     return spec[(0,) * (spec.ndim - 1)] if spec.ndim > 1 else spec
@@ -98,7 +116,7 @@ def _unbatched(spec, key: str):
 def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), activation: str = "tanh",
                     max_obs_scale: float | None = 50.0, obs_clip: float = 5.0, init_log_std: float = -2.0,
                     obs_stats: dict[str, torch.Tensor] | None = None, obs_key: str = "observation",
-                    init_action: torch.Tensor | None = None, init_action_clip: float = 0.98,
+                    init_action: torch.Tensor | str | None = None, init_action_clip: float = 0.98,
                     ) -> tuple[ProbabilisticActor, ValueOperator, ObservationNormalizer]:
     """Actor, critic and observation normaliser for ``env``.
 
@@ -111,9 +129,10 @@ def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), a
         init_log_std: initial state-independent log standard deviation of the pre-tanh Gaussian.
         obs_stats: ``{"loc", "scale"}`` to use instead of the spec's (e.g. from a checkpoint).
         obs_key: observation key read by both networks.
-        init_action: (A,) action in MW/MVAr that the untrained policy's deterministic action should be (e.g. the
-            do-nothing action); its last layer's bias is set by :func:`initial_mean_bias`. None: bias 0, the centre
-            of the box (the weights are drawn identically either way).
+        init_action: the untrained policy's deterministic action: None or ``"center"`` (bias 0, the centre of the
+            box), ``"do_nothing"`` (the do-nothing action of ``env``'s simulator ``env.sim``: renewables at their
+            maximum, no reactive power, storage idle) or an (A,) action in MW/MVAr; the last layer's bias is set by
+            :func:`initial_mean_bias` (the weights are drawn identically either way).
         init_action_clip: ``clip`` of :func:`initial_mean_bias`.
 
     Returns:
@@ -121,6 +140,7 @@ def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), a
         scaled to [low, high]; deterministic mode = its mean) and ``"action_log_prob"``;
         ``critic``: ``ValueOperator`` writing ``"state_value"``; ``normalizer``: the shared normaliser module.
     """
+    init_action = _initial_action(env, init_action)
     if activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
     obs_spec = _unbatched(env.observation_spec, obs_key)
