@@ -294,3 +294,18 @@ def test_reused_measurements_must_share_states(tmp_path: Path):
     assert rows[0]["discounted_return"] == -800.0 and rows[0]["reused_from"]["git_commit"] == "abc1234"
     with pytest.raises(ValueError, match="protocol"):
         reused_rows([rec], {**protocol, "test_seed": 1})
+
+
+def test_load_results_refuses_a_record_named_unlike_its_file(tmp_path):
+    """A second record named ``payoff`` in ``ppo_case33bw.json`` once replaced ``payoff.json`` in the report."""
+    from anm_torchrl.experiments.io import load_results, result, write_json
+
+    write_json(tmp_path / "payoff.json", result("payoff", "ok", {"x": 1}))
+    write_json(tmp_path / "bench.json", {"rows": []})  # not a result record: skipped
+    assert set(load_results(tmp_path)) == {"payoff"}
+    write_json(tmp_path / "ppo_case33bw.json", result("payoff", "ok", {"x": 2}))
+    with pytest.raises(ValueError, match="ppo_case33bw.json.*not the file stem"):
+        load_results(tmp_path)
+    (tmp_path / "ppo_case33bw.json").write_text("{truncated")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_results(tmp_path)

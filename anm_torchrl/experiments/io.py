@@ -132,13 +132,26 @@ def result(name: str, status: str, data: dict | None = None, reason: str | None 
 
 
 def load_results(out_dir: str | Path) -> dict[str, dict]:
-    """Every ``<name>.json`` result record under ``out_dir``, keyed by name (``run.json`` included)."""
+    """Every ``<name>.json`` result record under ``out_dir``, keyed by name (``run.json`` included).
+
+    JSON files without a ``name`` (benchmark tables and other records) are not result records and are skipped.
+
+    Raises:
+        ValueError: a file is not valid JSON, or its ``name`` is not its file stem — such a record would shadow
+            (or be shadowed by) ``<name>.json`` and a report would render the wrong one.
+    """
     out = {}
     for p in sorted(Path(out_dir).glob("*.json")):
         try:
             rec = read_json(p)
-        except (OSError, json.JSONDecodeError):
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{p}: not valid JSON ({e}); a result record cannot be read from it") from e
+        if not (isinstance(rec, dict) and "name" in rec):
             continue
-        if isinstance(rec, dict) and "name" in rec:
-            out[rec["name"]] = rec
+        if rec["name"] != p.stem:
+            raise ValueError(
+                f"{p}: its record name is {rec['name']!r}, not the file stem {p.stem!r}; result records in "
+                f"{out_dir} are named <name>.json (keep partial or input records under inputs/)"
+            )
+        out[rec["name"]] = rec
     return out
