@@ -33,6 +33,8 @@ import sys
 import time
 from pathlib import Path
 
+from anm_torchrl.experiments.io import machine_info
+
 log = logging.getLogger(__name__)
 
 # The worker runs in either tree, so it uses only what both trees offer (ANM6Env's public API).
@@ -98,15 +100,6 @@ class Worker:
     def close(self) -> None:
         self.proc.stdin.close()
         self.proc.wait()
-
-
-def _cpu_model() -> str:
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:  # not Linux
-        return platform.processor() or platform.machine()
-    return next((ln.split(":", 1)[1].strip() for ln in text.splitlines() if ln.startswith("model name")),
-                platform.machine())
 
 
 def summarise(records: list[dict], batches: list[int]) -> list[dict]:
@@ -177,7 +170,7 @@ def main(argv: list[str] | None = None) -> dict:
         "command": "python benchmarks/before_after.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "before": {"rev": args.rev, "commit": before_commit}, "after": {"commit": after_commit, "dirty": dirty},
         "threads": args.threads, "rounds": args.rounds, "min_time_s": args.min_time,
-        "machine": {"cpu": _cpu_model(), "cores": os.cpu_count(),
+        "machine": {"cpu": machine_info()["cpu"], "cores": os.cpu_count(),
                     "python": platform.python_version()},
         "load1": {"min": min(loads), "median": statistics.median(loads), "max": max(loads)},
         "duration_s": time.time() - t0, "summary": rows, "measurements": records,
