@@ -16,11 +16,17 @@ its annual maximum is the feeder's nominal value (the nominal loads of these cas
   1.099(4) / 1.071(4) MW, for "33-bus" multi-DG placement by Aman et al., Hung & Mithulananthan (IEEE Trans.
   Ind. Electron., 2013), Kansal et al. (IJEPES, 2013) and Mahmoud et al. (IEEE Trans. Power Syst., 2016), and
   for the exact strings "1.0994", "754 kW" and "14, 24, 30": no stored page, document or file states this
-  placement with these sizes, so no study is cited here. Do not quote the placement as a published one until
-  its source is checked in the paper itself. Our choices, not any study's: bus 14 and 30 units are PV (SimBench
-  PV3), bus 24 is wind (WP4); two storage units of 0.5 MW / 2 MWh at the ends of the two longest laterals
-  (buses 18 and 33, indices 17 and 32). Every load follows SimBench ``lv_semiurb5`` (peak-scaled); the case has
-  no line ratings (no branch penalty).
+  placement with these sizes, so no study is cited here. A second search (2026-12-01: exact strings "0.7540",
+  "1.0994", "(1.0994)", "1.0714", "1099.4", "1071.4", "71.45 kW", "71.4572", "14,24,30", "[14, 24, 30]" in public
+  source; pages, code, docs and issues for three-DG 33-bus tables, EA-OPF and DG-placement repositories) found
+  none either: the stored copy of Mahmoud, Yorino & Ahmed (IEEE Trans. Power Syst. 31(2), 2016) can be read only
+  as far as its abstract, and the one released RL feeder found, MAPDN's case33bw (Wang et al., NeurIPS 2021;
+  github.com/xuwkk/gen_pandapower_pv bus33bw.py @43d373fc), places six PV units at pandapower buses
+  12/17/21/24/28/32 with no wind or storage, so it cannot stand in. Do not quote the placement as a published one
+  until its source is checked in the paper itself. Our choices, not any study's: bus 14 and 30 units are PV
+  (SimBench PV3), bus 24 is wind (WP4); two storage units of 0.5 MW / 2 MWh at the ends of the two longest
+  laterals (buses 18 and 33, indices 17 and 32). Every load follows SimBench ``lv_semiurb5`` (peak-scaled); the
+  case has no line ratings (no branch penalty).
 * ``cigre_mv`` — pandapower's ``create_cigre_network_mv(with_der="all")`` (CIGRE TB 575, 2014, European MV
   benchmark: 14 buses at 20 kV; 8 PV, 1 wind park, 2 fuel cells, 1 CHP diesel, 1 residential fuel cell pair,
   2 batteries); its default switch states (S1–S3 open, radial). Residential loads take SimBench
