@@ -39,6 +39,7 @@ def test_reproduce_writes_every_record(results: Path):
         assert rec["meta"]["wall_s"] >= 0 and "machine" in rec["meta"]
     speed = json.loads((results / "speed.json").read_text())["data"]
     assert {r["impl"] for r in speed["table"]} >= {"gym_anm", "anm6env", "anm6env_torch", "grid_sim"}
+    assert len(speed["load_avg_1min"]) == 2 and min(speed["load_avg_1min"]) >= 0.0  # before / after the timings
     assert (results / "speed_table.csv").exists() and (results / "figures" / "fig6_speed.png").exists()
 
 

@@ -101,6 +101,12 @@ def _budget_note(rows: list[dict]) -> str | None:
     return None
 
 
+def _load_note(rec: dict | None) -> str:
+    """The 1-minute load average before/after the speed timings (other processes stretch every time), if recorded."""
+    load = ((rec or {}).get("data") or {}).get("load_avg_1min")
+    return f"1-minute load average before / after the timings: {load[0]:.2f} / {load[1]:.2f}.\n" if load else ""
+
+
 def claim_speed(res: dict) -> tuple[str, str]:
     rec = res.get("speed")
     if not rec or rec["status"] not in ("ok", "partial"):
@@ -268,7 +274,7 @@ def sections(res: dict, figs: dict, rel: Path, machine: str) -> str:
 `anm6env` the batched true simulator on its default CPU backend (the compiled numba loop), `anm6env_torch` the
 same env on its batched-torch backend, `grid_sim` the raw physics without TorchRL; every other row is a surrogate
 env. Batch-1 times are dominated by per-call overhead (TorchRL's `step_and_maybe_reset`, model dispatch).
-
+{_load_note(rec)}
 {table}
 
 {_fig(figs, 'fig6_speed', rel)} {_fig(figs, 'fig6b_speed_scaling', rel)}

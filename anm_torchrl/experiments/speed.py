@@ -16,6 +16,7 @@ as a collector does. The first call (construction, lazy initialisation) is exclu
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 import warnings
@@ -92,7 +93,12 @@ def time_grid(batch: int, n_steps: int, seed: int = 0) -> list[float]:
 
 
 def run(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0) -> dict:
-    """Run the speed experiment; ``cfg`` keys: ``n_transitions``, ``gym_steps``, ``repeats``, ``batch_sizes``."""
+    """Run the speed experiment; ``cfg`` keys: ``n_transitions``, ``gym_steps``, ``repeats``, ``batch_sizes``.
+
+    The record's ``load_avg_1min`` is the machine's 1-minute load average before and after the timings: other
+    processes on a shared machine stretch every time here.
+    """
+    load_before = os.getloadavg()[0]
     n = int(cfg.get("n_transitions", 1000))
     repeats = int(cfg.get("repeats", 5))
     batch_sizes = [int(b) for b in cfg.get("batch_sizes", [1, 10, 100, 1000])]
@@ -143,4 +149,5 @@ def run(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0) -> dict:
         r["speedup_vs_gym_anm"] = ref / r["s_per_transition"] if ref else None
     status = "ok" if not missing else "partial"
     return result("speed", status, {"table": rows, "scaling": scaling, "not_available": missing,
-                                    "n_transitions": n, "repeats": repeats}, config=cfg, seed=seed)
+                                    "n_transitions": n, "repeats": repeats,
+                                    "load_avg_1min": [load_before, os.getloadavg()[0]]}, config=cfg, seed=seed)
