@@ -156,6 +156,46 @@ def test_acmpc_shifted_warm_start_same_actions(sim, states):
     torch.testing.assert_close(runs[True][0], runs[False][0], rtol=0.0, atol=1e-4)
 
 
+def _closed_loop(pol, s, steps):
+    """Actions (steps, action_dim), the SoC each plan expects next and the SoC the simulator gives (MWh)."""
+    acts, planned, got = [], [], []
+    for _ in range(steps):
+        a = pol.act(s)
+        s, _ = pol.sim.step(s, a.double())
+        acts.append(a[0])
+        planned.append(pol._plans[0].soc_path[0])
+        got.append(s[0, pol._sl["des_soc"]].numpy())
+    return torch.stack(acts), np.array(planned), np.array(got)
+
+
+def test_acmpc_pins_the_storage_direction(sim):
+    """A free split that charges and discharges at once is re-solved with the direction pinned: the applied plan
+    has no overlap and the next state's SoC is the plan's; a plan without overlap is left as it was."""
+    from anm_torchrl.baselines.acmpc import OVERLAP_TOL
+
+    test_states = draw_initial_states(8, 0, sim)  # the gap table's; with N = 8, #2's plans overlap, #1's do not
+    steps = 4
+    free, fixed = ACMPCPolicy(sim, horizon=8, pin_direction=False), ACMPCPolicy(sim, horizon=8)
+    _, plan_free, soc_free = _closed_loop(free, test_states[2:3], steps)
+    _, plan_fix, soc_fix = _closed_loop(fixed, test_states[2:3], steps)
+    # before the fix: the free split is applied and the simulator's SoC leaves the plan's (an overlap of ~0.1 p.u.
+    # wastes Δt (1/EFF − EFF) · 0.1 · 100 ≈ 0.5 MWh; > 1e-2 MWh, ``soc_tol``, is no round-off)
+    assert all(i["overlap"] > OVERLAP_TOL and not i["pinned"] for i in free.infos)
+    assert np.abs(plan_free - soc_free).max() > 1e-2
+    # after: every one of those solves was re-solved with the direction pinned, successfully; none applied overlaps
+    assert all(i["overlap"] > OVERLAP_TOL and i["pinned"] and i["pinned_status"] == "Solve_Succeeded"
+               and not i["pinned_failed"] and i["overlap_applied"] == 0.0 for i in fixed.infos)
+    # and every next state's SoC is the plan's: float32 actions (≤ 50 MW, rounding 3e-6 MW) over Δt / EFF move it
+    # by < 1e-6 MWh, IPOPT's SoC chain residual is < 1e-8 MWh; 1e-5 MWh leaves a 10x margin
+    np.testing.assert_allclose(soc_fix, plan_fix, rtol=0.0, atol=1e-5)
+    # a plan without overlap (state #1) is unchanged: no re-solve, the same actions bit for bit
+    free, fixed = ACMPCPolicy(sim, horizon=8, pin_direction=False), ACMPCPolicy(sim, horizon=8)
+    a_free, _, _ = _closed_loop(free, test_states[1:2], steps)
+    a_fix, _, _ = _closed_loop(fixed, test_states[1:2], steps)
+    assert all(i["overlap"] <= OVERLAP_TOL and not i["pinned"] for i in fixed.infos)
+    assert torch.equal(a_fix, a_free)
+
+
 # ------------------------------------------------------------------------------------------ other networks
 @pytest.mark.parametrize("network, steps", [
     ("case33bw", 12),  # 33 buses, 3 renewables, 2 storage units, no rated branches

@@ -11,6 +11,14 @@ Warm start: a state that follows the previous solve's first step (next time inde
 from that solution shifted by one step, duals included; any other state starts from N do-nothing steps simulated
 from it. If IPOPT fails, the solve is retried from that do-nothing start; if that fails too, the previous plan's
 next step is applied (``last_info[i]["fallback"]``, a warning); without one a ``RuntimeError`` is raised.
+
+Storage direction: the NLP splits storage P into p_ch, p_dis ≥ 0 with both free, so a plan can charge and
+discharge a unit in the same step — an energy sink gym-anm's SoC update does not have (the env applies the net
+p_dis − p_ch, and the next SoC is not the plan's). When a solution has min(p_ch, p_dis) > :data:`OVERLAP_TOL` at
+any step, it is re-solved with every step's direction pinned from the sign of its net power (as the optimum's
+round 2), warm-started from it, duals included (``last_info[i]["pinned"]``). If that pinned solve fails, the
+free-split solution is applied (its net set-points are valid; its SoC path is not gym-anm's) with a warning and
+``last_info[i]["pinned_failed"]``.
 """
 
 from __future__ import annotations
@@ -24,7 +32,8 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from anm_torchrl.baselines.nlp_model import ACHorizonNLP, NLPResult, exogenous, rollout, time_indices
+from anm_torchrl.baselines.nlp_model import (ACHorizonNLP, NLPResult, exogenous, rollout, storage_direction,
+                                             time_indices)
 from anm_torchrl.baselines.optimal import EVAL_GAMMA, warm_start_actions
 from anm_torchrl.grid.simulator import GridSimulator
 
@@ -32,6 +41,12 @@ log = logging.getLogger(__name__)
 
 FORECASTS = ("perfect", "constant")
 DEFAULT_HORIZON = 16
+# p.u. (100 W on ANM6-Easy's 100 MVA base): a plan whose min(p_ch, p_dis) exceeds this at any step is re-solved
+# with the direction pinned. IPOPT leaves an unused p_ch or p_dis at 1e-11 to 4e-9 p.u. (interior-point round-off,
+# tol 1e-9), and the real overlaps it plans are 1e-3 p.u. and more (N = 8 and 16 from the 8 test states: none in
+# between). An overlap c applied for one step moves the SoC by Δt c (1/EFF − EFF): 5e-6 MWh at 1e-6 p.u. on
+# ANM6-Easy, 2,000 times less than ``soc_tol``.
+OVERLAP_TOL = 1e-6
 
 
 @dataclasses.dataclass
@@ -68,21 +83,25 @@ class ACMPCPolicy(TensorDictModuleBase):
         ipopt: IPOPT option overrides.
         warm_start: start each solve from the previous one shifted by a step (False: always from N simulated
             do-nothing steps; to measure what the shifted start saves).
+        pin_direction: re-solve a plan whose storage charges and discharges in the same step with each step's
+            direction pinned (module doc; False: apply the free split, the controller before this fix, to measure
+            what the fix changes).
 
     ``forward`` writes ``"action"`` (..., action_dim) float32 MW/MVAr; ``last_info`` holds one dict per state of
-    the last call (``status``, ``iterations``, ``solve_time``, ``cpu_time``, ``warm``, ``fallback``); ``infos``
-    those of every call, ``solve_times`` their wall seconds.
+    the last call (:meth:`plan`'s, with ``fallback``, ``soc_off_plan``: MWh between the state's SoC and the
+    previous call's plan of its time index, None without one, and ``off_plan``: that distance above ``soc_tol``);
+    ``infos`` those of every call, ``solve_times`` their wall seconds.
     """
 
     def __init__(self, sim: GridSimulator, horizon: int = DEFAULT_HORIZON, forecast: str = "perfect",
                  gamma: float = EVAL_GAMMA, formulation: str = "polar", in_key: str = "state", soc_tol: float = 1e-2,
-                 ipopt: dict | None = None, warm_start: bool = True):
+                 ipopt: dict | None = None, warm_start: bool = True, pin_direction: bool = True):
         super().__init__()
         if forecast not in FORECASTS:
             raise ValueError(f"forecast must be one of {FORECASTS}, got {forecast!r}")
         self.in_keys, self.out_keys = [in_key], ["action"]
         self.sim, self.horizon, self.forecast, self.soc_tol = sim, int(horizon), forecast, float(soc_tol)
-        self.warm_start = bool(warm_start)
+        self.warm_start, self.pin_direction = bool(warm_start), bool(pin_direction)
         self.nlp = ACHorizonNLP(sim, horizon, gamma, formulation, ipopt)
         sl = sim.state_slices()
         self._sl = sl
@@ -101,33 +120,59 @@ class ACMPCPolicy(TensorDictModuleBase):
         p_load = state[self._sl["dev_p"]][self.sim.load_ids] / b
         return np.tile(p_load, (n, 1)), np.tile(state[self._sl["gen_p_max"]] / b, (n, 1))
 
-    def _match(self, state: np.ndarray, plans: list[_Plan]) -> _Plan | None:
+    def _match(self, state: np.ndarray, plans: list[_Plan]) -> tuple[_Plan | None, float | None]:
+        """The plan ``state`` follows (None if none), and its SoC's distance (MWh, max over units) to the nearest
+        plan of its time index (None if none has it)."""
         aux, soc = int(round(state[self._sl["aux"]][0])), state[self._sl["des_soc"]]
-        return next((p for p in plans if p.aux == aux and np.all(np.abs(p.soc_path[0] - soc) <= self.soc_tol)), None)
+        dev = [(float(np.abs(p.soc_path[0] - soc).max(initial=0.0)), p) for p in plans if p.aux == aux]
+        best = min(dev, key=lambda d: d[0], default=None)
+        if best is None:
+            return None, None
+        return (best[1] if best[0] <= self.soc_tol else None), best[0]
 
     def _cold_guess(self, state: np.ndarray) -> np.ndarray:
         ro = rollout(self.sim, state, warm_start_actions(self.sim, state, self.horizon, "do_nothing"))
         return self.nlp.guess(ro.p_dev, ro.q_dev, ro.v, ro.soc)
 
     def plan(self, state: np.ndarray, prev: _Plan | None = None) -> tuple[NLPResult, dict]:
-        """Solve the N-step NLP at one state (state_dim,) MW…, warm-started from ``prev`` when given.
+        """Solve the N-step NLP at one state (state_dim,) MW…, warm-started from ``prev`` when given; re-solve with
+        the storage direction pinned where the free split overlaps (module doc).
 
-        Returns the last solve (``success`` False if IPOPT failed from both starts) and its info dict
-        (``warm_status``: IPOPT's status from the shifted start, None without one; ``status`` the last solve's).
+        Returns the solution to apply (``success`` False if IPOPT failed from both starts) and its info dict
+        (``status``, ``iterations``: the free-split solve's; ``warm_status``: IPOPT's status from the shifted
+        start, None without one; ``overlap``: max min(p_ch, p_dis) p.u. of the free split; ``pinned``,
+        ``pinned_status``, ``pinned_iterations``, ``pinned_failed``: the pinned re-solve's; ``overlap_applied``:
+        max min(p_ch, p_dis) p.u. of the solution returned; ``solve_time``: wall s
+        of all IPOPT calls; ``cpu_time``: process CPU s of all of it).
         """
         c0 = time.process_time()
         soc0 = state[self._sl["des_soc"]] / self.sim.net.base_mva
         p_load, p_pot = self.forecasts(state)
-        res, warm_status = None, None
+        res, warm_status, wall = None, None, 0.0
         if prev is not None:
             res = self.nlp.solve(soc0, p_load, p_pot, prev.x, lam_x0=prev.lam_x, lam_g0=prev.lam_g)
-            warm_status = res.status
+            warm_status, wall = res.status, res.solve_time
         if res is None or not res.success:
             res = self.nlp.solve(soc0, p_load, p_pot, self._cold_guess(state))
-        self.solve_times.append(res.solve_time)
-        return res, {"status": res.status, "iterations": res.iterations, "solve_time": res.solve_time,
-                     "cpu_time": time.process_time() - c0, "warm": prev is not None, "warm_status": warm_status,
-                     "fallback": False}
+            wall += res.solve_time
+        info = {"status": res.status, "iterations": res.iterations, "warm": prev is not None,
+                "warm_status": warm_status, "fallback": False, "overlap": res.complementarity if res.success else None,
+                "pinned": False, "pinned_status": None, "pinned_iterations": 0, "pinned_failed": False}
+        if res.success and self.pin_direction and res.complementarity > OVERLAP_TOL:
+            pinned = self.nlp.solve(soc0, p_load, p_pot, res.x, direction=storage_direction(self.sim, res.setpoints),
+                                    lam_x0=res.lam_x, lam_g0=res.lam_g)
+            wall += pinned.solve_time
+            info.update(pinned=True, pinned_status=pinned.status, pinned_iterations=pinned.iterations)
+            if pinned.success:
+                res = pinned
+            else:
+                log.warning("AC-MPC: the pinned-direction re-solve failed (%s); applying the free split "
+                            "(overlap %.2e p.u.)", pinned.status, res.complementarity)
+                info["pinned_failed"] = True
+        self.solve_times.append(wall)
+        info.update(overlap_applied=res.complementarity if res.success else None, solve_time=wall,
+                    cpu_time=time.process_time() - c0)
+        return res, info
 
     def act(self, states: torch.Tensor) -> torch.Tensor:
         """Actions (..., action_dim) float32 MW/MVAr for states (..., state_dim); one NLP per state."""
@@ -136,8 +181,9 @@ class ACMPCPolicy(TensorDictModuleBase):
         n, b, t_len = self.horizon, self.sim.net.base_mva, self.sim.n_time
         old, new, self.last_info = self._plans, [], []
         for i, s in enumerate(flat):
-            prev = self._match(s, old) if self.warm_start else None
-            res, info = self.plan(s, prev)
+            match, soc_dev = self._match(s, old)
+            res, info = self.plan(s, match if self.warm_start else None)
+            info.update(soc_off_plan=soc_dev, off_plan=soc_dev is not None and match is None)
             aux = (int(round(s[self._sl["aux"]][0])) + 1) % t_len
             if res.success:
                 nxt = _Plan(aux, _shift(res.x, n), _shift(res.lam_x, n), _shift(res.lam_g, n), res.setpoints,

@@ -9,7 +9,8 @@
 
 Rows (``--rows``, comma-separated): ``optimal`` (:class:`~anm_torchrl.baselines.optimal.OptimalPolicy`),
 ``acmpc_<N>`` (AC-MPC, perfect forecast; ``acmpc_<N>_cold``: every solve from N simulated do-nothing steps instead
-of the previous solution shifted, to measure that warm start), ``mpc_<N>`` (gym-anm's DC-OPF MPC, perfect forecast, β = 0.92),
+of the previous solution shifted, to measure that warm start; ``acmpc_<N>_free``: the free storage split applied
+without the pinned re-solve, the controller before that fix), ``mpc_<N>`` (gym-anm's DC-OPF MPC, perfect forecast, β = 0.92),
 ``do_nothing``, ``optimal<K>_then_do_nothing`` (the K-step optimum, then do-nothing: a lower bound of the
 optimum when the full horizon is too costly). Every row is evaluated by :func:`~anm_torchrl.training.evaluation.evaluate_policy` on the
 network's true env (``--network``; ``ANM6Env`` for ANM6-Easy, else ``ANMEnv`` of the registered network) from the
@@ -59,11 +60,12 @@ def _policy(name: str, sim, steps: int):
         return make_baseline("optimal", sim, horizon=steps)
     if name == "do_nothing":
         return make_baseline("do_nothing", sim)
-    m = re.fullmatch(r"(acmpc|mpc)_(\d+)(_cold)?", name)
+    m = re.fullmatch(r"(acmpc|mpc)_(\d+)(_cold|_free)?", name)
     if m is None or (m.group(3) and m.group(1) == "mpc"):
-        raise ValueError(f"unknown row {name!r}; expected optimal, do_nothing, acmpc_<N>[_cold] or mpc_<N>")
+        raise ValueError(f"unknown row {name!r}; expected optimal, do_nothing, acmpc_<N>[_cold|_free] or mpc_<N>")
     if m.group(1) == "acmpc":
-        return make_baseline("acmpc", sim, horizon=int(m.group(2)), forecast="perfect", warm_start=not m.group(3))
+        return make_baseline("acmpc", sim, horizon=int(m.group(2)), forecast="perfect",
+                             warm_start=m.group(3) != "_cold", pin_direction=m.group(3) != "_free")
     return make_baseline("mpc_perfect", sim, horizon=int(m.group(2)), safety_margin=MPC_MARGIN, gamma=GAMMA)
 
 
@@ -80,9 +82,10 @@ def true_env(network: str, n: int):
 
 
 def _acmpc_stats(pol) -> dict:
-    """IPOPT statuses, iterations and CPU seconds of every AC-MPC solve of a row."""
+    """IPOPT statuses, iterations and CPU seconds of every AC-MPC solve of a row; pinned-direction re-solves and
+    states off the previous plan (SoC more than ``soc_tol`` from it)."""
     infos = pol.infos
-    statuses = [i["status"] for i in infos] + [i["warm_status"] for i in infos if i["warm_status"]]
+    statuses = [i[k] for i in infos for k in ("status", "warm_status", "pinned_status") if i[k]]
     cpu = np.array([i["cpu_time"] for i in infos])
     warm = np.array([i["warm"] for i in infos])
     return {"solves": len(infos), "solve_time_s": {"mean": float(np.mean(pol.solve_times)),
@@ -95,7 +98,15 @@ def _acmpc_stats(pol) -> dict:
             "warm_start_failed": sum(1 for i in infos if i["warm_status"] not in (None, "Solve_Succeeded")),
             "not_solve_succeeded": sum(1 for x in statuses if x != "Solve_Succeeded"),
             "statuses": {x: statuses.count(x) for x in sorted(set(statuses))},
-            "fallbacks": sum(1 for i in infos if i["fallback"])}
+            "fallbacks": sum(1 for i in infos if i["fallback"]),
+            "pinned_resolves": sum(1 for i in infos if i["pinned"]),
+            "pinned_failed": sum(1 for i in infos if i["pinned_failed"]),
+            "pinned_iterations_mean": float(np.mean([i["pinned_iterations"] for i in infos if i["pinned"]] or [0])),
+            "max_overlap_applied": max((i["overlap_applied"] for i in infos if i["overlap_applied"] is not None),
+                                       default=None),
+            "off_plan": sum(1 for i in infos if i["off_plan"]),
+            "max_soc_off_plan_mwh": max((i["soc_off_plan"] for i in infos if i["soc_off_plan"] is not None),
+                                        default=None)}
 
 
 def optimum_then_do_nothing(sim, states: torch.Tensor, steps: int, k: int, network: str = ANM6) -> dict:
@@ -260,30 +271,35 @@ def _label(name: str) -> str:
     k = re.fullmatch(r"optimal(\d+)_then_do_nothing", name)
     if k:
         return f"the {k.group(1)}-step optimum, then do-nothing (a lower bound of the optimum)"
-    m = re.fullmatch(r"(acmpc|mpc)_(\d+)(_cold)?", name)
+    m = re.fullmatch(r"(acmpc|mpc)_(\d+)(_cold|_free)?", name)
     if m is None:
         return LABELS[name]
     if m.group(3):
-        return f"AC-MPC, perfect forecast, N = {m.group(2)}, cold starts"
+        return f"AC-MPC, perfect forecast, N = {m.group(2)}, " + (
+            "cold starts" if m.group(3) == "_cold" else "free storage split (before the pinned re-solve)")
     if m.group(1) == "acmpc":
         return f"AC-MPC, perfect forecast, N = {m.group(2)}"
     return f"DC-OPF MPC, perfect forecast, N = {m.group(2)}, β = {MPC_MARGIN}"
 
 
 def _solver_stats(row: dict) -> dict:
-    """AC-MPC rows: solves, IPOPT non-successes and mean CPU s per solve over all chunks of a row ({} otherwise)."""
+    """AC-MPC rows: solves, IPOPT non-successes, mean CPU s per solve, pinned re-solves (and their failures) and
+    states off the previous plan over all chunks of a row ({} otherwise)."""
     parts = [c for c in row.get("chunks", [row]) if "solves" in c]
     if not parts:
         return {}
     n = sum(c["solves"] for c in parts)
-    return {"solves": n, "not_solve_succeeded": sum(c["not_solve_succeeded"] for c in parts),
-            "cpu_s_per_solve": sum(c["cpu_s_per_solve"]["mean"] * c["solves"] for c in parts) / n}
+    out = {"solves": n, "not_solve_succeeded": sum(c["not_solve_succeeded"] for c in parts),
+           "cpu_s_per_solve": sum(c["cpu_s_per_solve"]["mean"] * c["solves"] for c in parts) / n}
+    if all("pinned_resolves" in c for c in parts):  # rows measured before the pinned re-solve have none
+        out.update({k: sum(c[k] for c in parts) for k in ("pinned_resolves", "pinned_failed", "off_plan")})
+    return out
 
 
 def _order(row: str) -> tuple:
     """The published table's fixed row order (the issue's): optimum, AC-MPC, DC-MPC (larger N first), the β = 0.96
     DC-MPC, PPO on the PINN, PPO on the true env, do-nothing. Not a ranking: rows may cover different states."""
-    m = re.fullmatch(r"(optimal\d+_then_do_nothing|acmpc|mpc)_?(\d*)(_cold)?", row)
+    m = re.fullmatch(r"(optimal\d+_then_do_nothing|acmpc|mpc)_?(\d*)(_cold|_free)?", row)
     groups = {"acmpc": 2, "mpc": 3}
     if m and m.group(1) in groups:
         return groups[m.group(1)], -int(m.group(2)), bool(m.group(3))
@@ -415,6 +431,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--merge", nargs="*", default=[],
                     help="records of the same protocol (e.g. rows measured in parallel runs) whose rows are merged "
                          "into --out")
+    ap.add_argument("--drop", default="",
+                    help="comma-separated rows removed from --out before --merge (to replace them by re-measured "
+                         "ones)")
     ap.add_argument("--combine", default="",
                     help="build the published table from this gap record into --out (no evaluation)")
     ap.add_argument("--test-returns", default="", help="with --combine: the test_returns record (PPO rows)")
@@ -453,6 +472,10 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(f"{out} holds protocol {rec.get('protocol')}, this run {protocol}: use another --out")
     rec.setdefault("rows", {})
     rec["protocol"] = protocol
+    for name in [r for r in args.drop.split(",") if r]:
+        if name not in rec["rows"]:
+            raise SystemExit(f"--drop {name}: {out} has no such row (rows: {sorted(rec['rows'])})")
+        del rec["rows"][name]
     for path in args.merge:
         other = json.loads(Path(path).read_text())
         if other.get("protocol") != protocol:

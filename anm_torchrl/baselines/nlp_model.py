@@ -564,6 +564,12 @@ class ACHorizonNLP:
         return points, setpoints, comp
 
 
+def storage_direction(sim: GridSimulator, setpoints: np.ndarray) -> np.ndarray:
+    """Each step's storage direction (N, n_des) from set-points (N, action_dim) MW/MVAr: 1 (discharge only) where
+    the net P is ≥ 0, else −1 (charge only); the ``direction`` of :meth:`ACHorizonNLP.solve`."""
+    return np.where(setpoints[:, 2 * sim.n_gen:2 * sim.n_gen + sim.n_des] >= 0, 1, -1)
+
+
 # ---------------------------------------------------------------------------------------------- trajectories
 def time_indices(sim: GridSimulator, state: np.ndarray, n: int) -> np.ndarray:
     """Time indices (n,) of the n steps after ``state`` (state_dim,): t0 + 1, …, t0 + n modulo the series."""

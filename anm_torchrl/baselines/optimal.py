@@ -31,7 +31,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from anm_torchrl.baselines.nlp_model import (ACHorizonNLP, NLPResult, PowerFlowOffsets, exogenous, rollout,
-                                             time_indices)
+                                             storage_direction, time_indices)
 from anm_torchrl.grid.simulator import GridSimulator
 
 log = logging.getLogger(__name__)
@@ -150,8 +150,7 @@ def solve_optimal(sim: GridSimulator, state: np.ndarray, horizon: int = EVAL_MAX
     res = nlp.solve(soc0, p_load, p_pot, nlp.guess(warm.p_dev, warm.q_dev, warm.v, warm.soc))
     rounds = [_round(res, "free split, exact power flow")]
     _check(res, 1)
-    pdes = res.setpoints[:, 2 * sim.n_gen:2 * sim.n_gen + sim.n_des]
-    direction = np.where(pdes >= 0, 1, -1)
+    direction = storage_direction(sim, res.setpoints)
     offsets, exact_return = None, float("nan")
     for k in range(2, max_rounds + 1):
         res = nlp.solve(soc0, p_load, p_pot, res.x, direction=direction, offsets=offsets, lam_x0=res.lam_x,
