@@ -444,7 +444,8 @@ def test_anm6_default_preset_is_unchanged(sim):
 
 def test_feeder_preset_selection():
     """Off ANM6-Easy ``default`` is the feeder preset (``make_env``/``load_pinn``, the recipe, generic_accuracy):
-    the default's networks and steps, the residual in units of the feeder's injections and one chord-Newton step;
+    the default's networks and steps, the residual in units of the feeder's injections and chord-Newton steps chosen
+    per network after training (``auto``, :mod:`anm_torchrl.surrogates.pinn.refine`);
     other names are never rewritten, and the
     recipe keeps command-line changes to the composed default."""
     from anm_torchrl.data.generic import simulator_for
@@ -455,13 +456,14 @@ def test_feeder_preset_selection():
     cfg, base = tr.preset_for("default", feeder).to_dict(), tr.preset("default").to_dict()
     assert cfg.pop("preset") == "feeder" and base.pop("preset") == "default"
     changed = {k: (base["power_balance"][k], v) for k, v in cfg["power_balance"].items() if base["power_balance"][k] != v}
-    assert changed == {"refine_steps": (0, 1), "residual_unit": ("pu", "box"), "robust_scale": (0.01, 0.0125)}
+    assert changed == {"refine_steps": (0, "auto"), "residual_unit": ("pu", "box"), "robust_scale": (0.01, 0.0125)}
     cfg.pop("power_balance"), base.pop("power_balance")
     assert cfg == base
     composed = {**tr.preset("default").to_dict(), "name": "default"}
     composed["power_balance"] = {**composed["power_balance"], "max_steps": 7}
     got = tr.from_composed(composed, feeder, seed=3)
-    assert (got.preset, got.seed, got.power_balance.max_steps, got.power_balance.refine_steps) == ("feeder", 3, 7, 1)
+    assert (got.preset, got.seed, got.power_balance.max_steps, got.power_balance.refine_steps) == ("feeder", 3, 7,
+                                                                                                    "auto")
 
 
 @pytest.mark.parametrize("network", ["case33bw", "cigre_mv"])

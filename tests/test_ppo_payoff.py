@@ -35,20 +35,72 @@ def test_markdown_shows_test_fractions_of_do_nothing():
     # 0.4 <= 0.5 and -2.0 (a gain) both count as at least 2x better than do-nothing
     assert "PPO none: 2/2 seeds at least 2× better than do-nothing on the test states (fraction of its discounted " \
            "loss -2.00 to 0.40" in md
-    assert "Target (issue 13): PPO none: 1/2" in payoff.markdown(_ppo_record(-0.05, [-0.04, 0.1]))
+    assert "Target (issue 13), `case33bw`: PPO none: 1/2" in payoff.markdown(_ppo_record(-0.05, [-0.04, 0.1]))
 
 
-def test_merge_ppo_replaces_only_the_ppo_part(tmp_path):
-    full = {"name": "payoff", "status": "ok", "meta": {"versions": {}, "notes": {"cost": "c", "ppo_runs": "old"}},
-            "data": {"parts": ["cost", "ppo"], "rows": [{"impl": "x"}], "ppo": {"old": True}}}
+def test_merge_ppo_keeps_other_parts_and_networks(tmp_path):
+    """A ppo-only run goes under its network; the record's former single-network part (and its note) moves under
+    its own network; a second network is added beside it and a re-run replaces only its network."""
+    full = {"name": "payoff", "status": "ok", "meta": {"versions": {}, "notes": {"cost": "c", "ppo": "old way"},
+                                                       "ppo_from": {"file": "old.json"}},
+            "data": {"parts": ["cost", "ppo"], "rows": [{"impl": "x"}], "ppo": {"network": "case33bw", "old": True}}}
     dst, src = tmp_path / "payoff.json", tmp_path / "ppo.json"
     dst.write_text(json.dumps(full))
-    src.write_text(json.dumps(_ppo_record(-0.05, [0.1, 0.1])))
+    big = _ppo_record(-0.05, [0.1, 0.1])
+    big["data"]["ppo"]["network"] = "simbench_mv_semiurb"
+    src.write_text(json.dumps(big))
     payoff.merge_ppo(src, dst, note="made by X")
     rec = json.loads(dst.read_text())
-    assert rec["meta"]["notes"] == {"cost": "c", "ppo": "made by X"}
+    assert rec["meta"]["notes"] == {"cost": "c", "ppo_case33bw": "old way", "ppo_simbench_mv_semiurb": "made by X"}
     assert rec["data"]["rows"] == [{"impl": "x"}] and rec["data"]["parts"] == ["cost", "ppo"]
-    assert rec["data"]["ppo"]["network"] == "case33bw" and rec["meta"]["ppo_from"]["file"] == str(src)
+    assert "ppo" not in rec["data"]
+    assert list(rec["data"]["ppo_by_network"]) == ["case33bw", "simbench_mv_semiurb"]
+    assert rec["data"]["ppo_by_network"]["case33bw"]["old"] is True
+    assert rec["meta"]["ppo_from"] == {"case33bw": {"file": "old.json"},
+                                       "simbench_mv_semiurb": {"file": str(src), "versions": {"git_commit": "abc"},
+                                                               "config": {}}}
+    src.write_text(json.dumps(_ppo_record(-0.05, [0.2, 0.2])))  # case33bw again: replaces that network only
+    payoff.merge_ppo(src, dst)
+    rec = json.loads(dst.read_text())
+    parts = payoff.ppo_parts(rec["data"])
+    assert [p["network"] for p in parts] == ["case33bw", "simbench_mv_semiurb"] and "old" not in parts[0]
+    md = payoff.markdown({**rec, "data": {**rec["data"], "rows": []}})
+    assert "PPO on `case33bw`" in md and "PPO on `simbench_mv_semiurb`" in md
     src.write_text(json.dumps({"meta": {}, "data": {"parts": ["cost"]}}))
     with pytest.raises(ValueError, match="no data.ppo"):
         payoff.merge_ppo(src, dst)
+
+
+def test_merge_cost_replaces_one_networks_rows(tmp_path):
+    def row(net, n_bus, impl, us):
+        return {"network": net, "n_bus": n_bus, "impl": impl, "batch": 1, "us_per_transition": us, "x_numba": 1.0}
+
+    dst, src = tmp_path / "payoff.json", tmp_path / "cost.json"
+    dst.write_text(json.dumps({"name": "payoff", "meta": {}, "data": {
+        "rows": [row("a", 6, "anm_env_numba", 10.0), row("a", 6, "pinn", 30.0), row("c", 115, "anm_env_numba", 90.0),
+                 row("c", 115, "pinn", 300.0)], "crossover": []}}))
+    src.write_text(json.dumps({"meta": {"versions": {"git_commit": "new"}}, "data": {
+        "rows": [row("c", 115, "anm_env_numba", 95.0), row("c", 115, "pinn", 50.0)]}}))
+    payoff.merge_cost(src, dst, ["c"], note="re-measured")
+    rec = json.loads(dst.read_text())
+    assert [(r["network"], r["us_per_transition"]) for r in rec["data"]["rows"]] == [
+        ("a", 10.0), ("a", 30.0), ("c", 95.0), ("c", 50.0)]
+    assert {(c["impl"], c["crossover_n_bus"]) for c in rec["data"]["crossover"]} == {("pinn", 115)}
+    assert rec["meta"]["notes"] == {"cost_c": "re-measured"}
+    with pytest.raises(ValueError, match=r"no cost rows of \['b'\]"):
+        payoff.merge_cost(src, dst, ["b"])
+
+
+def test_user_verdict_follows_the_record():
+    """The "what this means for a user" paragraph: a surrogate that reaches the threshold sooner with its training
+    counted is named; otherwise the paragraph says none did."""
+    rec = _ppo_record(-0.05, [0.1, 0.1])
+    t = rec["data"]["ppo"]["table"][0]
+    t.update(threshold_wall_with_training_s=18.0, surrogate_train_s=0.0)
+    pinn = {**t, "env": "pinn", "surrogate_train_s": 100.0, "threshold_wall_with_training_s": 110.0}
+    rec["data"]["ppo"]["table"].append(pinn)
+    text = payoff.user_verdict(rec)
+    assert "`none` reached the threshold in a median 18 s" in text and "(100 s of it the surrogate's training)" in text
+    assert "On no network measured did training on a surrogate reach the threshold sooner" in text
+    pinn["threshold_wall_with_training_s"] = 12.0
+    assert "Training on a surrogate paid off for `pinn` on `case33bw`" in payoff.user_verdict(rec)

@@ -306,24 +306,47 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seed: 
 
 def accuracy_table(acc: dict) -> str:
     """Markdown table of the generic PINN's record (:mod:`anm_torchrl.surrogates.pinn.generic_accuracy`): per
-    network, test-transition |V| MAE and largest device P/Q MAE relative to its rating (random / expert), the
-    terminal check's precision/recall on random transitions, and the training's CPU and wall seconds."""
+    network, the chord-Newton steps after the power balance (:mod:`anm_torchrl.surrogates.pinn.refine`), test-transition
+    |V| MAE, power-flow residual and largest device P/Q MAE relative to its rating (random / expert), the terminal
+    check's precision/recall on random transitions, and the training's CPU and wall seconds."""
     def pair(e, k, fmt):
         return " / ".join("—" if e["eval"].get(s, {}).get(k) is None else fmt.format(e["eval"][s][k])
                           for s in ("random", "expert"))
 
-    out = ["| network | buses | preset | |V| MAE p.u. (random / expert) | device P/Q MAE / rating (max) | "
-           "terminal precision / recall (random; sim rate) | meets targets | train CPU s (wall s, load) |",
-           "|---|---:|---|---|---|---|---|---|"]
+    out = ["| network | buses | preset | chord steps | \\|V\\| MAE p.u. (random / expert) | power-flow residual p.u. | "
+           "device P/Q MAE / rating (max) | terminal precision / recall (random; sim rate; PINN rate) | "
+           "meets targets | train CPU s (wall s, load) |",
+           "|---|---:|---|---:|---|---|---|---|---|---|"]
     for e in acc.get("networks", []):
         r = e["eval"].get("random", {})
         meets = all(all(v for v in m.values()) for m in e.get("meets_targets", {}).values())
-        out.append(f"| {e['network']} | {e['n_bus']} | {e['preset']} | {pair(e, 'vmag_mae_pu', '{:.1e}')} | "
+        out.append(f"| {e['network']} | {e['n_bus']} | {e['preset']} | {_f(e.get('refine_steps'), '{}')} | "
+                   f"{pair(e, 'vmag_mae_pu', '{:.1e}')} | {pair(e, 'pf_residual_mean', '{:.1e}')} | "
                    f"{pair(e, 'next_pq_rel_mae_max', '{:.1e}')} | {_f(r.get('terminal_precision'), '{:.2f}')} / "
-                   f"{_f(r.get('terminal_recall'), '{:.2f}')} ({_f(r.get('terminal_rate_sim'), '{:.2%}')}) | "
+                   f"{_f(r.get('terminal_recall'), '{:.2f}')} ({_f(r.get('terminal_rate_sim'), '{:.2%}')}; "
+                   f"{_f(r.get('terminal_rate_pinn'), '{:.2%}')}) | "
                    f"{'yes' if meets else 'no'} | {e['train_cpu_s']:,.0f} ({e['train_wall_s']:,.0f}, "
                    f"L{e['loadavg_before'][0]:.0f}) |")
     return "\n".join(out)
+
+
+def readme_pinn_accuracy(res: dict[str, Any]) -> str:
+    """README's PINN-accuracy block (``<!-- results:pinn_accuracy -->``, :mod:`.readme_blocks`): the accuracy
+    table of the payoff record's ``pinn_accuracy`` part (a copy of ``results/pinn_generic_accuracy.json``)."""
+    rec = res.get("payoff")
+    acc = ((rec or {}).get("data") or {}).get("pinn_accuracy") or {}
+    if not acc.get("available"):
+        return "_(PINN accuracy not measured)_"
+    nets = acc["data"].get("networks", [])
+    n_rand = sorted({e["eval"]["random"]["n"] for e in nets if "random" in e["eval"]})
+    n_exp = sorted({e["eval"]["expert"]["n"] for e in nets if "expert" in e["eval"]})
+    head = (f"Held-out test transitions ({'/'.join(f'{n:,}' for n in n_rand)} random, "
+            f"{'/'.join(f'{n:,}' for n in n_exp)} MPC-expert; seed 12345), physics-only training with each "
+            "network's default preset; chord steps: chosen per network by the rule of "
+            "`anm_torchrl/surrogates/pinn/refine.py` (—: not recorded, an entry measured before the rule); terminal "
+            "figures on the random set (—: no terminal transition to recall, or none flagged):")
+    return (f"{head}\n\n{accuracy_table(acc['data'])}\n\n_From `results/payoff.json` (its `pinn_accuracy` part, "
+            f"read from `results/{Path(acc['file']).name}`, whose `command` field reproduces each row)._")
 
 
 def cost_verdict(rec: dict) -> str:
@@ -367,10 +390,20 @@ def cost_verdict(rec: dict) -> str:
     return " ".join(out)
 
 
+def ppo_parts(data: dict) -> list[dict]:
+    """The PPO parts of a payoff record's ``data``, one per network: ``ppo_by_network`` (a merged record,
+    :func:`merge_ppo`) or the ``ppo`` of a single run."""
+    if "ppo_by_network" in data:
+        return list(data["ppo_by_network"].values())
+    return [data["ppo"]] if data.get("ppo") else []
+
+
 def merge_ppo(src: str | Path, dst: str | Path, note: str | None = None) -> dict:
     """Put the ``ppo`` part of the payoff record ``src`` (e.g. a ``preset.payoff.parts=[ppo]`` run) into the payoff
-    record ``dst`` in place, keeping ``dst``'s other parts; ``meta.ppo_from`` says where it came from, and ``note``
-    (how ``src`` was made) replaces ``dst``'s notes about its former ppo part (``meta.notes`` keys ``ppo*``).
+    record ``dst`` in place, under ``data.ppo_by_network[<its network>]``, keeping ``dst``'s other parts and other
+    networks (a single-run ``data.ppo`` of ``dst`` moves there first); ``meta.ppo_from[<network>]`` says where it
+    came from, and ``note`` (how ``src`` was made) replaces ``dst``'s note about that network's former part
+    (``meta.notes["ppo_<network>"]``).
 
     Raises:
         ValueError: ``src`` has no ``ppo`` part.
@@ -380,15 +413,50 @@ def merge_ppo(src: str | Path, dst: str | Path, note: str | None = None) -> dict
     new, rec = read_json(src), read_json(dst)
     if "ppo" not in (new.get("data") or {}):
         raise ValueError(f"{src}: no data.ppo to merge (parts {new.get('data', {}).get('parts')})")
-    rec["data"]["ppo"] = new["data"]["ppo"]
-    rec["data"]["parts"] = list(dict.fromkeys([*rec["data"].get("parts", []), "ppo"]))
-    rec["meta"]["ppo_from"] = {"file": str(src), "versions": new["meta"].get("versions"),
-                               "config": (new["meta"].get("config") or {}).get("ppo")}
+    d, meta = rec["data"], rec["meta"]
+    notes = meta.setdefault("notes", {})
+    if "ppo" in d:  # a single-run ppo part (one network): keyed by its network from now on
+        old = d.pop("ppo")
+        d["ppo_by_network"] = {old["network"]: old}
+        if "ppo_from" in meta and "file" in meta["ppo_from"]:
+            meta["ppo_from"] = {old["network"]: meta["ppo_from"]}
+        if "ppo" in notes:
+            notes[f"ppo_{old['network']}"] = notes.pop("ppo")
+    part = new["data"]["ppo"]
+    net = part["network"]
+    d.setdefault("ppo_by_network", {})[net] = part
+    d["parts"] = list(dict.fromkeys([*d.get("parts", []), "ppo"]))
+    meta.setdefault("ppo_from", {})[net] = {"file": str(src), "versions": new["meta"].get("versions"),
+                                            "config": (new["meta"].get("config") or {}).get("ppo")}
     if note is not None:
-        notes = rec["meta"].setdefault("notes", {})
-        for k in [k for k in notes if k.startswith("ppo")]:
-            del notes[k]
-        notes["ppo"] = note
+        notes[f"ppo_{net}"] = note
+    write_json(dst, rec)
+    return rec
+
+
+def merge_cost(src: str | Path, dst: str | Path, networks: list[str], note: str | None = None) -> dict:
+    """Replace the cost rows of ``networks`` in the payoff record ``dst`` by those of the record ``src`` (a
+    ``preset.payoff.parts=[cost]`` run on them: every implementation of a network is measured in the same run, so
+    its ``x_numba`` ratios stay same-run ratios) and recompute the crossover; ``note`` goes to
+    ``meta.notes["cost_<network>"]``.
+
+    Raises:
+        ValueError: ``src`` lacks rows of one of ``networks``.
+    """
+    from anm_torchrl.experiments.io import write_json
+
+    new, rec = read_json(src), read_json(dst)
+    rows = (new.get("data") or {}).get("rows") or []
+    missing = [n for n in networks if not any(r["network"] == n for r in rows)]
+    if missing:
+        raise ValueError(f"{src}: no cost rows of {missing}")
+    d = rec["data"]
+    d["rows"] = [r for r in d["rows"] if r["network"] not in networks] + [r for r in rows if r["network"] in networks]
+    d["crossover"] = crossover(d["rows"])
+    for n in networks:
+        rec["meta"].setdefault("cost_from", {})[n] = {"file": str(src), "versions": new["meta"].get("versions")}
+        if note is not None:
+            rec["meta"].setdefault("notes", {})[f"cost_{n}"] = note
     write_json(dst, rec)
     return rec
 
@@ -436,39 +504,48 @@ def markdown(rec: dict) -> str:
                                                      else re.sub(r"\S*/(\S+)", r"\1", acc["reason"]))]
         if acc["available"]:
             out += ["", accuracy_table(acc["data"])]
-    ppo = d.get("ppo")
-    if ppo:
-        dn = ppo["do_nothing"]
-        out += ["", f"PPO on `{ppo['network']}` (validation: {dn['episodes']} states × {dn['max_steps']} steps, seed "
-                f"{dn['eval_seed']}); do-nothing return {dn['return']:.4f}; threshold = {ppo['threshold_fraction']} × "
-                f"that = {ppo['threshold']:.4f}:", "",
-                "| env | seeds | frames | wall s | best eval return | test return (best.pt) | reached | time to "
-                "threshold s (KM median) | censored at s |", "|---|---|---|---|---|---|---:|---:|---|"]
-        for t in ppo["table"]:
-            out.append(f"| {t['env']} | {t['seeds']} | {t['frames']} | {[round(x) for x in t['wall_s']]} | "
-                       f"{[round(x, 4) for x in t['best_eval_return']]} | "
-                       f"{[None if x is None else round(x, 4) for x in t['test_best_return']]} | "
-                       f"{t['threshold_reached']}/{t['threshold_runs']} | {_f(t['threshold_wall_s'])} | "
-                       f"{[round(x) for x in t['threshold_censored_at_s']]} |")
-        tb = ppo.get("test_baselines") or {}
-        if tb:
-            any_tb = next(iter(tb.values()))
-            out += ["", f"Test states ({any_tb['episodes']} states × {any_tb['max_steps']:,} steps, seed "
-                    f"{any_tb['test_seed']}, γ = {any_tb['gamma']}), discounted return and fraction of do-nothing's "
-                    "(< 0.5: at least 2× better than do-nothing; < 0: a net energy gain):", "",
-                    "| policy | discounted return | fraction of do-nothing | CPU s |", "|---|---|---|---|"]
-            dn_t = (tb.get("do_nothing") or {}).get("discounted_return")
-            for name, m in tb.items():
-                frac = m["discounted_return"] / dn_t if dn_t else None
-                out.append(f"| {name} | {m['discounted_return']:.4f} | {_f(frac, '{:.3f}')} | {m['cpu_s']:.0f} |")
-            for t in ppo["table"]:
-                if t.get("test_best_discounted_return"):
-                    out.append(f"| PPO {t['env']} (best.pt, seeds {t['seeds']}) | "
-                               f"{[None if x is None else round(x, 4) for x in t['test_best_discounted_return']]} | "
-                               f"{[None if x is None else round(x, 3) for x in t['test_fraction_of_do_nothing']]} | "
-                               f"{[None if x is None else round(x) for x in t['cpu_s']]} |")
-            out += ["", ppo_verdict(ppo)]
+    for ppo in ppo_parts(d):
+        out += ppo_markdown(ppo)
+    if ppo_parts(d):
+        out += ["", f"**What this means for a user.** {user_verdict(rec)}"]
     return "\n".join(out)
+
+
+def ppo_markdown(ppo: dict) -> list[str]:
+    """Lines of one network's PPO part: the runs' table, the test-state comparison and its verdict."""
+    dn = ppo["do_nothing"]
+    out = ["", f"PPO on `{ppo['network']}` (validation: {dn['episodes']} states × {dn['max_steps']} steps, seed "
+           f"{dn['eval_seed']}); do-nothing return {dn['return']:.4f}; threshold = {ppo['threshold_fraction']} × "
+           f"that = {ppo['threshold']:.4f}:", "",
+           "| env | seeds | frames | wall s | best eval return | test return (best.pt) | reached | time to "
+           "threshold s (KM median) | with surrogate training s | censored at s |",
+           "|---|---|---|---|---|---|---:|---:|---:|---|"]
+    for t in ppo["table"]:
+        out.append(f"| {t['env']} | {t['seeds']} | {t['frames']} | {[round(x) for x in t['wall_s']]} | "
+                   f"{[round(x, 4) for x in t['best_eval_return']]} | "
+                   f"{[None if x is None else round(x, 4) for x in t['test_best_return']]} | "
+                   f"{t['threshold_reached']}/{t['threshold_runs']} | {_f(t['threshold_wall_s'])} | "
+                   f"{_f(t.get('threshold_wall_with_training_s'))} | "
+                   f"{[round(x) for x in t['threshold_censored_at_s']]} |")
+    tb = ppo.get("test_baselines") or {}
+    if tb:
+        any_tb = next(iter(tb.values()))
+        out += ["", f"Test states ({any_tb['episodes']} states × {any_tb['max_steps']:,} steps, seed "
+                f"{any_tb['test_seed']}, γ = {any_tb['gamma']}), discounted return and fraction of do-nothing's "
+                "(< 0.5: at least 2× better than do-nothing; < 0: a net energy gain):", "",
+                "| policy | discounted return | fraction of do-nothing | CPU s |", "|---|---|---|---|"]
+        dn_t = (tb.get("do_nothing") or {}).get("discounted_return")
+        for name, m in tb.items():
+            frac = m["discounted_return"] / dn_t if dn_t else None
+            out.append(f"| {name} | {m['discounted_return']:.4f} | {_f(frac, '{:.3f}')} | {m['cpu_s']:.0f} |")
+        for t in ppo["table"]:
+            if t.get("test_best_discounted_return"):
+                out.append(f"| PPO {t['env']} (best.pt, seeds {t['seeds']}) | "
+                           f"{[None if x is None else round(x, 4) for x in t['test_best_discounted_return']]} | "
+                           f"{[None if x is None else round(x, 3) for x in t['test_fraction_of_do_nothing']]} | "
+                           f"{[None if x is None else round(x) for x in t['cpu_s']]} |")
+        out += ["", ppo_verdict(ppo)]
+    return out
 
 
 def ppo_verdict(ppo: dict) -> str:
@@ -485,8 +562,61 @@ def ppo_verdict(ppo: dict) -> str:
         parts.append(f"PPO {t['env']}: {ok}/{len(fr)} seeds at least 2× better than do-nothing on the test states "
                      f"(fraction of its discounted loss {min(fr):.2f} to {max(fr):.2f}; < 0: a net energy gain), "
                      f"{t['threshold_reached']}/{t['threshold_runs']} reached the validation threshold, median time "
-                     f"{_f(wall, '{:,.0f}')} s with the surrogate's training ({_f(t.get('surrogate_train_s'), '{:,.0f}')} s)")
-    return "Target (issue 13): " + "; ".join(parts) + "." if parts else ""
+                     f"{_f(wall, '{:,.0f}')} s with the surrogate's training "
+                     f"({_f(t.get('surrogate_train_s'), '{:,.0f}')} s)")
+    return f"Target (issue 13), `{ppo['network']}`: " + "; ".join(parts) + "." if parts else ""
+
+
+def _ppo_summary(t: dict) -> str:
+    """One training env's time to the threshold and test fractions, in words."""
+    fr = [x for x in t.get("test_fraction_of_do_nothing") or [] if x is not None]
+    med = t.get("threshold_wall_with_training_s")
+    train = t.get("surrogate_train_s") or 0.0
+    when = (f"reached the threshold in a median {med:,.0f} s" + (f" ({train:,.0f} s of it the surrogate's training)"
+                                                               if train else "")
+            if med is not None else "did not reach it in a median: " + (
+                f"{t['threshold_reached']}/{t['threshold_runs']} runs reached it within their "
+                f"{max(t['wall_s']):,.0f} s" + (f", after {train:,.0f} s of surrogate training" if train else "")))
+    frac = f" (test return {min(fr):.2f} to {max(fr):.2f} × do-nothing's loss)" if fr else ""
+    return f"`{t['env']}` {when}{frac}"
+
+
+def user_verdict(rec: dict) -> str:
+    """"What this means for a user", generated from a payoff record: which env is cheapest per transition, where
+    the PINN is accurate, and per PPO network whether training on the surrogate reached the threshold sooner than
+    on the exact simulator once the surrogate's training is counted (KM medians; censored runs at their length)."""
+    d = rec.get("data") or {}
+    out = []
+    cross = [c for c in d.get("crossover", []) if c["crossover_n_bus"]]
+    nets = sorted({(r["n_bus"], r["network"]) for r in d.get("rows") or [] if r.get("us_per_transition")})
+    if nets:
+        out.append(f"Per transition, no surrogate is cheaper than the exact batched simulator on any network measured "
+                   f"({nets[0][0]}–{nets[-1][0]} buses)" if not cross else
+                   "Per transition, a surrogate is cheaper than the exact batched simulator only at " +
+                   "; ".join(f"{c['impl']} batch {c['batch']:,} from {c['crossover_n_bus']} buses" for c in cross))
+    pays = []
+    for ppo in ppo_parts(d):
+        tab = {t["env"]: t for t in ppo["table"]}
+        if "none" not in tab:
+            continue
+        out.append(f"PPO on `{ppo['network']}`: " + "; ".join(_ppo_summary(t) for t in ppo["table"]))
+        ref = tab["none"]
+        for lab, t in tab.items():
+            if lab == "none":
+                continue
+            a, b = t.get("threshold_wall_with_training_s"), ref.get("threshold_wall_with_training_s")
+            if (a is not None and (b is None or a < b)) or t["threshold_reached"] > ref["threshold_reached"]:
+                pays.append(f"`{lab}` on `{ppo['network']}`")
+    if pays:
+        out.append("Training on a surrogate paid off for " + ", ".join(pays) + "; elsewhere train on the exact "
+                   "batched simulator")
+    elif ppo_parts(d):
+        out.append("On no network measured did training on a surrogate reach the threshold sooner than on the exact "
+                   "simulator once the surrogate's training is counted" + (
+                       ", and no surrogate is cheaper per transition: a user of this package should train on the "
+                       "exact batched simulator (`make_env(\"none\", network=...)`, `surrogate=none`)" if not cross
+                       else ""))
+    return ". ".join(out) + "." if out else ""
 
 
 if __name__ == "__main__":
@@ -496,8 +626,16 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description="print the payoff study's tables from its record")
     parser.add_argument("record", nargs="?", default="results/payoff.json")
     parser.add_argument("--merge-ppo", metavar="SRC", help="first replace the record's ppo part by SRC's (merge_ppo)")
-    parser.add_argument("--note", help="with --merge-ppo: how SRC was made (replaces the record's ppo notes)")
+    parser.add_argument("--merge-cost", metavar="SRC", help="first replace the record's cost rows of --networks by "
+                        "SRC's (merge_cost)")
+    parser.add_argument("--networks", nargs="*", default=[], help="with --merge-cost: the networks to replace")
+    parser.add_argument("--note", help="with --merge-ppo / --merge-cost: how SRC was made (replaces the record's "
+                        "note about that part)")
     args = parser.parse_args()
     if args.merge_ppo:
         merge_ppo(args.merge_ppo, args.record, args.note)
+    if args.merge_cost:
+        if not args.networks:
+            raise ValueError("--merge-cost needs --networks <names> (the networks whose rows it replaces)")
+        merge_cost(args.merge_cost, args.record, args.networks, args.note)
     sys.stdout.write(markdown(read_json(args.record)) + "\n")

@@ -17,6 +17,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+from anm_torchrl.experiments.payoff import readme_pinn_accuracy
 from anm_torchrl.experiments.report import CLAIMS, _portable_command, _table
 
 BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)", re.S)
@@ -86,7 +87,8 @@ def block_adaptability(res: dict[str, Any]) -> str:
             + _table(table, ["agent", "surrogate", *scenarios]) + "\n\n" + missing + _source(rec, res.get("run")))
 
 
-BLOCKS = {"claims": block_claims, "test_returns": block_test_returns, "adaptability": block_adaptability}
+BLOCKS = {"claims": block_claims, "test_returns": block_test_returns, "adaptability": block_adaptability,
+          "pinn_accuracy": readme_pinn_accuracy}
 
 
 def render_readme(text: str, res: dict[str, Any]) -> str:

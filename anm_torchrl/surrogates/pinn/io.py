@@ -2,7 +2,9 @@
 
 Tensors ``<module>.<parameter>`` for the three modules; metadata ``config`` (the :class:`PINNTrainConfig`),
 ``report`` (training report), ``network`` (:func:`anm_torchrl.data.storage.network_key` of the simulator it
-was trained on: loading it on another network raises) and ``torch_version``.
+was trained on: loading it on another network raises), ``refine_steps`` (the chord-Newton steps the power balance
+runs with: the config's, or the one :mod:`.refine` chose for ``auto``, with its record in
+``report.power_balance.refine``; checked at load by :func:`.refine.check_record`) and ``torch_version``.
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ def save_pinn(path: str | Path, modules: dict[str, nn.Module], cfg: PINNTrainCon
     sim = sim if sim is not None else anm6_easy_simulator()
     tensors = {f"{k}.{n}": t for k, m in modules.items() for n, t in m.state_dict().items()}
     meta = {"config": cfg.to_dict(), "report": _plain(report or {}), "network": network_key(sim),
-            "torch_version": str(torch.__version__)}
+            "refine_steps": int(modules["power_balance"].refine_steps), "torch_version": str(torch.__version__)}
     return save_tensors(resolve_path(path), tensors, meta, KIND)
 
 
@@ -77,22 +79,57 @@ def read_pinn_file(path: str | Path) -> dict[str, Any]:
     return {"kind": KIND, "state_dict": state, **meta}
 
 
-def load_modules(path: str | Path, sim: GridSimulator) -> tuple[dict[str, nn.Module], PINNTrainConfig, dict]:
-    """Rebuild the modules saved at ``path`` for ``sim`` (on its device); returns (modules, config, report).
+def config_of(payload: dict[str, Any], path: str | Path, sim: GridSimulator) -> PINNTrainConfig:
+    """The training config of a read file (:func:`read_pinn_file`), after checking it was trained on ``sim``'s
+    network.
 
     Raises:
-        ArtifactError: the file was trained on another network than ``sim``'s, or its weights do not fit.
+        ArtifactError: trained on another network.
     """
-    payload = read_pinn_file(path)
     if payload.get("network") != network_key(sim):
         raise ArtifactError(f"{resolve_path(path)} was trained on network {payload.get('network')!r}, the simulator "
                             f"is network {network_key(sim)!r}: train a PINN for this network")
-    cfg = PINNTrainConfig.from_dict(payload["config"], strict=False)
-    modules = build_modules(cfg, sim)
+    return PINNTrainConfig.from_dict(payload["config"], strict=False)
+
+
+def refine_steps_of(payload: dict[str, Any], cfg: PINNTrainConfig, path: str | Path) -> int:
+    """The chord steps a read file runs with (:func:`.refine.check_record`: fields checked against each other and
+    against what the file's preset does today)."""
+    from anm_torchrl.surrogates.pinn.presets import PRESETS, REFINE_AUTO, preset
+    from anm_torchrl.surrogates.pinn.refine import check_record
+
+    auto_now = cfg.preset in PRESETS and preset(cfg.preset).power_balance.refine_steps == REFINE_AUTO
+    record = ((payload.get("report") or {}).get("power_balance") or {}).get("refine")
+    return check_record(resolve_path(path), cfg.power_balance.refine_steps, payload.get("refine_steps"), record,
+                        auto_now)
+
+
+def modules_from_payload(payload: dict[str, Any], cfg: PINNTrainConfig, sim: GridSimulator, path: str | Path,
+                         refine_steps: int) -> dict[str, nn.Module]:
+    """The modules of a read file, built for ``cfg`` on ``sim``'s device with ``refine_steps``, in eval mode.
+
+    Raises:
+        ArtifactError: the weights do not fit the config.
+    """
+    modules = build_modules(cfg, sim, refine_steps=refine_steps)
     for k, m in modules.items():
         try:
             m.load_state_dict(payload["state_dict"][k])
         except RuntimeError as err:
             raise ArtifactError(f"{resolve_path(path)}: the {k} weights do not fit its config ({err})") from err
         m.eval()
+    return modules
+
+
+def load_modules(path: str | Path, sim: GridSimulator) -> tuple[dict[str, nn.Module], PINNTrainConfig, dict]:
+    """Rebuild the modules saved at ``path`` for ``sim`` (on its device), the power balance with the chord steps the
+    file names; returns (modules, config, report).
+
+    Raises:
+        ArtifactError: the file was trained on another network than ``sim``'s, its weights do not fit, or its
+            chord-step fields are bad, disagree, or predate its preset's rule (:func:`.refine.check_record`).
+    """
+    payload = read_pinn_file(path)
+    cfg = config_of(payload, path, sim)
+    modules = modules_from_payload(payload, cfg, sim, path, refine_steps_of(payload, cfg, path))
     return modules, cfg, payload.get("report", {})

@@ -30,8 +30,9 @@ from torch import nn
 
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 from anm_torchrl.surrogates.pinn.model import build_modules
-from anm_torchrl.surrogates.pinn.presets import (MODULES, ModuleTrainConfig, PINNTrainConfig, check_acceptance,
-                                                 preset_for)
+from anm_torchrl.surrogates.pinn.presets import (MODULES, REFINE_AUTO, ModuleTrainConfig, PINNTrainConfig,
+                                                 check_acceptance, module_seed, preset_for)
+from anm_torchrl.surrogates.pinn.refine import choose_refine_steps
 from anm_torchrl.surrogates.pinn.tasks import TASKS, _Task
 
 log = logging.getLogger(__name__)
@@ -70,6 +71,9 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
         seed: Sobol scrambling seed (training uses ``seed``, the held-out set ``seed + 10_000``).
         writer: a TensorBoard ``SummaryWriter`` (or None).
         progress: a tqdm bar to advance by one per step (or None).
+
+    A power balance with ``refine_steps: auto`` gets its chord steps from :func:`.refine.choose_refine_steps` after
+    training (report keys ``refine`` and ``refine_steps``); the final validation errors use them.
     """
     task = TASKS[name](module, sim)
     if task.dim == 0:  # a network without devices of this kind (e.g. no storage): nothing to learn
@@ -132,9 +136,13 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
     if writer is not None and cfg.lbfgs_iters > 0:
         log_eval(step + 1)
     module.eval()
+    extra: dict[str, Any] = {}
+    if name == "power_balance" and cfg.refine_steps == REFINE_AUTO:  # k from physics, before the final errors
+        extra["refine"] = choose_refine_steps(module, sim, seed)
+        extra["refine_steps"] = extra["refine"]["k"]
     final = {"val_loss": val_loss(), **task.errors(val_in, val_ref)}
     return {"steps": step, "best_step": best_step, "adam_time_s": adam_time,
-            "time_s": time.perf_counter() - t0, **final}
+            "time_s": time.perf_counter() - t0, **final, **extra}
 
 
 def _lbfgs_finish(task: _Task, cfg: ModuleTrainConfig, seed: int) -> None:
@@ -189,10 +197,10 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
                    unit="step")
     report: dict[str, Any] = {}
     try:
-        for k, name in enumerate(MODULES):
+        for name in MODULES:
             if bar is not None:
                 bar.set_postfix_str(name)
-            report[name] = train_module(name, modules[name], sim, getattr(cfg, name), seed=cfg.seed + 1000 * k,
+            report[name] = train_module(name, modules[name], sim, getattr(cfg, name), seed=module_seed(cfg, name),
                                         writer=writer, progress=bar)
             log.info("%s trained: %s", name, report[name])
     finally:

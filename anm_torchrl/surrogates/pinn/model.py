@@ -7,13 +7,18 @@ from torch import nn
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT
 from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
-from anm_torchrl.surrogates.pinn.presets import PINNTrainConfig
+from anm_torchrl.surrogates.pinn.presets import REFINE_AUTO, PINNTrainConfig
 
 
-def build_modules(cfg: PINNTrainConfig, sim: GridSimulator) -> dict[str, nn.Module]:
+def build_modules(cfg: PINNTrainConfig, sim: GridSimulator, refine_steps: int | None = None) -> dict[str, nn.Module]:
     """Untrained ``generator`` (:class:`GeneratorKKT`), ``storage`` (:class:`StorageKKT`) and
-    ``power_balance`` (:class:`PowerBalanceNet`) networks for ``cfg``, float32, on the simulator's device."""
+    ``power_balance`` (:class:`PowerBalanceNet`) networks for ``cfg``, float32, on the simulator's device.
+
+    ``refine_steps``: the power balance's chord steps (None: the config's; its ``auto`` builds 0 until
+    :func:`.refine.choose_refine_steps` sets them after training)."""
     g, s, p = cfg.generator, cfg.storage, cfg.power_balance
+    if refine_steps is None:
+        refine_steps = 0 if p.refine_steps == REFINE_AUTO else p.refine_steps
     mods = {
         "generator": GeneratorKKT(sim, g.hidden, g.depth, g.activation, g.dual_activation,
                                   hard_constraints=g.hard_constraints, gated=g.gated, separate_dual=g.separate_dual,
@@ -22,6 +27,6 @@ def build_modules(cfg: PINNTrainConfig, sim: GridSimulator) -> dict[str, nn.Modu
                               hard_constraints=s.hard_constraints, gated=s.gated, separate_dual=s.separate_dual,
                               dual_gate=s.dual_gate),
         "power_balance": PowerBalanceNet(sim, p.hidden, p.depth, p.activation, p.v_scale, p.ang_scale,
-                                         refine_steps=p.refine_steps),
+                                         refine_steps=refine_steps),
     }
     return {k: m.to(sim.net.dev.device) for k, m in mods.items()}

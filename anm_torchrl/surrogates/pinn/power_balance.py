@@ -59,7 +59,8 @@ class PowerBalanceNet(nn.Module):
         sim: the simulator (network, device bounds for the input box).
         hidden, depth, activation: the :class:`ResidualMLP`.
         v_scale: p.u. of |V| per unit network output; ang_scale: rad of θ per unit output.
-        refine_steps: chord-Newton steps after the network (module docstring; 0: none).
+        refine_steps: chord-Newton steps after the network (module docstring; 0: none; a preset's ``auto`` is
+            chosen after training, :mod:`.refine`).
 
     ``forward(p_bus (N, n_bus) p.u., q_bus (N, n_bus) p.u., refine=True) -> (v_magn (N, n_bus) p.u.,
     v_ang (N, n_bus) rad)``, float64; entry 0 of the inputs (the slack bus) is ignored; ``refine=False`` skips
@@ -77,11 +78,27 @@ class PowerBalanceNet(nn.Module):
         self.v_scale, self.ang_scale = float(v_scale), float(ang_scale)
         n = self.n_bus - 1
         self.net = ResidualMLP(2 * n, 2 * n, hidden=hidden, depth=depth, activation=activation, out_scale=0.1)
-        if isinstance(refine_steps, bool) or not isinstance(refine_steps, int) or refine_steps < 0:
-            raise ValueError(f"refine_steps must be an integer >= 0, got {refine_steps!r}")
-        self.refine_steps = refine_steps
-        if refine_steps:
+        self.refine_steps = 0
+        self.set_refine_steps(refine_steps)
+
+    def set_refine_steps(self, k: int) -> None:
+        """Run ``k`` chord-Newton steps after the network from now on (0: none); the chord matrix J₀⁻¹ is built
+        on first need (not saved: it follows from the network's admittance matrix).
+
+        Raises:
+            ValueError: ``k`` not an integer >= 0.
+        """
+        if isinstance(k, bool) or not isinstance(k, int) or k < 0:
+            raise ValueError(f"refine_steps must be an integer >= 0, got {k!r}")
+        if k:
+            self.chord_matrix()
+        self.refine_steps = k
+
+    def chord_matrix(self) -> torch.Tensor:
+        """(J₀⁻¹)ᵀ (2n−2, 2n−2), the matrix a chord step multiplies the residual by (built once)."""
+        if "chord" not in self._buffers:
             self.register_buffer("chord", self._flat_start_inverse_jacobian().T.contiguous(), persistent=False)
+        return self.chord
 
     def input_box(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Training box (2(n_bus − 1),) p.u. of ``[P_1..P_{n−1}, Q_1..Q_{n−1}]``."""
@@ -92,7 +109,7 @@ class PowerBalanceNet(nn.Module):
         (ANM6-Easy: 0.8 p.u.; a 1 MVA-base feeder can have 45 p.u.), the unit of ``residual_unit="box"``."""
         return float(torch.maximum(self.in_low.abs(), self.in_high.abs()).max())
 
-    def _residual(self, x: torch.Tensor, p_bus: torch.Tensor, q_bus: torch.Tensor) -> torch.Tensor:
+    def residual(self, x: torch.Tensor, p_bus: torch.Tensor, q_bus: torch.Tensor) -> torch.Tensor:
         """``F(x)`` (N, 2n−2) p.u.: [ΔP, ΔQ] at the non-slack buses of ``x = [θ_1.., |V|_1..]`` (N, 2n−2)."""
         n = self.n_bus - 1
         zero = torch.zeros_like(x[..., :1])
@@ -106,7 +123,7 @@ class PowerBalanceNet(nn.Module):
         n = self.n_bus - 1
         x0 = torch.cat([torch.zeros(1, n), torch.ones(1, n)], -1).double()
         zero = torch.zeros(1, self.n_bus, dtype=torch.float64, device=self.y_bus.device)
-        jac = torch.autograd.functional.jacobian(lambda x: self._residual(x, zero, zero), x0.to(zero.device))
+        jac = torch.autograd.functional.jacobian(lambda x: self.residual(x, zero, zero), x0.to(zero.device))
         return torch.linalg.inv(jac.reshape(2 * n, 2 * n))
 
     def forward(self, p_bus: torch.Tensor, q_bus: torch.Tensor, refine: bool = True
@@ -119,7 +136,7 @@ class PowerBalanceNet(nn.Module):
         if refine and self.refine_steps:
             p64, q64 = p_bus.to(torch.float64), q_bus.to(torch.float64)
             for _ in range(self.refine_steps):
-                state = state - self._residual(state, p64, q64) @ self.chord
+                state = state - self.residual(state, p64, q64) @ self.chord
         one = torch.ones_like(y[..., :1])
         v_magn = torch.cat([one, state[..., n:]], -1)
         v_ang = torch.cat([torch.zeros_like(one), state[..., :n]], -1)

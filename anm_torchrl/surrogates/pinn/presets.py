@@ -120,6 +120,8 @@ MODULES = ("generator", "storage", "power_balance")
 PRESET_PACKAGE = "anm_torchrl.surrogates.conf"
 #: the preset that ``default`` stands for on every network other than ANM6-Easy (:func:`network_preset_name`)
 FEEDER_DEFAULT = "feeder"
+#: ``refine_steps`` value asking for the chord-step count to be chosen after training (:mod:`.refine`)
+REFINE_AUTO = "auto"
 
 
 @dataclasses.dataclass
@@ -148,7 +150,9 @@ class ModuleTrainConfig:
             its scale (p.u.), see :func:`.losses.power_balance_losses`.
         v_scale, ang_scale: power balance only: output scaling (p.u., rad per unit output).
         refine_steps: power balance only: chord-Newton steps after the network, at inference and in the
-            validation errors, not in the training loss (:class:`.power_balance.PowerBalanceNet`; 0: none).
+            validation errors, not in the training loss (:class:`.power_balance.PowerBalanceNet`; 0: none);
+            ``auto``: the smallest k meeting the physics rule of :mod:`.refine`, chosen after training and stored
+            in the model file.
         val_size: held-out Sobol points.
         max_time_s: wall-clock cap of the Adam phase (None: none).
         residual_unit: power balance only: the unit of the residuals in its loss, ``pu`` (the network's base) or
@@ -184,7 +188,7 @@ class ModuleTrainConfig:
     robust_scale: float = 0.01
     v_scale: float = 0.1
     ang_scale: float = 0.1
-    refine_steps: int = 0
+    refine_steps: int | str = 0
     val_size: int = 4096
     max_time_s: float | None = None
     per_device: bool = False
@@ -200,8 +204,11 @@ class ModuleTrainConfig:
             raise ValueError(f"PINN training option 'per_device' must be true or false, got {self.per_device!r}")
         for k in ("warmup_steps", "lbfgs_iters", "refine_steps"):
             v = getattr(self, k)
+            if k == "refine_steps" and v == REFINE_AUTO:
+                continue
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ValueError(f"PINN training option {k!r} must be an integer >= 0, got {v!r}")
+                extra = " or 'auto'" if k == "refine_steps" else ""
+                raise ValueError(f"PINN training option {k!r} must be an integer >= 0{extra}, got {v!r}")
         for k in ("lr", "robust_scale", "v_scale", "ang_scale"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -345,11 +352,22 @@ def from_composed(composed: dict[str, Any], sim=None, **overrides: Any) -> PINNT
     return preset(network_preset_name(given, sim), **{**overrides_of(d, given), **overrides})
 
 
+def module_seed(cfg: PINNTrainConfig, name: str) -> int:
+    """The seed module ``name`` is trained with (its Sobol draws; :func:`.loop.train_module`'s ``seed``)."""
+    return cfg.seed + 1000 * MODULES.index(name)
+
+
 def check_acceptance(cfg: PINNTrainConfig, report: dict[str, Any]) -> list[str]:
-    """The failed acceptance criteria of a training ``report`` (empty: accepted). No bar: one failure."""
+    """The failed acceptance criteria of a training ``report`` (empty: accepted). No bar: one failure. A chord-step
+    count chosen by :mod:`.refine` that does not meet its rule is a failure too."""
     if not cfg.acceptance:
         return [f"preset {cfg.preset!r} has no acceptance bar"]
     failed = []
+    refine = report.get("power_balance", {}).get("refine")
+    if refine is not None and not refine.get("met"):
+        failed.append(f"power_balance.refine: no k <= {refine.get('k_max')} chord steps brings the "
+                      f"{refine.get('quantile')} quantile of the power-flow residual to {refine.get('margin')} x "
+                      f"{refine.get('threshold_pu')} p.u. (after {refine.get('k')}: {refine.get('residual_q_pu')})")
     for module, bars in cfg.acceptance.items():
         if report.get(module, {}).get("devices") == 0:  # no device of this kind on the network: nothing to check
             continue

@@ -9,11 +9,11 @@ from anm_torchrl.surrogates.pinn.io import FILE_NAME, KIND, load_modules, read_p
 from anm_torchrl.surrogates.pinn.loop import train_module, train_pinn
 from anm_torchrl.surrogates.pinn.model import build_modules
 from anm_torchrl.surrogates.pinn.presets import (FEEDER_DEFAULT, MODULES, PRESETS, ModuleTrainConfig,
-                                                 PINNTrainConfig, check_acceptance, from_composed,
+                                                 PINNTrainConfig, check_acceptance, from_composed, module_seed,
                                                  network_preset_name, overrides_of, preset, preset_for, preset_names)
 from anm_torchrl.surrogates.pinn.tasks import TASKS
 
 __all__ = ["FEEDER_DEFAULT", "FILE_NAME", "KIND", "MODULES", "PRESETS", "TASKS", "ModuleTrainConfig",
-           "PINNTrainConfig", "build_modules", "check_acceptance", "from_composed", "load_modules", "network_preset_name",
-           "overrides_of", "preset", "preset_for", "preset_names", "read_pinn_file", "resolve_path", "save_pinn",
-           "train_module", "train_pinn"]
+           "PINNTrainConfig", "build_modules", "check_acceptance", "from_composed", "load_modules", "module_seed",
+           "network_preset_name", "overrides_of", "preset", "preset_for", "preset_names", "read_pinn_file",
+           "resolve_path", "save_pinn", "train_module", "train_pinn"]

@@ -1,0 +1,196 @@
+"""How many chord-Newton steps follow a network's power-balance PINN: chosen per network from physics alone.
+
+A preset with ``power_balance.refine_steps: auto`` (``feeder``) gets, at the end of its power-balance training,
+the smallest k in 1…:data:`K_MAX` whose power-flow residual meets :func:`rule_met` — no simulator label enters:
+
+* points: :data:`POINTS` scrambled-Sobol points of the network's bus-injection box (the box the network is trained
+  on, :func:`.power_balance.bus_injection_box`; Sobol seed = training seed + :data:`SEED_OFFSET`, apart from the
+  training, held-out and L-BFGS draws);
+* residual: the chain's own terminal statistic (:class:`.chain.SlackAndFlows`), the largest |ΔP|, |ΔQ| (p.u.) at
+  the non-slack buses of the network's output followed by k chord steps;
+* bar: its :data:`QUANTILE` quantile ≤ :data:`MARGIN` × the terminal check's threshold
+  (:data:`.chain.DEFAULT_RESIDUAL_THRESHOLD`, 0.005 p.u.).
+
+Why these: a transition is flagged terminal when its residual exceeds the threshold, so a k whose residual on
+solvable injections reaches the threshold flags healthy transitions (the 115-bus SimBench feeder with k = 1:
+residual ~0.6 p.u., 100 % flagged). The 0.99 quantile bounds the share of box points above the bar at 1 %, and the
+factor 2 between bar and threshold leaves room for what the box does not show (the env's injections are the
+KKT-NN outputs, and the residual of a chord step grows with the network's error); measured on the feeders'
+validation transitions (``evaluate.random_transitions`` seed 777), the residual at the chosen k stays below the
+bar there too (presets.py). The box also holds injections with no power-flow solution, whose residual cannot
+vanish: where they are more than 1 % of it no k meets the bar, the choice records ``met: false`` at
+:data:`K_MAX` steps and the training fails its acceptance bar (:func:`.presets.check_acceptance`) — a clear
+failure, never a silent k.
+
+The chosen k is stored in the model file (top-level ``refine_steps`` and the training report's
+``power_balance.refine`` record, :mod:`.io`), and a file is always run with the k it names; :func:`check_record`
+is the format check :func:`.io.load_modules` applies. ``python -m anm_torchrl.surrogates.pinn.refine --network
+<name> --path <file>`` applies the rule to a model trained before it (same weights; the file is rewritten with
+its k and record).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
+from anm_torchrl.surrogates.pinn.presets import REFINE_AUTO as AUTO, module_seed
+
+log = logging.getLogger(__name__)
+
+RULE = "sobol_box_quantile_v1"
+QUANTILE = 0.99
+MARGIN = 0.5
+POINTS = 4096
+K_MAX = 8
+SEED_OFFSET = 30_000
+
+
+def _threshold() -> float:
+    from anm_torchrl.surrogates.pinn.chain import DEFAULT_RESIDUAL_THRESHOLD  # the threshold's one home
+
+    return DEFAULT_RESIDUAL_THRESHOLD
+
+
+def rule_met(residual_q: float, threshold: float | None = None) -> bool:
+    """Whether a residual quantile (p.u.) meets the bar ``MARGIN × threshold`` (NaN: not met)."""
+    thr = _threshold() if threshold is None else threshold
+    return bool(residual_q <= MARGIN * thr)
+
+
+def residual_quantiles(pb: PowerBalanceNet, p_bus: torch.Tensor, q_bus: torch.Tensor, k_max: int = K_MAX,
+                       stop_when_met: bool = True) -> list[float]:
+    """The :data:`QUANTILE` quantile (p.u.) of the per-sample largest |ΔP|, |ΔQ| after k = 1, 2, … chord steps.
+
+    Args:
+        pb: the trained power-balance network (its own ``refine_steps`` is not used).
+        p_bus, q_bus: (N, n_bus) p.u. bus injections (column 0, the slack, ignored).
+        k_max: the most steps tried.
+        stop_when_met: stop at the first k that meets :func:`rule_met`.
+
+    Returns:
+        the quantiles for k = 1 … (the first k meeting the bar, or ``k_max``); non-finite ones as ``inf``.
+    """
+    p64, q64 = p_bus.to(torch.float64), q_bus.to(torch.float64)
+    out = []
+    with torch.no_grad():
+        v_magn, v_ang = pb(p64, q64, refine=False)
+        x = torch.cat([v_ang[:, 1:], v_magn[:, 1:]], -1)  # [θ, |V|] of the non-slack buses, as PowerBalanceNet
+        chord = pb.chord_matrix()
+        for _ in range(k_max):
+            x = x - pb.residual(x, p64, q64) @ chord
+            res = pb.residual(x, p64, q64).abs().amax(-1)
+            res = torch.where(torch.isfinite(res), res, torch.full_like(res, math.inf))
+            out.append(float(torch.quantile(res, QUANTILE)))
+            if stop_when_met and rule_met(out[-1]):
+                break
+    return out
+
+
+def choose_refine_steps(pb: PowerBalanceNet, sim: GridSimulator, seed: int) -> dict[str, Any]:
+    """Apply the rule (module docstring) to ``pb`` and set its ``refine_steps`` to the chosen k.
+
+    Args:
+        pb: a trained :class:`PowerBalanceNet` of ``sim``'s network.
+        sim: its simulator (only the network's tables; no simulator step runs).
+        seed: the training seed of ``pb`` (the Sobol draw uses ``seed + SEED_OFFSET``).
+
+    Returns:
+        the record stored in the model file: ``rule``, ``k``, ``met``, ``quantile``, ``margin``, ``threshold_pu``,
+        ``points``, ``k_max``, ``seed`` and ``residual_q_pu`` (the quantile after 1 … k steps; null: not finite).
+    """
+    from anm_torchrl.surrogates.pinn.tasks import TASKS
+
+    task = TASKS["power_balance"](pb, sim)
+    u = torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=seed + SEED_OFFSET).draw(POINTS).double()
+    q = residual_quantiles(pb, *task.sample(u), k_max=K_MAX)
+    met = rule_met(q[-1])
+    k = len(q)
+    pb.set_refine_steps(k)
+    if not met:
+        log.warning("no chord-step count <= %d brings the %.2f quantile of the power-flow residual below %.2g p.u. "
+                    "(after %d steps: %.3g p.u.): the model fails its acceptance bar", K_MAX, QUANTILE,
+                    MARGIN * _threshold(), k, q[-1])
+    return {"rule": RULE, "k": k, "met": met, "quantile": QUANTILE, "margin": MARGIN, "threshold_pu": _threshold(),
+            "points": POINTS, "k_max": K_MAX, "seed": seed + SEED_OFFSET,
+            "residual_q_pu": [x if math.isfinite(x) else None for x in q]}
+
+
+def check_record(file: Path | str, config_k: Any, file_k: Any, record: Any, preset_is_auto: bool) -> int:
+    """The chord-step count a saved PINN runs with, after checking that its fields agree (the format check).
+
+    Args:
+        file: the model file (for messages).
+        config_k: its training config's ``power_balance.refine_steps`` (an int, or ``"auto"``).
+        file_k: its top-level ``refine_steps`` (None: a file written before the field existed).
+        record: its report's ``power_balance.refine`` (the rule's record; None if absent).
+        preset_is_auto: whether the preset the file names chooses k by the rule today.
+
+    Raises:
+        ArtifactError: ``file_k`` not an integer in 0…K_MAX; a config that fixes k disagreeing with it; an ``auto``
+            config without a record of this rule whose ``k`` is ``file_k``; or a file without ``refine_steps``
+            whose preset now chooses k by the rule (trained before the rule: its fixed k is not the network's).
+    """
+    from anm_torchrl.artifacts import ArtifactError
+
+    def bad(why: str) -> ArtifactError:
+        return ArtifactError(f"{file}: {why}; retrain it, or apply the rule to it with python -m "
+                             f"anm_torchrl.surrogates.pinn.refine --network <name> --path {file}")
+
+    if file_k is None:
+        if preset_is_auto or config_k == AUTO:
+            raise bad(f"no refine_steps field, and its preset now chooses the chord steps per network (rule {RULE}): "
+                      f"it was trained before the rule with a fixed {config_k!r}, which need not be this network's k")
+        file_k = config_k
+    if isinstance(file_k, bool) or not isinstance(file_k, int) or not 0 <= file_k <= K_MAX:
+        raise bad(f"refine_steps must be an integer in 0..{K_MAX}, got {file_k!r} (corrupted or another version)")
+    if config_k == AUTO:
+        if not isinstance(record, dict) or record.get("rule") != RULE or record.get("k") != file_k:
+            raise bad(f"its chord steps were chosen by the rule but the record ({record!r}) is not one of rule {RULE} "
+                      f"with k = refine_steps = {file_k}")
+    elif config_k != file_k:
+        raise bad(f"its config fixes refine_steps = {config_k!r} but the file says {file_k}")
+    return file_k
+
+
+def apply_to_file(path: str | Path, sim: GridSimulator) -> dict[str, Any]:
+    """Apply the rule to the model saved at ``path`` (trained on ``sim``'s network) and rewrite it with the chosen
+    k and the rule's record (weights unchanged; the config's ``power_balance.refine_steps`` becomes ``auto``).
+    Returns the record."""
+    from anm_torchrl.surrogates.pinn import io
+
+    payload = io.read_pinn_file(path)
+    cfg = io.config_of(payload, path, sim)
+    cfg.power_balance.refine_steps = AUTO
+    modules = io.modules_from_payload(payload, cfg, sim, path, refine_steps=0)
+    report = dict(payload.get("report") or {})
+    record = choose_refine_steps(modules["power_balance"], sim, module_seed(cfg, "power_balance"))
+    report["power_balance"] = {**report.get("power_balance", {}), "refine": {**record, "applied_after_training": True}}
+    io.save_pinn(path, modules, cfg, report, sim)
+    return record
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """CLI: apply the rule to a saved model (module docstring)."""
+    from anm_torchrl.data.generic import simulator_for
+
+    ap = argparse.ArgumentParser(description="choose a saved PINN's chord steps by the rule and rewrite the file")
+    ap.add_argument("--network", required=True, help="the registered network the model was trained on")
+    ap.add_argument("--path", required=True, help="the model file (or its folder)")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    rec = apply_to_file(args.path, simulator_for(args.network))
+    log.info("%s: k = %d (%s)", args.path, rec["k"], rec)
+    return rec
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO)
+    main()

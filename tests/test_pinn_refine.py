@@ -1,0 +1,175 @@
+"""The per-network chord-step rule of the power-balance PINN (``anm_torchrl.surrogates.pinn.refine``): the k it
+picks, the model file that says which k it runs with, and the format check at load.
+
+Untrained or smoke networks only (seconds); the rule's outcome on the trained feeders is in presets.py and
+``results/pinn_generic_accuracy.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+import torch
+
+from anm_torchrl.artifacts import ArtifactError, tensors_sha256
+from anm_torchrl.data.generic import simulator_for
+from anm_torchrl.surrogates.pinn import refine
+from anm_torchrl.surrogates.pinn import train as tr
+from anm_torchrl.surrogates.pinn.chain import load_pinn
+from anm_torchrl.surrogates.pinn.losses import power_balance_residuals
+from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
+from anm_torchrl.surrogates.pinn.tasks import TASKS
+
+torch.set_num_threads(1)
+AUTO = {"refine_steps": "auto"}
+
+
+@pytest.fixture(scope="module")
+def case33():
+    return simulator_for("case33bw")
+
+
+@pytest.fixture(scope="module")
+def auto_file(tmp_path_factory, case33):
+    """A smoke PINN of case33bw whose chord steps were chosen by the rule, saved."""
+    cfg = tr.preset("smoke", power_balance=AUTO)
+    modules, report = tr.train_pinn(cfg, case33)
+    return tr.save_pinn(tmp_path_factory.mktemp("auto") / "pinn.safetensors", modules, cfg, report, case33), report
+
+
+def _box_quantiles(pb, sim, seed, ks):
+    """The rule's quantile after k steps, computed the independent way: the module run with ``refine_steps=k``
+    and the chain's residual function on the same Sobol points."""
+    task = TASKS["power_balance"](pb, sim)
+    p, q = task.sample(torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=seed).draw(refine.POINTS).double())
+    out = []
+    for k in ks:
+        pb.set_refine_steps(k)
+        with torch.no_grad():
+            vm, va = pb(p, q)
+        dp, dq = power_balance_residuals(vm, va, p, q, pb.y_bus)
+        out.append(float(torch.cat([dp, dq], -1).abs().amax(-1).quantile(refine.QUANTILE)))
+    return out
+
+
+def test_rule_picks_the_smallest_k_that_meets_it():
+    """On the 115-bus SimBench feeder (1 MVA base, stiff lines) one chord step from an untrained network leaves a
+    residual far above the terminal threshold: the rule picks k > 1, the smallest whose 0.99 quantile is within
+    half the threshold (the one before it is not), and sets the module to it."""
+    sim = simulator_for("simbench_mv_semiurb")
+    torch.manual_seed(0)
+    pb = PowerBalanceNet(sim, hidden=16, depth=2)
+    rec = refine.choose_refine_steps(pb, sim, seed=5)
+    k = rec["k"]
+    assert rec["met"] and rec["rule"] == refine.RULE and 1 < k <= refine.K_MAX and pb.refine_steps == k
+    assert len(rec["residual_q_pu"]) == k and rec["seed"] == 5 + refine.SEED_OFFSET
+    before, at = _box_quantiles(pb, sim, rec["seed"], [k - 1, k])
+    bar = refine.MARGIN * rec["threshold_pu"]
+    assert at <= bar < before, (before, at, bar)
+    # the record's quantiles are the module's own at 1..k steps (same points, same residual; float64 round-off)
+    assert rec["residual_q_pu"][-2:] == pytest.approx([before, at], rel=1e-9)
+
+
+def test_rule_unmet_is_an_acceptance_failure(monkeypatch):
+    """No k <= K_MAX meets the bar: the record says so at K_MAX steps and the training fails its acceptance bar."""
+    sim = simulator_for("simbench_mv_semiurb")
+    monkeypatch.setattr(refine, "K_MAX", 1)
+    torch.manual_seed(0)
+    pb = PowerBalanceNet(sim, hidden=16, depth=2)
+    rec = refine.choose_refine_steps(pb, sim, seed=0)
+    assert not rec["met"] and rec["k"] == 1 and pb.refine_steps == 1
+    cfg = tr.preset("feeder")
+    report = {"power_balance": {"refine": rec, "val_vmag_mae": 0.0}, "generator": {"val_mae_pu": 0.0},
+              "storage": {"devices": 0}}
+    failures = tr.check_acceptance(cfg, report)
+    assert len(failures) == 1 and failures[0].startswith("power_balance.refine: no k <= 1 chord steps")
+
+
+def test_training_with_auto_stores_the_chosen_k(auto_file, case33):
+    """``refine_steps: auto``: the report's record, the file's ``refine_steps`` and the loaded module agree, and
+    the chain runs the file's k (its voltages equal the module's at that k)."""
+    file, report = auto_file
+    k = report["power_balance"]["refine"]["k"]
+    assert report["power_balance"]["refine_steps"] == k >= 1
+    payload = tr.read_pinn_file(file)
+    assert payload["refine_steps"] == k and payload["config"]["power_balance"]["refine_steps"] == "auto"
+    modules, cfg, _ = tr.load_modules(file, case33)
+    assert modules["power_balance"].refine_steps == k
+    fixed = tr.save_pinn(file.parent / "fixed.safetensors", modules, tr.preset("smoke"), {}, case33)
+    with pytest.raises(ArtifactError, match="config fixes refine_steps = 0 but the file says"):
+        tr.load_modules(fixed, case33)  # a config that fixes k other than the module's never loads
+
+
+def _rewrite(src, dst, edit):
+    """Copy of a PINN file with its metadata changed by ``edit(meta)``, re-hashed (a consistent but altered file)."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    tensors = load_file(str(src))
+    with safe_open(str(src), framework="pt") as f:
+        outer = f.metadata()
+    header = json.loads(outer["anm_torchrl"])
+    edit(header["metadata"])
+    text = json.dumps(header, sort_keys=True)
+    save_file(tensors, str(dst), metadata={"anm_torchrl": text, "sha256": tensors_sha256(tensors, json.loads(text))})
+    return dst
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda m: m.update(refine_steps=99), r"refine_steps must be an integer in 0\.\.8, got 99"),
+    (lambda m: m.update(refine_steps="three"), r"refine_steps must be an integer in 0\.\.8, got 'three'"),
+    (lambda m: m.update(refine_steps=True), r"refine_steps must be an integer in 0\.\.8, got True"),
+    (lambda m: m["report"]["power_balance"]["refine"].update(k=7), "is not one of rule .* with k = refine_steps"),
+    (lambda m: m["report"]["power_balance"].pop("refine"), "the record \\(None\\) is not one of rule"),
+    (lambda m: m["report"]["power_balance"]["refine"].update(rule="other"), "is not one of rule sobol_box"),
+])
+def test_bad_or_corrupted_chord_step_fields_are_refused(auto_file, tmp_path, edit, match):
+    file, _ = auto_file
+    bad = _rewrite(file, tmp_path / "bad.safetensors", edit)
+    with pytest.raises(ArtifactError, match=match):
+        load_pinn(simulator_for("case33bw"), path=bad)
+    flipped = bytearray(file.read_bytes())  # and a changed byte is caught by the content hash, as for any artifact
+    i = re.search(rb'refine_steps\\": \d', bytes(flipped)).end() - 1
+    flipped[i] = ord("7") if flipped[i] != ord("7") else ord("6")
+    (tmp_path / "flip.safetensors").write_bytes(bytes(flipped))
+    with pytest.raises(ArtifactError, match="corrupted: content hash"):
+        load_pinn(simulator_for("case33bw"), path=tmp_path / "flip.safetensors")
+
+
+def test_a_model_from_before_the_rule_is_refused_then_migrated(auto_file, tmp_path, case33):
+    """A ``feeder`` model saved before the rule (fixed refine_steps 1, no ``refine_steps`` field) is never served
+    with that k: loading it raises and names the command that applies the rule; ``apply_to_file`` rewrites it
+    with the rule's k, same weights."""
+    file, _ = auto_file
+
+    def before_the_rule(preset, k):
+        """A file as written before the rule: no ``refine_steps`` field, no record, a fixed k in its config."""
+        def edit(m):
+            m.pop("refine_steps")
+            m["config"]["preset"] = preset
+            m["config"]["power_balance"]["refine_steps"] = k
+            m["report"]["power_balance"].pop("refine")
+        return edit
+
+    old = _rewrite(file, tmp_path / "pinn.safetensors", before_the_rule("feeder", 1))
+    with pytest.raises(ArtifactError, match="trained before the rule with a fixed 1.*pinn.refine --network"):
+        tr.load_modules(old, case33)
+    rec = refine.apply_to_file(old, case33)
+    modules, cfg, report = tr.load_modules(old, case33)
+    assert cfg.power_balance.refine_steps == "auto" and modules["power_balance"].refine_steps == rec["k"]
+    assert report["power_balance"]["refine"]["applied_after_training"] is True
+    before = tr.read_pinn_file(file)["state_dict"]["power_balance"]
+    for name, t in modules["power_balance"].state_dict().items():
+        assert torch.equal(t, before[name]), name
+    # an old file of a preset that still fixes k (ANM6-Easy's default: 0) loads as before
+    plain = _rewrite(file, tmp_path / "plain.safetensors", before_the_rule("smoke", 0))
+    assert tr.load_modules(plain, case33)[0]["power_balance"].refine_steps == 0
+
+
+def test_refine_option_is_validated():
+    with pytest.raises(ValueError, match="'refine_steps' must be an integer >= 0 or 'auto', got 'al'"):
+        tr.preset("smoke", power_balance={"refine_steps": "al"})
+    with pytest.raises(ValueError, match="must be an integer >= 0, got -1"):
+        PowerBalanceNet(simulator_for("cigre_mv"), hidden=8, depth=1, refine_steps=-1)
