@@ -23,8 +23,9 @@ recipe ``train_pinn.py`` reads too):
   decay, batch 1024; 3,000 / 2,000 / 10,000 steps. About 2 min of training (110 s measured: 39 + 16 + 56 s);
 * ``feeder``: what ``default`` stands for on every network other than ANM6-Easy (:func:`network_preset_name`;
   ANM6-Easy keeps ``default`` unchanged): ``default`` with the power-balance residual in units of the feeder's
-  largest bus injection (``residual_unit: box``) and one chord-Newton step after the power-balance network
-  (``refine_steps: 1``, :class:`.power_balance.PowerBalanceNet`); table below;
+  largest bus injection (``residual_unit: box``) and chord-Newton steps after the power-balance network
+  (:class:`.power_balance.PowerBalanceNet`), as many as the physics rule of :mod:`.refine` picks for the network
+  after training (``refine_steps: auto``: case33bw 1, CIGRE MV 2, the 115-bus SimBench feeder 3); tables below;
 * ``quick``: ``default`` with a third of the steps and the box unit (the first feeder measurements);
 * ``smoke``: tiny networks and a few steps, for tests.
 
@@ -43,16 +44,27 @@ cigre_mv (15 buses, 1 MVA base): box       2.0e-4   **6.2e-6**   3.6e-7       13
 cigre_mv: flat start, no network           1.6e-2   1.1e-3       6.2e-5       0
 =========================================  =======  ===========  ===========  =====
 
-One chord step from the trained network is 40–180× closer to the exact power flow than one from the flat start;
-the second step was not worth its cost (one more residual and matrix product per sample) with the first already
-≥ 70× under the 1e-3 p.u. target.
+One chord step from the trained network is 40–180× closer to the exact power flow than one from the flat start.
+Until 2026-12-01 ``feeder`` fixed one step (the second was not worth its cost with the first already ≥ 70× under
+the 1e-3 p.u. |V| target); that left the 115-bus SimBench feeder (1 MVA base, stiff lines; its power-balance
+network, 10,000 steps, 462 CPU s with the KKT-NNs, is worse than the flat start: validation |V| MAE 3.8e-2 vs
+2.3e-2) with a power-flow residual of ~0.6 p.u., above the terminal check's 0.005 p.u.: every transition flagged
+terminal although |V| was within 3.1e-4 p.u. (test). Since then the count is chosen per network from physics alone
+(:mod:`.refine`: the smallest k whose 0.99 quantile of the residual on 4,096 Sobol points of the injection box is
+≤ 0.0025 p.u.). Box quantiles after k = 1, 2, 3 steps (p.u., the trained models) and, on the validation transitions
+above, the chain's residual p99 and the share flagged terminal at k − 1, k and k + 1:
 
-Not solved: the 115-bus SimBench feeder (1 MVA base). Its ``feeder`` power-balance network (10,000 steps, 462 CPU s
-with the KKT-NNs) is worse than the flat start (validation |V| MAE 3.8e-2 vs 2.3e-2); after its chord step |V| is
-within 3.1e-4 p.u. (test) but the power-flow residual stays ~0.6 p.u. (stiff lines), above the terminal check's
-0.005 p.u., so every transition is flagged terminal. On validation transitions 2 / 3 / 5 chord steps give |V|
-MAE 2.3e-5 / 1.4e-6 / 5e-9 and residual 2.9e-2 / 1.4e-3 / 3.5e-6 p.u. (flagged 100 % / 0 % / 0 %) — from the flat
-start alike: there the refinement, not the network, does the work.
+=====================  ===========================  ====  ==============================================
+network                box q0.99, k = 1 / 2 / 3      k     validation p99 (flagged) at k−1 / k / k+1
+=====================  ===========================  ====  ==============================================
+case33bw               3.3e-4 / — / —               1     — / 1.7e-4 (0 %) / 3.0e-5 (0 %)
+cigre_mv               5.5e-3 / 7.5e-4 / —          2     2.1e-3 (0 %) / 1.9e-4 (0 %) / 1.7e-5 (0 %)
+simbench_mv_semiurb    0.68 / 3.0e-2 / 1.4e-3       3     4.0e-2 (100 %) / 2.3e-3 (0 %) / 1.3e-4 (0 %)
+=====================  ===========================  ====  ==============================================
+
+On every network the validation residual at the chosen k stays below the rule's bar (largest: SimBench, p99
+2.3e-3, max 2.8e-3 p.u.), so no healthy transition is flagged; CIGRE MV's box holds injections harder than its
+transitions (its k = 1 flagged none of them), and the rule spends one more step there.
 
 Measurements behind ``default`` (2-core shared CPU, torch 1 thread; times are wall-clock and noisy, ±30 %).
 Held-out validation set: 4,096 scrambled-Sobol points of the module's input box, errors against the exact
