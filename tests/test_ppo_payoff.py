@@ -104,3 +104,39 @@ def test_user_verdict_follows_the_record():
     assert "On no network measured did training on a surrogate reach the threshold sooner" in text
     pinn["threshold_wall_with_training_s"] = 12.0
     assert "Training on a surrogate paid off for `pinn` on `case33bw`" in payoff.user_verdict(rec)
+
+
+def test_ppo_part_reuses_runs_and_runs_the_other_seeds(tmp_path, monkeypatch):
+    """``reuse`` covers some seeds of an env: only the others are trained; the surrogate's training time is the one
+    given for this part's network (another network's is never used)."""
+    from anm_torchrl.experiments import ppo_runs
+
+    base = {"env.num_envs": 4}
+    net = "simbench_mv_semiurb"
+
+    def fake_run(overrides, run_dir, timeout_s=None):
+        seed = int(next(o.split("=")[1] for o in overrides if o.startswith("seed=")))
+        calls.append((overrides[0], seed, timeout_s))
+        curve = [{"frames": 8192, "wall_s": 10.0 + seed, "train_s": 5.0, "return": -3.0}]
+        return {"ok": True, "overrides": overrides, "curve": curve, "summary": None, "load_avg_1min": [1.0, 1.0]}
+
+    calls = []
+    monkeypatch.setattr(ppo_runs, "run_ppo", fake_run)
+    monkeypatch.setattr(payoff, "do_nothing_return", lambda n, b: {"return": -3.3, "episodes": 4, "max_steps": 10,
+                                                                   "eval_seed": 1})
+    monkeypatch.setattr(payoff, "test_baselines", lambda n, b, s: {"do_nothing": {"discounted_return": -0.7}})
+    monkeypatch.setattr(payoff, "surrogate_model_ids", lambda n, s: {})
+    old = fake_run(ppo_runs.ppo_overrides({"name": "none"}, 0, {**base, "network": net}), None)
+    calls.clear()
+    (tmp_path / "none_s0.json").write_text(json.dumps(old))
+    part = payoff.ppo_part({"network": net, "envs": ["none", {"name": "pinn"}], "seeds": [0, 1, 2], "base": base,
+                            "timeout_s": 300, "reuse": {"none": [str(tmp_path / "none_s0.json")]},
+                            "surrogate_train_s": {"case33bw": {"pinn": 1.0}, net: {"pinn": 900.0}}}, tmp_path)
+    assert calls == [("surrogate=none", 1, 300), ("surrogate=none", 2, 300), ("surrogate=pinn", 0, 300),
+                     ("surrogate=pinn", 1, 300), ("surrogate=pinn", 2, 300)]
+    none, pinn = part["table"]
+    assert none["seeds"] == [0, 1, 2] and none["surrogate_train_s"] == 0.0 and none["threshold_reached"] == 0
+    assert pinn["surrogate_train_s"] == 900.0 and none["threshold_censored_at_s"] == [10.0, 11.0, 12.0]
+    part = payoff.ppo_part({"network": net, "envs": [{"name": "pinn"}], "seeds": [0], "base": base,
+                            "surrogate_train_s": {"case33bw": {"pinn": 1.0}}}, tmp_path)
+    assert part["table"][0]["surrogate_train_s"] is None  # not measured on this network: not borrowed

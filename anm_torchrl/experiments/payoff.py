@@ -18,8 +18,9 @@ Three parts, each optional (``cfg["parts"]``):
   training env (``none``: the true simulator; a surrogate spec), seeds ``seeds``, a wall-clock cap
   (``timeout_s``): the time (wall, training only, frames) to first reach a return ≥ ``threshold_fraction`` ×
   do-nothing's return on the same validation states (returns are < 0: 0.5 = half of do-nothing's loss), runs that never reach it censored at their length
-  (:mod:`.time_to_return`), a surrogate's training time added when given (``surrogate_train_s``). Runs made
-  earlier by the same code may be reused (``reuse``: label → list of ``run_ppo`` record files).
+  (:mod:`.time_to_return`), a surrogate's training time added when given (``surrogate_train_s``: network → label →
+  seconds). Runs made earlier by the same code may be reused (``reuse``: label → list of ``run_ppo`` record files;
+  the seeds they do not cover are run).
 """
 
 from __future__ import annotations
@@ -153,6 +154,18 @@ def accuracy_part(path: str | Path | None) -> dict[str, Any]:
     return {"available": True, "file": str(p), "status": rec.get("status"), "data": rec.get("data", rec)}
 
 
+def reread_accuracy(dst: str | Path, src: str | Path | None = None) -> dict:
+    """Replace the ``pinn_accuracy`` part of the payoff record ``dst`` in place by :func:`accuracy_part` of ``src``
+    (default the generic PINN's record), e.g. after one of its networks was re-measured."""
+    from anm_torchrl.experiments.io import write_json
+
+    rec = read_json(dst)
+    rec["data"]["pinn_accuracy"] = accuracy_part(src)
+    rec["data"]["parts"] = list(dict.fromkeys([*rec["data"].get("parts", []), "accuracy"]))
+    write_json(dst, rec)
+    return rec
+
+
 def do_nothing_return(network: str, base: dict[str, Any]) -> dict[str, Any]:
     """Do-nothing's metrics on the PPO runs' validation states (same seed, count, length, network)."""
     from anm_torchrl.baselines import make_baseline
@@ -229,24 +242,22 @@ def ppo_part(cfg: dict[str, Any], out_dir: Path) -> dict[str, Any]:
     fraction = float(cfg.get("threshold_fraction", 0.5))
     threshold = fraction * dn["return"]
     reuse = {k: [read_json(f) for f in v] for k, v in (cfg.get("reuse") or {}).items()}
-    train_s = dict(cfg.get("surrogate_train_s") or {})
+    train_s = dict((cfg.get("surrogate_train_s") or {}).get(network) or {})
     runs, table = {}, []
     for spec in [{"name": n} if isinstance(n, str) else dict(n) for n in cfg.get("envs", ["none"])]:
         lab = label(spec)
-        if lab in reuse:
-            seed_runs = reuse[lab]
-            for r in seed_runs:  # a reused run must have been made with this part's overrides (same states)
-                r.setdefault("seed", int(next(o.split("=", 1)[1] for o in r["overrides"] if o.startswith("seed="))))
-                want = set(ppo_overrides(spec, r["seed"], base))
-                if not want <= set(r["overrides"]):
-                    raise ValueError(f"ppo.reuse[{lab!r}]: a run lacks overrides {sorted(want - set(r['overrides']))}")
-        else:
-            seed_runs = []
-            for s in cfg.get("seeds", [0]):  # in this process: its CPU time is the run's (one torch thread)
-                cpu0 = time.process_time()
-                r = run_ppo(ppo_overrides(spec, s, base), out_dir / "runs" / "payoff" / f"{lab}_s{s}",
-                            timeout_s=cfg.get("timeout_s"))
-                seed_runs.append(r | {"seed": s, "cpu_s": time.process_time() - cpu0})
+        seed_runs = reuse.get(lab, [])
+        for r in seed_runs:  # a reused run must have been made with this part's overrides (same states)
+            r.setdefault("seed", int(next(o.split("=", 1)[1] for o in r["overrides"] if o.startswith("seed="))))
+            want = set(ppo_overrides(spec, r["seed"], base))
+            if not want <= set(r["overrides"]):
+                raise ValueError(f"ppo.reuse[{lab!r}]: a run lacks overrides {sorted(want - set(r['overrides']))}")
+        done = {r["seed"] for r in seed_runs}
+        for s in [s for s in cfg.get("seeds", [0]) if s not in done]:  # the seeds no reused run covers
+            cpu0 = time.process_time()  # in this process: its CPU time is the run's (one torch thread)
+            r = run_ppo(ppo_overrides(spec, s, base), out_dir / "runs" / "payoff" / f"{lab}_s{s}",
+                        timeout_s=cfg.get("timeout_s"))
+            seed_runs = [*seed_runs, r | {"seed": s, "cpu_s": time.process_time() - cpu0}]
         for r in seed_runs:
             r["time_to_threshold"] = time_to_reach(r["curve"], threshold)
             r["last_return"] = last_mean(r["curve"], "return", 1)
@@ -631,7 +642,11 @@ if __name__ == "__main__":
     parser.add_argument("--networks", nargs="*", default=[], help="with --merge-cost: the networks to replace")
     parser.add_argument("--note", help="with --merge-ppo / --merge-cost: how SRC was made (replaces the record's "
                         "note about that part)")
+    parser.add_argument("--reread-accuracy", action="store_true", help="first replace the record's pinn_accuracy "
+                        "part by the generic PINN's record (accuracy_part)")
     args = parser.parse_args()
+    if args.reread_accuracy:
+        reread_accuracy(args.record)
     if args.merge_ppo:
         merge_ppo(args.merge_ppo, args.record, args.note)
     if args.merge_cost:
