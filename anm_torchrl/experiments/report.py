@@ -347,6 +347,10 @@ training time grows with both.
         if reused:
             table += "\n\nRuns reused from an earlier record (same states and threshold, not trained again): " \
                 + ", ".join(f"`{lab}` (git commit `{str(o.get('git_commit'))[:7]}`)" for lab, o in reused.items()) + "."
+        loads = [x for runs in rec["data"]["runs"].values() for r in runs for x in (r.get("load_avg_1min") or [])]
+        if loads:  # the times below are wall times: other processes on the machine stretch them
+            table += (f"\n\n1-minute load average before / after each PPO run: {min(loads):.1f}–{max(loads):.1f} "
+                      f"({rec['meta'].get('machine', {}).get('logical_cores')} logical cores).")
         seed = (rec["meta"].get("config") or {}).get("base", {}).get("eval.seed")
         table += (f"\n\nThreshold for 'time to reach': return ≥ {_fmt(rec['data']['threshold'])} on the evaluation "
                   f"states (`eval.seed={seed}`). `threshold_wall_s` is the Kaplan–Meier median over seeds of the PPO wall time "
