@@ -310,3 +310,13 @@ def test_load_results_refuses_a_record_named_unlike_its_file(tmp_path):
     (tmp_path / "ppo_case33bw.json").write_text("{truncated")
     with pytest.raises(ValueError, match="not valid JSON"):
         load_results(tmp_path)
+
+
+def test_portable_paths_drop_the_machines_top_level_folder():
+    """A run directory directly under /tmp once rendered as '.../tmp/<run>' in docs/RESULTS.md."""
+    from anm_torchrl.experiments.report import _portable, _portable_command
+
+    assert _portable("/tmp/repro10_run1") == ".../repro10_run1"
+    assert _portable("/tmp/repro/tr_full") == ".../repro/tr_full"
+    assert _portable("/tmp") == "..."
+    assert "/tmp" not in _portable_command("reproduce.py out_dir=/tmp/run1 publish=true")

@@ -43,7 +43,21 @@ def block_claims(res: dict[str, Any]) -> str:
         what, verdict = fn(res)
         rows.append({"claim (paper)": text, "verdict here": f"**{verdict}**", "measured": what})
     sources = " ".join(_source(res.get(n), res.get("run")) for n in ("speed", "ppo_curves", "sweep") if res.get(n))
-    return _table(rows, ["claim (paper)", "verdict here", "measured"]) + "\n\n" + sources
+    return _table(rows, ["claim (paper)", "verdict here", "measured"]) + "\n\n" + sources + _reused_curves(res)
+
+
+def _reused_curves(res: dict[str, Any]) -> str:
+    """The ppo_curves envs whose runs an earlier run of the experiment measured (same states), with its commit."""
+    rec = res.get("ppo_curves") or {}
+    reused = {lab: runs[0]["reused_from"] for lab, runs in ((rec.get("data") or {}).get("runs") or {}).items()
+              if runs and runs[0].get("reused_from")}
+    if not reused:
+        return ""
+    by_commit: dict[str, list[str]] = {}
+    for lab, origin in reused.items():
+        by_commit.setdefault(str(origin.get("git_commit"))[:7], []).append(f"`{lab}`")
+    return (" _PPO runs of " + "; ".join(f"{', '.join(labs)} from git commit `{c}`" for c, labs in by_commit.items())
+            + " (an earlier run of `ppo_curves` on the same states, merged into this record)._")
 
 
 def block_test_returns(res: dict[str, Any]) -> str:

@@ -51,7 +51,8 @@ def _table(rows: list[dict], cols: list[str], fmt: dict[str, str] | None = None)
 
 def _portable(path: str) -> str:
     """``path`` without this machine's folders: under the artifact home as ``$ANM_TORCHRL_HOME/...``, under the
-    repository relative to it, else only its last two parts."""
+    repository relative to it, else only its last two parts below the top-level folder (``/tmp/run`` -> ``.../run``:
+    the top-level folder is this machine's, e.g. ``/tmp``)."""
     from anm_torchrl.paths import artifact_home
 
     p = Path(path)
@@ -60,7 +61,8 @@ def _portable(path: str) -> str:
             return f"{name}/{p.resolve().relative_to(root.resolve())}"
         except ValueError:
             continue
-    return ".../" + "/".join(p.parts[-2:])
+    tail = p.parts[2:][-2:]
+    return ".../" + "/".join(tail) if tail else "..."
 
 
 def _portable_command(cmd: str) -> str:
