@@ -196,6 +196,38 @@ def test_acmpc_pins_the_storage_direction(sim):
     assert torch.equal(a_fix, a_free)
 
 
+def test_acmpc_failed_solves_are_recorded(sim, monkeypatch):
+    """A failed pinned re-solve applies the free split, flagged; a failure from both starts applies the previous
+    plan's next step, flagged (IPOPT failures forced by marking its results failed)."""
+    import dataclasses
+
+    s = draw_initial_states(8, 0, sim)[2:3]  # N = 8 plans overlap from this state (the test above)
+    pol = ACMPCPolicy(sim, horizon=8)
+    solve = pol.nlp.solve
+
+    def pinned_fails(*args, direction=None, **kw):
+        r = solve(*args, direction=direction, **kw)
+        return r if direction is None else dataclasses.replace(r, success=False, status="Forced_Failure")
+
+    monkeypatch.setattr(pol.nlp, "solve", pinned_fails)
+    a0 = pol.act(s)
+    info = pol.last_info[0]
+    assert info["pinned"] and info["pinned_failed"] and info["pinned_status"] == "Forced_Failure"
+    assert info["overlap_applied"] == info["overlap"] > 0.0  # the free split is what was applied
+    assert np.abs(pol._plans[0].soc_path[0] - sim.step(s, a0.double())[0][0, pol._sl["des_soc"]].numpy()).max() > 1e-2
+    # (the free split's next state is off its plan: the fallback below needs a policy on its plan)
+    pol = ACMPCPolicy(sim, horizon=8)
+    solve = pol.nlp.solve
+    a0 = pol.act(s)
+    plan = pol._plans[0].setpoints[0]
+    monkeypatch.setattr(pol.nlp, "solve", lambda *a, **k: dataclasses.replace(solve(*a, **k), success=False,
+                                                                             status="Forced_Failure"))
+    a1 = pol.act(sim.step(s, a0.double())[0])
+    assert pol.last_info[0]["fallback"] and pol.last_info[0]["warm"]
+    # the previous plan's next set-points, as float32 actions (the clip to the action box is a no-op here)
+    torch.testing.assert_close(a1[0], torch.as_tensor(plan, dtype=torch.float32), rtol=0.0, atol=0.0)
+
+
 # ------------------------------------------------------------------------------------------ other networks
 @pytest.mark.parametrize("network, steps", [
     ("case33bw", 12),  # 33 buses, 3 renewables, 2 storage units, no rated branches

@@ -142,8 +142,8 @@ class ACMPCPolicy(TensorDictModuleBase):
         (``status``, ``iterations``: the free-split solve's; ``warm_status``: IPOPT's status from the shifted
         start, None without one; ``overlap``: max min(p_ch, p_dis) p.u. of the free split; ``pinned``,
         ``pinned_status``, ``pinned_iterations``, ``pinned_failed``: the pinned re-solve's; ``overlap_applied``:
-        max min(p_ch, p_dis) p.u. of the solution returned; ``solve_time``: wall s
-        of all IPOPT calls; ``cpu_time``: process CPU s of all of it).
+        max min(p_ch, p_dis) p.u. of the solution returned; ``solve_time``: wall s of all IPOPT calls;
+        ``cpu_time``: process CPU s of all of it).
         """
         c0 = time.process_time()
         soc0 = state[self._sl["des_soc"]] / self.sim.net.base_mva
@@ -182,7 +182,8 @@ class ACMPCPolicy(TensorDictModuleBase):
         old, new, self.last_info = self._plans, [], []
         for i, s in enumerate(flat):
             match, soc_dev = self._match(s, old)
-            res, info = self.plan(s, match if self.warm_start else None)
+            prev = match if self.warm_start else None
+            res, info = self.plan(s, prev)
             info.update(soc_off_plan=soc_dev, off_plan=soc_dev is not None and match is None)
             aux = (int(round(s[self._sl["aux"]][0])) + 1) % t_len
             if res.success:
