@@ -85,9 +85,11 @@ def residual_quantiles(pb: PowerBalanceNet, p_bus: torch.Tensor, q_bus: torch.Te
         v_magn, v_ang = pb(p64, q64, refine=False)
         x = torch.cat([v_ang[:, 1:], v_magn[:, 1:]], -1)  # [θ, |V|] of the non-slack buses, as PowerBalanceNet
         chord = pb.chord_matrix()
-        for _ in range(k_max):
-            x = x - pb.residual(x, p64, q64) @ chord
-            res = pb.residual(x, p64, q64).abs().amax(-1)
+        r = pb.residual(x, p64, q64)
+        for _ in range(k_max):  # each step's residual is the next step's input: one evaluation per step
+            x = x - r @ chord
+            r = pb.residual(x, p64, q64)
+            res = r.abs().amax(-1)
             res = torch.where(torch.isfinite(res), res, torch.full_like(res, math.inf))
             out.append(float(torch.quantile(res, QUANTILE)))
             if stop_when_met and rule_met(out[-1]):
