@@ -48,6 +48,10 @@ log = logging.getLogger(__name__)
 DEFAULT_ROWS = ("optimal", "acmpc_16", "acmpc_64", "mpc_16", "mpc_64", "do_nothing")
 GAMMA = 0.995
 MPC_MARGIN = 0.92
+# an MPC row's name: controller, horizon N and AC-MPC variant (one home for the suffixes _policy, _label and
+# _order read)
+_MPC_VARIANT = r"(_cold|_free)?"
+_MPC_ROW = re.compile(r"(acmpc|mpc)_(\d+)" + _MPC_VARIANT)
 
 
 ANM6 = "anm6_easy"
@@ -60,7 +64,7 @@ def _policy(name: str, sim, steps: int):
         return make_baseline("optimal", sim, horizon=steps)
     if name == "do_nothing":
         return make_baseline("do_nothing", sim)
-    m = re.fullmatch(r"(acmpc|mpc)_(\d+)(_cold|_free)?", name)
+    m = _MPC_ROW.fullmatch(name)
     if m is None or (m.group(3) and m.group(1) == "mpc"):
         raise ValueError(f"unknown row {name!r}; expected optimal, do_nothing, acmpc_<N>[_cold|_free] or mpc_<N>")
     if m.group(1) == "acmpc":
@@ -271,7 +275,7 @@ def _label(name: str) -> str:
     k = re.fullmatch(r"optimal(\d+)_then_do_nothing", name)
     if k:
         return f"the {k.group(1)}-step optimum, then do-nothing (a lower bound of the optimum)"
-    m = re.fullmatch(r"(acmpc|mpc)_(\d+)(_cold|_free)?", name)
+    m = _MPC_ROW.fullmatch(name)
     if m is None:
         return LABELS[name]
     if m.group(3):
@@ -299,7 +303,7 @@ def _solver_stats(row: dict) -> dict:
 def _order(row: str) -> tuple:
     """The published table's fixed row order (the issue's): optimum, AC-MPC, DC-MPC (larger N first), the β = 0.96
     DC-MPC, PPO on the PINN, PPO on the true env, do-nothing. Not a ranking: rows may cover different states."""
-    m = re.fullmatch(r"(optimal\d+_then_do_nothing|acmpc|mpc)_?(\d*)(_cold|_free)?", row)
+    m = re.fullmatch(r"(optimal\d+_then_do_nothing|acmpc|mpc)_?(\d*)" + _MPC_VARIANT, row)
     groups = {"acmpc": 2, "mpc": 3}
     if m and m.group(1) in groups:
         return groups[m.group(1)], -int(m.group(2)), bool(m.group(3))
