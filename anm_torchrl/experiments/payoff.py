@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from anm_torchrl.experiments.common import label, make_env_or_reason
-from anm_torchrl.experiments.io import read_json, result
+from anm_torchrl.experiments.io import read_json, result, write_json
 
 log = logging.getLogger(__name__)
 
@@ -157,8 +157,6 @@ def accuracy_part(path: str | Path | None) -> dict[str, Any]:
 def reread_accuracy(dst: str | Path, src: str | Path | None = None) -> dict:
     """Replace the ``pinn_accuracy`` part of the payoff record ``dst`` in place by :func:`accuracy_part` of ``src``
     (default the generic PINN's record), e.g. after one of its networks was re-measured."""
-    from anm_torchrl.experiments.io import write_json
-
     rec = read_json(dst)
     rec["data"]["pinn_accuracy"] = accuracy_part(src)
     rec["data"]["parts"] = list(dict.fromkeys([*rec["data"].get("parts", []), "accuracy"]))
@@ -419,8 +417,6 @@ def merge_ppo(src: str | Path, dst: str | Path, note: str | None = None) -> dict
     Raises:
         ValueError: ``src`` has no ``ppo`` part.
     """
-    from anm_torchrl.experiments.io import write_json
-
     new, rec = read_json(src), read_json(dst)
     if "ppo" not in (new.get("data") or {}):
         raise ValueError(f"{src}: no data.ppo to merge (parts {new.get('data', {}).get('parts')})")
@@ -454,8 +450,6 @@ def merge_cost(src: str | Path, dst: str | Path, networks: list[str], note: str 
     Raises:
         ValueError: ``src`` lacks rows of one of ``networks``.
     """
-    from anm_torchrl.experiments.io import write_json
-
     new, rec = read_json(src), read_json(dst)
     rows = (new.get("data") or {}).get("rows") or []
     missing = [n for n in networks if not any(r["network"] == n for r in rows)]
