@@ -254,6 +254,30 @@ def test_other_network_optimum_replays_in_anmenv(network, steps):
     assert opt.replay_return >= _discounted(dn.reward) - 1e-9  # the optimum bounds do-nothing
 
 
+def test_storage_free_optimum_repeats_over_the_period():
+    """Without storage the optimum separates per step: solved over the profiles' period and repeated, it equals
+    the optimum solved over the whole horizon at once (the SimBench feeder's tables, profiles cut to 3 steps)."""
+    from anm_torchrl.baselines.optimal import solve_horizon
+    from anm_torchrl.envs.anm_env import build_simulator
+    from anm_torchrl.networks import get_network
+
+    case, period, steps = get_network("simbench_mv_semiurb"), 3, 7
+    args = dict(delta_t=case.delta_t, gamma=case.gamma, lamb=case.lamb, costs_clipping=case.costs_clipping)
+    short = build_simulator(case.network, case.load_p[:period], case.gen_p_max[:period], **args)
+    reps = -(-steps // period) + 1  # the same profile, repeated past the horizon: no period shorter than it
+    long = build_simulator(case.network, np.tile(case.load_p[:period], (reps, 1)),
+                           np.tile(case.gen_p_max[:period], (reps, 1)), **args)
+    assert (solve_horizon(short, steps), solve_horizon(long, steps)) == (period, steps)
+    s0 = draw_initial_states(1, 0, short)[0].numpy()  # time index in [0, 3): the same steps on both
+    tiled = solve_optimal(short, s0, steps, GAMMA, warm_start="do_nothing")
+    whole = solve_optimal(long, s0, steps, GAMMA, warm_start="do_nothing")
+    assert tiled.setpoints.shape == whole.setpoints.shape == (steps, short.action_dim)
+    assert tiled.replay_gap <= REPLAY_RTOL and whole.replay_gap <= REPLAY_RTOL
+    # two IPOPT solves of the same separable problem: they agree to its tolerance (1e-8), well inside 1e-6
+    assert abs(tiled.discounted_return - whole.discounted_return) <= REPLAY_RTOL * abs(whole.discounted_return)
+    assert abs(tiled.exact_return - whole.exact_return) <= REPLAY_RTOL * abs(whole.exact_return)
+
+
 # ------------------------------------------------------------------------------------------ the gap table
 def test_optimum_then_do_nothing_is_a_lower_bound(sim, states):
     """The k-step optimum followed by do-nothing: feasible, so between do-nothing and the full-horizon optimum."""

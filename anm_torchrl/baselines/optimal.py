@@ -118,6 +118,20 @@ def _discounted(reward: np.ndarray, gamma: float) -> float:
     return float(np.dot(gamma ** np.arange(len(reward)), reward))
 
 
+def solve_horizon(sim: GridSimulator, horizon: int) -> int:
+    """How many steps the NLP of a ``horizon``-step optimum spans: ``horizon``, or the profiles' period
+    ``sim.n_time`` when it is shorter and the network has no storage unit.
+
+    Without storage no state variable couples the steps: every step's reward depends only on its set-points and
+    its time index (loads and potentials; gym-anm has no ramp limits), so the optimum separates per step and
+    repeats with the time index, which wraps modulo ``n_time``. One ``n_time``-step solve then gives every step of
+    a longer episode exactly (the SimBench feeder: 672 steps instead of 3,000).
+    """
+    if sim.n_des == 0 and sim.next_vars_hook is None and horizon > sim.n_time:
+        return int(sim.n_time)
+    return int(horizon)
+
+
 def solve_optimal(sim: GridSimulator, state: np.ndarray, horizon: int = EVAL_MAX_STEPS, gamma: float = EVAL_GAMMA,
                   warm_start: str = "mpc", seed: int = 0, formulation: str = "polar",
                   nlp: ACHorizonNLP | None = None, rtol: float = 1e-7, max_rounds: int = 6,
@@ -127,7 +141,9 @@ def solve_optimal(sim: GridSimulator, state: np.ndarray, horizon: int = EVAL_MAX
     Args:
         warm_start: one of :data:`WARM_STARTS` (``seed`` for ``"random"``).
         formulation: ``"polar"`` or ``"rectangular"`` voltages.
-        nlp: a built :class:`ACHorizonNLP` of this ``horizon`` and ``gamma`` to reuse (building costs seconds).
+        nlp: a built :class:`ACHorizonNLP` of ``solve_horizon(sim, horizon)`` steps and ``gamma`` to reuse
+            (building costs seconds). Over a storage-free network's period, the plan is repeated to ``horizon``
+            steps (:func:`solve_horizon`), and the return and replay cover all of them.
         rtol: stop once the replayed return agrees with the NLP's to this relative difference.
         max_rounds: at most this many solves (rounds 1 and 2 plus offset rounds).
         ipopt: IPOPT option overrides (only when ``nlp`` is not given).
@@ -138,14 +154,15 @@ def solve_optimal(sim: GridSimulator, state: np.ndarray, horizon: int = EVAL_MAX
     state = np.asarray(torch.as_tensor(state, dtype=torch.float64).cpu().numpy()).reshape(-1)
     if state.shape != (sim.state_dim,):
         raise ValueError(f"state must have shape ({sim.state_dim},), got {state.shape}")
+    n = solve_horizon(sim, horizon)
     if nlp is None:
-        nlp = ACHorizonNLP(sim, horizon, gamma, formulation, ipopt)
-    elif (nlp.horizon, nlp.gamma) != (int(horizon), float(gamma)):
-        raise ValueError(f"nlp has horizon {nlp.horizon} and gamma {nlp.gamma}, expected {horizon} and {gamma}")
+        nlp = ACHorizonNLP(sim, n, gamma, formulation, ipopt)
+    elif (nlp.horizon, nlp.gamma) != (n, float(gamma)):
+        raise ValueError(f"nlp has horizon {nlp.horizon} and gamma {nlp.gamma}, expected {n} and {gamma}")
     t0, c0 = time.perf_counter(), time.process_time()
     soc0 = state[sim.state_slices()["des_soc"]] / sim.net.base_mva
-    p_load, p_pot = exogenous(sim, time_indices(sim, state, horizon))
-    warm = rollout(sim, state, warm_start_actions(sim, state, horizon, warm_start, seed))
+    p_load, p_pot = exogenous(sim, time_indices(sim, state, n))
+    warm = rollout(sim, state, warm_start_actions(sim, state, n, warm_start, seed))
     warm_time = time.perf_counter() - t0
     res = nlp.solve(soc0, p_load, p_pot, nlp.guess(warm.p_dev, warm.q_dev, warm.v, warm.soc))
     rounds = [_round(res, "free split, exact power flow")]
@@ -167,11 +184,22 @@ def solve_optimal(sim: GridSimulator, state: np.ndarray, horizon: int = EVAL_MAX
         log.info("optimum round %d: NLP %.9f, replay %.9f (gap %.2e), %d iterations, %.1f s", k,
                  res.discounted_return, ret, gap, res.iterations, res.solve_time)
         if offsets is None:
-            exact_return = res.discounted_return
+            exact_return, exact_reward = res.discounted_return, res.points.reward
         elif gap <= rtol:
             break
         offsets = PowerFlowOffsets.measure(sim, replay.v, res.points.v)
-    return OptimalResult(setpoints=res.setpoints, states=replay.states, discounted_return=res.discounted_return,
+    setpoints, nlp_return = res.setpoints, res.discounted_return
+    if n < horizon:  # the period's plan, repeated: every step's reward is the one solved at its time index
+        tile = np.arange(horizon) % n
+        setpoints, nlp_return = setpoints[tile], _discounted(res.points.reward[tile], gamma)
+        exact_return = _discounted(exact_reward[tile], gamma)
+        replay = rollout(sim, state, setpoints)
+        if not replay.converged.all():
+            raise RuntimeError("the repeated plan's replay did not converge at steps "
+                               f"{np.flatnonzero(~replay.converged)[:5].tolist()}")
+        ret = _discounted(replay.reward, gamma)
+        gap = abs(ret - nlp_return) / abs(nlp_return)
+    return OptimalResult(setpoints=setpoints, states=replay.states, discounted_return=nlp_return,
                          exact_return=exact_return, replay_return=ret, replay_gap=gap, warm_start=warm_start,
                          warm_return=_discounted(warm.reward * warm.converged, gamma), rounds=rounds,
                          wall_time=time.perf_counter() - t0, warm_time=warm_time,
@@ -262,8 +290,8 @@ class OptimalPolicy(TensorDictModuleBase):
 
     def _new_plan(self, s: np.ndarray) -> int:
         if self._nlp is None:
-            self._nlp = ACHorizonNLP(self.sim, self.horizon, self.gamma, self.solve_kw.get("formulation", "polar"),
-                                     self.solve_kw.get("ipopt"))
+            self._nlp = ACHorizonNLP(self.sim, solve_horizon(self.sim, self.horizon), self.gamma,
+                                     self.solve_kw.get("formulation", "polar"), self.solve_kw.get("ipopt"))
         kw = {k: v for k, v in self.solve_kw.items() if k not in ("formulation", "ipopt")}
         plan = solve_optimal(self.sim, s, self.horizon, self.gamma, nlp=self._nlp, **kw)
         log.info("optimal policy: new plan from t = %d, return %.6f (%.0f s)", int(s[self._aux][0]),
