@@ -71,7 +71,7 @@ def test_ppo_rows_must_come_from_the_same_states():
 
 
 def test_each_network_has_its_own_block():
-    assert gap.readme_block("anm6_easy") is gap.README_BLOCK
+    assert gap.readme_block("anm6_easy").pattern == gap.README_BLOCK.pattern
     text = "<!-- optimum:gap -->\nA\n<!-- /optimum:gap -->\n<!-- optimum:gap:case33bw -->\nB\n<!-- /optimum:gap:case33bw -->"
     assert gap.readme_block("case33bw").search(text).group(2) == "B\n"
     assert gap.readme_block("cigre_mv").search(text) is None
@@ -92,3 +92,13 @@ def test_gap_blocks_are_rendered_from_the_records(path):
     for page in pages:
         m = block.search((REPO / page).read_text())
         assert m is not None and m.group(2) == body, page
+
+
+def test_results_page_holds_every_gap_table():
+    """docs/RESULTS.md's section is what the generator renders from the committed tables (so a regenerated page
+    keeps it, and every network's table is on it)."""
+    from anm_torchrl.experiments.report import optimum_section
+
+    tables = {p.stem: json.loads(p.read_text()) for p in TABLES}
+    assert tables, "no results/optimal_gap_table*.json"
+    assert optimum_section(tables) in (REPO / "docs" / "RESULTS.md").read_text()

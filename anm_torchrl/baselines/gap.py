@@ -268,15 +268,22 @@ def markdown(rec: dict) -> str:
 # ------------------------------------------------------------------------------------------ the published table
 LABELS = {"optimal": "perfect-foresight AC optimum", "do_nothing": "do-nothing"}  # other rows: _label
 PPO_ROWS = {"none": "PPO trained on the true env", "pinn": "PPO trained on the PINN"}
-README_BLOCK = re.compile(r"(<!-- optimum:gap -->\n)(.*?)(<!-- /optimum:gap -->)", re.S)
+
+
+def block_markers(network: str = ANM6) -> tuple[str, str]:
+    """The opening and closing markers of a network's gap block in README and the docs:
+    ``<!-- optimum:gap -->`` for ANM6-Easy's table, ``<!-- optimum:gap:<network> -->`` for another's."""
+    tag = "optimum:gap" if network == ANM6 else f"optimum:gap:{network}"
+    return f"<!-- {tag} -->", f"<!-- /{tag} -->"
 
 
 def readme_block(network: str = ANM6) -> re.Pattern:
-    """The ``<!-- optimum:gap -->`` block of ANM6-Easy's table, ``<!-- optimum:gap:<network> -->`` of another's."""
-    if network == ANM6:
-        return README_BLOCK
-    tag = re.escape(f"optimum:gap:{network}")
-    return re.compile(rf"(<!-- {tag} -->\n)(.*?)(<!-- /{tag} -->)", re.S)
+    """A page's gap block of ``network``: groups (opening marker and newline, body, closing marker)."""
+    start, end = block_markers(network)
+    return re.compile(f"({re.escape(start)}\n)(.*?)({re.escape(end)})", re.S)
+
+
+README_BLOCK = readme_block(ANM6)
 
 
 def _label(name: str) -> str:
@@ -511,7 +518,7 @@ def update_pages(pages: list[str | Path], table_rec: dict) -> None:
     for page in map(Path, pages):
         text = page.read_text()
         if not block.search(text):
-            raise ValueError(f"{page}: no {block.pattern.split(chr(10))[0][1:]} ... block for {net}")
+            raise ValueError(f"{page}: no {' ... '.join(block_markers(net))} block for {net}")
         page.write_text(block.sub(lambda m: m.group(1) + body + m.group(3), text))
 
 

@@ -396,6 +396,7 @@ physics sees them, the data-driven models only what their training data covered.
 {_fig(figs, 'adaptability', rel)}
 """)
     out.append(payoff_section(res.get("payoff")))
+    out.append(optimum_section(res.get("optimal_gap_tables")))
     return "\n".join(out)
 
 
@@ -420,6 +421,27 @@ batch) to need > 30 s per step is "skipped"; "n/a": no trained model for that ne
 
 {body}
 <!-- payoff:end -->
+"""
+
+
+def optimum_section(tables: dict[str, dict] | None) -> str:
+    """Issue 15's gap tables, one per network, from the committed ``results/optimal_gap_table*.json`` (file stem ->
+    record): each is :func:`anm_torchrl.baselines.gap.render_block` inside the network's own block markers, the
+    ones ``python -m anm_torchrl.baselines.optimal --combine ... --readme docs/RESULTS.md`` rewrites in place."""
+    from anm_torchrl.baselines import gap
+
+    blocks = []
+    for rec in sorted((tables or {}).values(), key=lambda r: r["protocol"].get("network", gap.ANM6) != gap.ANM6):
+        start, end = gap.block_markers(rec["protocol"].get("network", gap.ANM6))
+        blocks.append(f"{start}\n{gap.render_block(rec)}{end}")
+    body = "\n\n".join(blocks) if blocks else "No gap table is recorded."
+    return f"""## How far from the best achievable: the perfect-foresight AC optimum (issue 15)
+
+Every policy against the perfect-foresight AC-OPF optimum of each test episode, on each registered network, on the
+true env. How the optimum is solved, replayed and timed, and the commands that made each table:
+`docs/OPTIMAL.md`.
+
+{body}
 """
 
 
