@@ -85,8 +85,10 @@ class OptimalResult:
         exact_return: the exact-physics optimum's return (round 2).
         replay_return: Σ γ^t r_t of the float64 replay on the simulator; ``replay_gap`` its relative difference
             to ``discounted_return``.
-        warm_start: the warm start's name; ``warm_return`` its own replayed return.
-        rounds: :meth:`NLPResult.summary` of every round (with ``replay_return`` and ``replay_gap``).
+        warm_start: the warm start's name; ``warm_return`` its own replayed return over the solved steps (one
+            period on a storage-free network, :func:`solve_horizon`).
+        rounds: :meth:`NLPResult.summary` of every round (with ``replay_return`` and ``replay_gap``), over the
+            solved steps.
         wall_time: s, warm start and all rounds.  warm_time: s, the warm start alone.
         cpu_time: process CPU s of the same (the wall time of an idle core; on a shared machine the wall time
             is longer).
