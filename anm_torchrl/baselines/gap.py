@@ -472,6 +472,7 @@ def render_block(table_rec: dict) -> str:
     pr, common = table_rec["protocol"], table_rec["common_states"]
     partial = len(common) < pr["episodes"]
     losses = table_rec["optimum_mean"] < 0
+    digits = 2 if abs(table_rec["optimum_mean"]) >= 10 else 4  # returns of order 1 differ in the third decimal
     on = f"#{', #'.join(map(str, common))}"
     init = f", sim, init='{pr['init']}'" if "init" in pr else ""
     net = pr.get("network", ANM6)
@@ -489,12 +490,12 @@ def render_block(table_rec: dict) -> str:
              "|---|---:|---:|---:|" + ("---:|" if losses else "") + ("---:|" if partial and losses else "")]
     for r in table_rec["rows"]:
         spread = (r["seeds"] or 0) > 1  # a std over one seed says nothing
-        ret = f"{r['discounted_return']:.{2 if losses else 4}f}" + (
-            f" ± {r['std_over_seeds']:.{2 if losses else 4}f}" if spread else "")
+        ret = f"{r['discounted_return']:.{digits}f}" + (f" ± {r['std_over_seeds']:.{digits}f}" if spread else "")
         gain = "–" if r.get("gain_pct_of_optimum") is None else f"{r['gain_pct_of_optimum']:.1f} %" + (
             f" ± {r['gain_pct_std']:.1f}" if spread else "")
+        std = r["loss_pct_std"]
         pct = "–" if r["loss_pct_of_optimum"] is None else _pct(r["loss_pct_of_optimum"]) + (
-            f" ± {r['loss_pct_std']:,.0f}" if spread else "")
+            (f" ± {std:,.0f}" if std >= 10 else f" ± {std:.1f}") if spread else "")
         states = f"{r['states']}" if r["states"] == pr["episodes"] else \
             f"{r['states']} (#{', #'.join(map(str, r['episode_index']))})"
         seeds = f", {r['seeds']} seed{'s' if r['seeds'] != 1 else ''}" if r["seeds"] else ""
