@@ -102,3 +102,15 @@ def test_results_page_holds_every_gap_table():
     tables = {p.stem: json.loads(p.read_text()) for p in TABLES}
     assert tables, "no results/optimal_gap_table*.json"
     assert optimum_section(tables) in (REPO / "docs" / "RESULTS.md").read_text()
+
+
+def test_a_page_without_the_block_refuses_the_table(tmp_path):
+    rec = gap.combine(_rec([0.2, 0.4], [-0.1, -0.1], [0.1, 0.1]))
+    good, bad = tmp_path / "good.md", tmp_path / "bad.md"
+    good.write_text("<!-- optimum:gap:case33bw -->\nold\n<!-- /optimum:gap:case33bw -->\n")
+    bad.write_text("no block here\n")
+    with pytest.raises(ValueError, match="bad.md: no <!-- optimum:gap:case33bw -->"):
+        gap.update_pages([good, bad], rec)
+    assert "old" in good.read_text()  # nothing written when one page lacks the block
+    gap.update_pages([good], rec)
+    assert gap.render_block(rec) in good.read_text()

@@ -516,10 +516,11 @@ def update_pages(pages: list[str | Path], table_rec: dict) -> None:
     body = render_block(table_rec)
     net = table_rec["protocol"].get("network", ANM6)
     block = readme_block(net)
-    for page in map(Path, pages):
-        text = page.read_text()
-        if not block.search(text):
-            raise ValueError(f"{page}: no {' ... '.join(block_markers(net))} block for {net}")
+    texts = {page: page.read_text() for page in map(Path, pages)}
+    missing = [str(page) for page, text in texts.items() if not block.search(text)]
+    if missing:  # checked on every page before any is written: no page is left half-updated
+        raise ValueError(f"{', '.join(missing)}: no {' ... '.join(block_markers(net))} block for {net}")
+    for page, text in texts.items():
         page.write_text(block.sub(lambda m: m.group(1) + body + m.group(3), text))
 
 
@@ -560,8 +561,8 @@ def main(argv: list[str] | None = None) -> dict:
         tr = json.loads(Path(args.test_returns).read_text()) if args.test_returns else None
         ppo = json.loads(Path(args.ppo).read_text()) if args.ppo else None
         rec = {**combine(json.loads(Path(args.combine).read_text()), tr, ppo, record=args.out), "command": command}
+        update_pages(args.readme, rec)  # first: a page without the block refuses the table before it is written
         _write(Path(args.out), rec)
-        update_pages(args.readme, rec)
         return rec
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     torch.set_num_threads(1)
