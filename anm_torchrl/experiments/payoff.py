@@ -621,7 +621,9 @@ def user_verdict(rec: dict) -> str:
                    "than on the exact simulator once the surrogate's training is counted" + (
                        ", and no surrogate is cheaper per transition: a user of this package should train on the "
                        "exact batched simulator (`make_env(\"none\", network=...)`, `surrogate=none`)" if not cross
-                       else ""))
+                       else ": the exact batched simulator stays the default (`surrogate=none`); where a surrogate is "
+                       "cheaper per transition, its training (for a data-driven one, also its dataset) comes first "
+                       "and its transitions are approximate"))
     return ". ".join(out) + "." if out else ""
 
 
