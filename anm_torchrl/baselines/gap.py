@@ -401,7 +401,8 @@ def _payoff_ppo_rows(ppo: dict, gap_rows: dict, pr: dict, n: int, opt_mean: floa
         if any(v is None for v in vals):
             raise ValueError(f"combine: PPO {t['env']!r} lacks a test return for a seed of {t['seeds']}")
         agg = aggregate(vals)
-        frames = f"{min(t['frames']):,}–{max(t['frames']):,} frames"
+        lo, hi = min(t["frames"]), max(t["frames"])
+        frames = f"{lo:,} frames" if lo == hi else f"{lo:,}–{hi:,} frames"
         rows.append(_all_states_row(f"{PPO_ROWS[t['env']]} (`best.pt`, {frames})", f"ppo_best_{t['env']}", "ppo",
                                     n, agg["mean"], opt_mean, gain, agg["std"], agg["n"]))
     return rows
