@@ -76,9 +76,11 @@ def test_merge_cost_replaces_one_networks_rows(tmp_path):
         return {"network": net, "n_bus": n_bus, "impl": impl, "batch": 1, "us_per_transition": us, "x_numba": 1.0}
 
     dst, src = tmp_path / "payoff.json", tmp_path / "cost.json"
-    dst.write_text(json.dumps({"name": "payoff", "meta": {}, "data": {
+    no_model = {**row("c", 115, "xgb", None), "reason": "FileNotFoundError: no trained 'xgb' surrogate"}
+    dst.write_text(json.dumps({"name": "payoff", "status": "partial", "reason": "1 cost rows without a model",
+                               "meta": {}, "data": {
         "rows": [row("a", 6, "anm_env_numba", 10.0), row("a", 6, "pinn", 30.0), row("c", 115, "anm_env_numba", 90.0),
-                 row("c", 115, "pinn", 300.0)], "crossover": []}}))
+                 row("c", 115, "pinn", 300.0), no_model], "crossover": []}}))
     src.write_text(json.dumps({"meta": {"versions": {"git_commit": "new"}}, "data": {
         "rows": [row("c", 115, "anm_env_numba", 95.0), row("c", 115, "pinn", 50.0)]}}))
     payoff.merge_cost(src, dst, ["c"], note="re-measured")
@@ -87,6 +89,7 @@ def test_merge_cost_replaces_one_networks_rows(tmp_path):
         ("a", 10.0), ("a", 30.0), ("c", 95.0), ("c", 50.0)]
     assert {(c["impl"], c["crossover_n_bus"]) for c in rec["data"]["crossover"]} == {("pinn", 115)}
     assert rec["meta"]["notes"] == {"cost_c": "re-measured"}
+    assert (rec["status"], rec["reason"]) == ("ok", None)  # the row without a model was replaced
     with pytest.raises(ValueError, match=r"no cost rows of \['b'\]"):
         payoff.merge_cost(src, dst, ["b"])
 

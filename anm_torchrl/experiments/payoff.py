@@ -305,12 +305,18 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seed: 
     if "ppo" in parts:
         data["ppo"] = ppo_part(dict(cfg.get("ppo", {})), Path(out_dir))
     data["wall_s"] = time.perf_counter() - t0
+    status, reason = _status(data)
+    return result("payoff", status, data, reason=reason, config=cfg, seeds={"seed": seed})
+
+
+def _status(data: dict) -> tuple[str, str | None]:
+    """A payoff record's status and reason from its data: "partial" while a cost row lacks a model (or was
+    skipped) or the PINN accuracy record is absent; recomputed whenever rows are merged in."""
     missing = [r for r in data.get("rows", []) if r.get("reason") or r.get("skipped")]
     status = "partial" if missing or not data.get("pinn_accuracy", {"available": True})["available"] else "ok"
-    return result("payoff", status, data, reason=None if status == "ok" else
-                  f"{len(missing)} cost rows without a model or skipped; PINN accuracy record "
-                  f"{'present' if data.get('pinn_accuracy', {}).get('available') else 'absent or not asked'}",
-                  config=cfg, seeds={"seed": seed})
+    return status, None if status == "ok" else (
+        f"{len(missing)} cost rows without a model or skipped; PINN accuracy record "
+        f"{'present' if data.get('pinn_accuracy', {}).get('available') else 'absent or not asked'}")
 
 
 def accuracy_table(acc: dict) -> str:
@@ -458,6 +464,7 @@ def merge_cost(src: str | Path, dst: str | Path, networks: list[str], note: str 
     d = rec["data"]
     d["rows"] = [r for r in d["rows"] if r["network"] not in networks] + [r for r in rows if r["network"] in networks]
     d["crossover"] = crossover(d["rows"])
+    rec["status"], rec["reason"] = _status(d)
     for n in networks:
         rec["meta"].setdefault("cost_from", {})[n] = {"file": str(src), "versions": new["meta"].get("versions")}
         if note is not None:
