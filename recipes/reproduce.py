@@ -147,13 +147,12 @@ def render(out_dir: Path, results_md: Path | None, run_info: dict, write_run: bo
     (if ``readme``); with ``write_run``, also store ``run_info`` (with the figure paths) as ``run.json``.
     Returns (figures, page path)."""
     from anm_torchrl.experiments import plots, readme_blocks, report
-    from anm_torchrl.experiments.io import load_results, write_json
+    from anm_torchrl.experiments.io import load_results, read_json, write_json
 
     results = load_results(out_dir)
     figs = plots.make_all(results, out_dir / "figures")
     # issue 15's gap tables (records of python -m anm_torchrl.baselines.optimal --combine, not experiments)
-    results["optimal_gap_tables"] = {f.stem: json.loads(f.read_text())
-                                     for f in sorted(out_dir.glob("optimal_gap_table*.json"))}
+    results["optimal_gap_tables"] = {f.stem: read_json(f) for f in sorted(out_dir.glob("optimal_gap_table*.json"))}
     if write_run:
         run_info["figures"] = {k: os.path.relpath(v, out_dir) if v else None for k, v in figs.items()}
         write_json(out_dir / "run.json", run_info)

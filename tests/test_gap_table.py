@@ -86,7 +86,7 @@ def test_gap_blocks_are_rendered_from_the_records(path):
     mine = [r for r in rec["rows"] if r["source"] == "gap"]
     assert mine == [r for r in gap.combine(src, record=rec["record"])["rows"] if r["source"] == "gap"]
     body = gap.render_block(rec)
-    block = gap.readme_block(rec["protocol"].get("network", "anm6_easy"))
+    block = gap.readme_block(gap.network_of(rec["protocol"]))
     pages = [p for p in ("README.md", "docs/OPTIMAL.md") if f" {p}" in rec["command"].split("--readme")[1]]
     assert "docs/OPTIMAL.md" in pages
     for page in pages:

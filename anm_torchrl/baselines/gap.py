@@ -270,6 +270,11 @@ LABELS = {"optimal": "perfect-foresight AC optimum", "do_nothing": "do-nothing"}
 PPO_ROWS = {"none": "PPO trained on the true env", "pinn": "PPO trained on the PINN"}
 
 
+def network_of(protocol: dict) -> str:
+    """The network of a gap record's ``protocol`` (ANM6-Easy's records predate the key)."""
+    return protocol.get("network", ANM6)
+
+
 def block_markers(network: str = ANM6) -> tuple[str, str]:
     """The opening and closing markers of a network's gap block in README and the docs:
     ``<!-- optimum:gap -->`` for ANM6-Easy's table, ``<!-- optimum:gap:<network> -->`` for another's."""
@@ -358,7 +363,7 @@ def _test_returns_rows(test_returns: dict, pr: dict, n: int, opt_mean: float, ga
     """ANM6-Easy: the PPO rows and the β = 0.96 DC-MPC row of a ``test_returns`` record (protocol checked)."""
     d = test_returns["data"]
     want = {"test_episodes": n, "test_seed": int(pr["seed"]), "max_steps": int(pr["steps"]), "gamma": float(pr["gamma"])}
-    if pr.get("network", ANM6) != ANM6 or d["protocol"] != want:
+    if network_of(pr) != ANM6 or d["protocol"] != want:
         raise ValueError(f"combine: test_returns protocol {d['protocol']} differs from the gap record's {want} "
                          f"(network {pr.get('network')})")
     rows = []
@@ -476,7 +481,7 @@ def render_block(table_rec: dict) -> str:
     digits = 2 if abs(table_rec["optimum_mean"]) >= 10 else 4  # returns of order 1 differ in the third decimal
     on = f"#{', #'.join(map(str, common))}"
     init = f", sim, init='{pr['init']}'" if "init" in pr else ""
-    net = pr.get("network", ANM6)
+    net = network_of(pr)
     lines = [f"{net}: {pr['episodes']} test states (`draw_initial_states({pr['episodes']}, seed={pr['seed']}{init})`, "
              f"numbered #0–#{pr['episodes'] - 1}), T = {pr['steps']:,}, γ = {pr['gamma']}, discounted return on the "
              "true env; gain: the share of the optimum's improvement over do-nothing a row reaches, "
@@ -515,7 +520,7 @@ def render_block(table_rec: dict) -> str:
 def update_pages(pages: list[str | Path], table_rec: dict) -> None:
     """Rewrite the network's gap block (:func:`readme_block`) of every page; a page without it is an error."""
     body = render_block(table_rec)
-    net = table_rec["protocol"].get("network", ANM6)
+    net = network_of(table_rec["protocol"])
     block = readme_block(net)
     texts = {page: page.read_text() for page in map(Path, pages)}
     missing = [str(page) for page, text in texts.items() if not block.search(text)]

@@ -431,8 +431,9 @@ def optimum_section(tables: dict[str, dict] | None) -> str:
     from anm_torchrl.baselines import gap
 
     blocks = []
-    for rec in sorted((tables or {}).values(), key=lambda r: r["protocol"].get("network", gap.ANM6) != gap.ANM6):
-        start, end = gap.block_markers(rec["protocol"].get("network", gap.ANM6))
+    for net, rec in sorted(((gap.network_of(r["protocol"]), r) for r in (tables or {}).values()),
+                           key=lambda x: x[0] != gap.ANM6):  # ANM6-Easy's table first, then in file order
+        start, end = gap.block_markers(net)
         blocks.append(f"{start}\n{gap.render_block(rec)}{end}")
     body = "\n\n".join(blocks) if blocks else "No gap table is recorded."
     return f"""## How far from the best achievable: the perfect-foresight AC optimum (issue 15)
