@@ -452,3 +452,32 @@ def test_dnn_budget_is_epochs_not_wall_time():
     # the cap is not checked once the epoch budget is spent: a run that finished its budget is kept
     _, info = train_mlp(*_mlp_data(), {**params, "max_epochs": 1, "max_minutes": 0}, seed=3)
     assert info["epochs"] == 1
+
+
+def test_xgboost_trains_and_predicts_on_the_asked_thread_count(monkeypatch):
+    """``torch.set_num_threads(1)`` caps the OpenMP runtime xgboost shares with torch, so ``nthread=2`` silently
+    ran on one core (110 s instead of ~55 s per round on SimBench). Training and prediction now run with the
+    asked count in force, and the caller's torch count comes back after."""
+    import xgboost as xgb
+
+    from anm_torchrl.surrogates import _xgb
+
+    seen = []
+    real_train = xgb.train
+    monkeypatch.setattr(xgb, "train", lambda *a, **k: (seen.append(torch.get_num_threads()), real_train(*a, **k))[1])
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        x = np.random.default_rng(0).normal(size=(64, 3)).astype(np.float32)
+        booster, info = _xgb.train_booster({"nthread": 2, "tree_method": "hist"}, x, x[:, 0], None, None, 3, None)
+        assert seen == [2] and torch.get_num_threads() == 1 and info["rounds"] == 3
+        monkeypatch.setattr(type(booster), "inplace_predict",
+                            lambda self, *a, **k: (seen.append(torch.get_num_threads()), np.zeros(len(x)))[1])
+        _xgb.predict(booster, x, n_jobs=2)
+        assert seen == [2, 2] and torch.get_num_threads() == 1
+        with pytest.raises(ValueError, match="nthread"):
+            _xgb.train_booster({"tree_method": "hist"}, x, x[:, 0], None, None, 3, None)
+        with pytest.raises(ValueError, match="thread count must be >= 1"):
+            _xgb.predict(booster, x, n_jobs=0)
+    finally:
+        torch.set_num_threads(before)

@@ -34,7 +34,7 @@ import torch
 import anm_torchrl
 from anm_torchrl.artifacts import ArtifactError, atomic_folder, verify_manifest, write_manifest
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
-from anm_torchrl.surrogates._xgb import train_booster
+from anm_torchrl.surrogates._xgb import predict as xgb_predict, train_booster
 from anm_torchrl.surrogates.conf import load_defaults
 from anm_torchrl.surrogates.features import Featurizer
 
@@ -147,8 +147,7 @@ class TerminalClassifier:
             if self.constant is None:
                 raise RuntimeError("TerminalClassifier is not fitted: call fit() or TerminalClassifier.load()")
             return np.full(x.shape[0], 1.0 if self.constant else 0.0)
-        # xgboost compares features in float32: casting here gives the same trees, and is faster
-        return self.booster.inplace_predict(np.ascontiguousarray(x, dtype=np.float32), validate_features=False)
+        return xgb_predict(self.booster, x, self.n_jobs)
 
     def predict_proba(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Probability (N,) float64 that the step from ``state`` (N, state_dim) under ``action`` (N, action_dim) is

@@ -133,8 +133,8 @@ class SklearnBackend(Backend):
 class XGBBackend(Backend):
     kind = "xgb"
 
-    def __init__(self, booster):
-        self.booster = booster
+    def __init__(self, booster, n_jobs: int):
+        self.booster, self.n_jobs = booster, int(n_jobs)
 
     @classmethod
     def fit(cls, x: np.ndarray, y: np.ndarray, xv: np.ndarray, yv: np.ndarray, params: dict, n_jobs: int,
@@ -148,11 +148,12 @@ class XGBBackend(Backend):
              "multi_strategy": "one_output_per_tree", "nthread": int(n_jobs), "seed": int(seed), **p}
         booster, info = train_booster(p, x, y, xv, yv, rounds, early, progress=progress, desc="xgb",
                                       min_delta=min_delta)
-        return cls(booster), info
+        return cls(booster, n_jobs), info
 
     def predict(self, x: torch.Tensor) -> torch.Tensor:
-        # xgboost compares features in float32: casting here gives the same trees, and is faster
-        y = self.booster.inplace_predict(x.detach().cpu().to(torch.float32).numpy(), validate_features=False)
+        from anm_torchrl.surrogates._xgb import predict
+
+        y = predict(self.booster, x.detach().cpu().to(torch.float32).numpy(), self.n_jobs)
         return torch.as_tensor(np.asarray(y, dtype=np.float64).reshape(x.shape[0], -1), device=x.device)
 
     def save(self, folder: Path) -> None:
@@ -167,7 +168,7 @@ class XGBBackend(Backend):
         if booster.num_features() != n_features or n_out != n_targets:
             raise ModelFileError(f"{f} maps {booster.num_features()} inputs to {n_out} outputs; this state layout "
                                  f"needs {n_features} -> {n_targets}: it was made for another state layout")
-        return cls(booster)
+        return cls(booster, n_jobs)
 
 
 class DNNBackend(Backend, torch.nn.Module):
