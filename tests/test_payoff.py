@@ -33,6 +33,43 @@ def test_crossover_is_the_first_bus_count_where_the_surrogate_is_cheaper():
     assert out[("pinn", 64)]["crossover_n_bus"] is None and out[("pinn", 64)]["measured_n_bus"] == [6]
 
 
+def test_a_lower_bound_counts_only_where_it_settles_the_comparison():
+    """A capped booster's cost bounds the uncapped one's from below: above the exact cost it shows the surrogate
+    is dearer there; below it, it says nothing, so it is neither a crossover nor the cheapest."""
+    lb = "a 20-round booster ..."
+    rows = [_r("a", 6, "anm_env_numba", 1, 10.0), _r("a", 6, "xgb_generative", 1, 40.0),
+            _r("c", 115, "anm_env_numba", 1, 90.0), {**_r("c", 115, "xgb_generative", 1, 200.0), "lower_bound": lb},
+            _r("c", 115, "anm_env_numba", 64, 50.0), {**_r("c", 115, "xgb_generative", 64, 30.0), "lower_bound": lb}]
+    for r in rows:
+        r.update(load_avg_1min=1.0, x_numba=r["us_per_transition"] / (10.0 if r["network"] == "a" else
+                                                                        90.0 if r["batch"] == 1 else 50.0))
+    out = {(c["impl"], c["batch"]): c for c in payoff.crossover(rows)}
+    assert out[("xgb_generative", 1)] == {"impl": "xgb_generative", "batch": 1, "crossover_n_bus": None,
+                                          "measured_n_bus": [6, 115]}
+    assert out[("xgb_generative", 64)]["crossover_n_bus"] is None and out[("xgb_generative", 64)]["measured_n_bus"] == []
+    rec = {"data": {"rows": rows, "crossover": list(out.values())}}
+    verdict = payoff.cost_verdict(rec)
+    assert "batch 64: anm_env_numba on c (50.0 µs) (undetermined against xgb_generative, whose lower bound is 30.0" in verdict
+    md = payoff.markdown(rec)
+    assert "≥ 200.0 (≥ 2.22×; L1)" in md and f"- xgb_generative on c: {lb}" in md
+
+
+def test_a_capped_booster_bounds_only_when_cut_while_improving():
+    from anm_torchrl.surrogates._xgb import capped_prefix_reason
+
+    defaults = {"num_boost_round": 1000, "early_stopping_rounds": 30, "max_depth": 8}
+    capped = {**defaults, "num_boost_round": 20}
+    assert "20-round booster" in capped_prefix_reason(capped, {"rounds": 20, "best_iteration": 19}, defaults)
+    with pytest.raises(ValueError, match="kept 15 of 20 rounds"):  # early stopping's best was earlier: no bound
+        capped_prefix_reason(capped, {"rounds": 20, "best_iteration": 14}, defaults)
+    with pytest.raises(ValueError, match=r"differs in \['max_depth'\]"):
+        capped_prefix_reason({**capped, "max_depth": 4}, {"rounds": 20, "best_iteration": 19}, defaults)
+    with pytest.raises(ValueError, match="no cap"):
+        capped_prefix_reason(defaults, {"rounds": 1000, "best_iteration": 999}, defaults)
+    with pytest.raises(ValueError, match="needs an xgb spec with the capped model's path"):
+        payoff.capped_bound({"name": "dnn", "dataset": "generative", "capped": True})
+
+
 def test_unknown_part_is_refused(tmp_path):
     with pytest.raises(ValueError, match="payoff.parts"):
         payoff.run({"parts": ["cost", "speed"]}, [], tmp_path)

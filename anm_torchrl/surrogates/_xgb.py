@@ -91,3 +91,32 @@ def _train(xgb, params, x, y, x_val, y_val, num_boost_round, early_stopping_roun
         info.update(best_iteration=best, best_score=float(history["val"][metric][best]), metric=metric)
         booster = booster[: best + 1]
     return booster, info
+
+
+def capped_prefix_reason(params: dict, info: dict, defaults: dict) -> str:
+    """Why a booster trained with a round cap costs at most what the uncapped one costs: said only when it is so.
+
+    A run that differs from the defaults in ``num_boost_round`` alone grows the same first rounds (same data,
+    parameters and seed); if its best validation round is its last, the uncapped run, whose early stopping keeps
+    everything up to its best round, keeps at least these rounds, and predicting with a prefix of trees does less work.
+
+    Args:
+        params: the trained model's parameters (``surrogate.json`` ``params``).
+        info: its ``train_info`` (:func:`train_booster`'s ``rounds`` and ``best_iteration``).
+        defaults: the uncapped model's parameters.
+
+    Raises:
+        ValueError: another parameter differs, the cap is not below the default, or the run stopped improving
+            before its cap (then its cost bounds nothing).
+    """
+    other = sorted(k for k in set(params) | set(defaults) if k != "num_boost_round" and params.get(k) != defaults.get(k))
+    if other:
+        raise ValueError(f"a capped booster must differ from the defaults in num_boost_round only; it differs in {other}")
+    cap, full = int(params["num_boost_round"]), int(defaults["num_boost_round"])
+    if cap >= full:
+        raise ValueError(f"num_boost_round={cap} is no cap: the default is {full}")
+    if (info.get("rounds"), info.get("best_iteration")) != (cap, cap - 1):
+        raise ValueError(f"the booster kept {info.get('best_iteration', -1) + 1} of {info.get('rounds')} rounds: it was "
+                         f"not cut by its cap of {cap} while improving, so it bounds nothing")
+    return (f"a {cap}-round booster cut by its cap while still improving on validation: the uncapped run (same data, "
+            f"parameters and seed) grows the same {cap} rounds first and keeps at least these, so it costs at least this")
