@@ -29,7 +29,6 @@ import glob
 import hashlib
 import json
 import logging
-import math
 import os
 import shutil
 import socket

@@ -1,6 +1,5 @@
 """The perfect-foresight AC optimum and AC-MPC (CasADi + IPOPT): replay agreement, bounds, warm-start stability."""
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +13,7 @@ from anm_torchrl.baselines import gap  # noqa: E402
 from anm_torchrl.baselines.acmpc import ACMPCPolicy  # noqa: E402
 from anm_torchrl.baselines.mpc import MPCPolicy  # noqa: E402
 from anm_torchrl.baselines.nlp_model import ACHorizonNLP, rollout  # noqa: E402
-from anm_torchrl.baselines.optimal import (OptimalPolicy, replay_in_env, solve_optimal,  # noqa: E402
+from anm_torchrl.baselines.optimal import (replay_in_env, solve_optimal,  # noqa: E402
                                            warm_start_actions)
 from anm_torchrl.grid.simulator import anm6_easy_simulator  # noqa: E402
 from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy  # noqa: E402

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from anm_torchrl.experiments import payoff
+from anm_torchrl.experiments import payoff, payoff_report
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]
@@ -48,9 +48,9 @@ def test_a_lower_bound_counts_only_where_it_settles_the_comparison():
                                           "measured_n_bus": [6, 115]}
     assert out[("xgb_generative", 64)]["crossover_n_bus"] is None and out[("xgb_generative", 64)]["measured_n_bus"] == []
     rec = {"data": {"rows": rows, "crossover": list(out.values())}}
-    verdict = payoff.cost_verdict(rec)
+    verdict = payoff_report.cost_verdict(rec)
     assert "batch 64: anm_env_numba on c (50.0 µs) (undetermined against xgb_generative, whose lower bound is 30.0" in verdict
-    md = payoff.markdown(rec)
+    md = payoff_report.markdown(rec)
     assert "≥ 200.0 (≥ 2.22×; L1)" in md and f"- xgb_generative on c: {lb}" in md
 
 

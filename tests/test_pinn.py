@@ -14,7 +14,6 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from anm_torchrl.experiments.payoff import accuracy_table, cost_verdict
+from anm_torchrl.experiments.payoff_report import accuracy_table, cost_verdict
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -59,7 +59,7 @@ def test_committed_record_is_on_test_transitions():
 
 
 def test_readme_block_renders_the_payoff_records_accuracy_part():
-    from anm_torchrl.experiments.payoff import readme_pinn_accuracy
+    from anm_torchrl.experiments.payoff_report import readme_pinn_accuracy
 
     acc = {"available": True, "file": "x/pinn_generic_accuracy.json",
            "data": {"networks": [_entry("a", 6, 2e-5, True, k=3)]}}

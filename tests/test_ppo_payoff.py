@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from anm_torchrl.experiments import payoff
+from anm_torchrl.experiments import payoff, payoff_report
 
 
 def _ppo_record(dn_test: float, ppo_test: list[float]) -> dict:
@@ -27,7 +27,7 @@ def _ppo_record(dn_test: float, ppo_test: list[float]) -> dict:
 
 
 def test_markdown_shows_test_fractions_of_do_nothing():
-    md = payoff.markdown(_ppo_record(-0.05, [0.1, -0.02]))
+    md = payoff_report.markdown(_ppo_record(-0.05, [0.1, -0.02]))
     assert "4 states × 3,000 steps, seed 0, γ = 0.995" in md
     assert "| do_nothing | -0.0500 | 1.000 | 1 |" in md
     assert "| mpc_perfect_horizon16 | 0.5000 | -10.000 | 1 |" in md  # a net gain: negative fraction of the loss
@@ -35,7 +35,7 @@ def test_markdown_shows_test_fractions_of_do_nothing():
     # 0.4 <= 0.5 and -2.0 (a gain) both count as at least 2x better than do-nothing
     assert "PPO none: 2/2 seeds at least 2× better than do-nothing on the test states (fraction of its discounted " \
            "loss -2.00 to 0.40" in md
-    assert "Target (issue 13), `case33bw`: PPO none: 1/2" in payoff.markdown(_ppo_record(-0.05, [-0.04, 0.1]))
+    assert "Target (issue 13), `case33bw`: PPO none: 1/2" in payoff_report.markdown(_ppo_record(-0.05, [-0.04, 0.1]))
 
 
 def test_merge_ppo_keeps_other_parts_and_networks(tmp_path):
@@ -64,7 +64,7 @@ def test_merge_ppo_keeps_other_parts_and_networks(tmp_path):
     rec = json.loads(dst.read_text())
     parts = payoff.ppo_parts(rec["data"])
     assert [p["network"] for p in parts] == ["case33bw", "simbench_mv_semiurb"] and "old" not in parts[0]
-    md = payoff.markdown({**rec, "data": {**rec["data"], "rows": []}})
+    md = payoff_report.markdown({**rec, "data": {**rec["data"], "rows": []}})
     assert "PPO on `case33bw`" in md and "PPO on `simbench_mv_semiurb`" in md
     src.write_text(json.dumps({"meta": {}, "data": {"parts": ["cost"]}}))
     with pytest.raises(ValueError, match="no data.ppo"):
@@ -102,11 +102,11 @@ def test_user_verdict_follows_the_record():
     t.update(threshold_wall_with_training_s=18.0, surrogate_train_s=0.0)
     pinn = {**t, "env": "pinn", "surrogate_train_s": 100.0, "threshold_wall_with_training_s": 110.0}
     rec["data"]["ppo"]["table"].append(pinn)
-    text = payoff.user_verdict(rec)
+    text = payoff_report.user_verdict(rec)
     assert "`none` reached the threshold in a median 18 s" in text and "(100 s of it the surrogate's training)" in text
     assert "On no network measured did training on a surrogate reach the threshold sooner" in text
     pinn["threshold_wall_with_training_s"] = 12.0
-    assert "Training on a surrogate paid off for `pinn` on `case33bw`" in payoff.user_verdict(rec)
+    assert "Training on a surrogate paid off for `pinn` on `case33bw`" in payoff_report.user_verdict(rec)
 
 
 def test_ppo_part_reuses_runs_and_runs_the_other_seeds(tmp_path, monkeypatch):

@@ -10,7 +10,6 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 from PIL import Image  # noqa: E402
-from tensordict import TensorDict  # noqa: E402
 
 from anm_torchrl.baselines.simple import DoNothingPolicy  # noqa: E402
 from anm_torchrl.envs import ANM6Env  # noqa: E402

@@ -17,7 +17,7 @@ from tensordict import TensorDict
 from recipe_utils import compose, load_recipe
 from anm_torchrl.artifacts import ArtifactError, LockedError, exclusive_lock, write_manifest
 from anm_torchrl.data import (DatasetError, checksum, generate, generate_agent, generate_generative, load_dataset,
-                              make_dataset, save_dataset, split)
+                              make_dataset, split)
 from anm_torchrl.grid.simulator import anm6_easy_simulator
 from anm_torchrl.paths import dataset_dir, surrogate_dir
 from anm_torchrl.surrogates import available_surrogates, load_surrogate

@@ -17,7 +17,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.experiments.payoff import readme_pinn_accuracy
+from anm_torchrl.experiments.payoff_report import readme_pinn_accuracy
 from anm_torchrl.experiments.report import CLAIMS, _portable_command, _table
 
 BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)", re.S)

@@ -376,8 +376,7 @@ class GridSimulator:
     def with_exogenous(self, state: torch.Tensor, t_index: torch.Tensor) -> torch.Tensor:
         """A copy of ``state`` (N, state_dim) whose exogenous entries — load P and Q, renewable potentials and
         the time index — are those of the series at ``t_index`` (N,) (perfect foresight)."""
-        sl, b = self.state_slices(), self.net.base_mva
-        out = state.clone()
+        b = self.net.base_mva
         return self.with_next_vars(state, self.load_series[:, t_index].T * b, self.p_max_series[:, t_index].T * b,
                                    t_index.unsqueeze(1).to(state))
 

@@ -99,7 +99,8 @@ def check_ppo_config(cfg: Mapping) -> None:
     _choice(cfg, "model.init_action", ("center", "do_nothing"))
     _in_range(cfg, "model.init_action_clip", 0, 1, True, True)
     # collector
-    fpb, total = _int(cfg, "collector.frames_per_batch"), _int(cfg, "collector.total_frames")
+    fpb = _int(cfg, "collector.frames_per_batch")
+    _int(cfg, "collector.total_frames")
     workers = _int(cfg, "collector.num_workers")
     if n % workers:
         raise ValueError(f"env.num_envs ({n}) must be a positive multiple of collector.num_workers ({workers})")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
 from torchrl.envs import DoubleToFloat, EnvBase, SerialEnv, StepCounter, TransformedEnv
 
 from anm_torchrl.envs import ANM6Env, ANMEnv, SurrogateEnv
