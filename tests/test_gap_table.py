@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from anm_torchrl.baselines import gap
+from anm_torchrl.baselines import gap, gap_table
 
 REPO = Path(__file__).resolve().parents[1]
 TABLES = sorted((REPO / "results").glob("optimal_gap_table*.json"))
@@ -41,7 +41,7 @@ def _ppo(dn_mean, vals, network="case33bw", **proto):
 
 def test_gain_is_defined_where_the_optimum_earns():
     """case33bw's returns are positive: no loss ratio, but the share of the optimum's gain over do-nothing."""
-    rec = gap.combine(_rec([0.2, 0.4], [-0.1, -0.1], [0.1, 0.1]), ppo=_ppo(-0.1, [0.0, 0.2]))
+    rec = gap_table.combine(_rec([0.2, 0.4], [-0.1, -0.1], [0.1, 0.1]), ppo=_ppo(-0.1, [0.0, 0.2]))
     by = {r["row"]: r for r in rec["rows"]}
     assert by["mpc_16"]["loss_pct_of_optimum"] is None
     assert by["mpc_16"]["gain_pct_of_optimum"] == pytest.approx(100 * 0.2 / 0.4)
@@ -50,31 +50,31 @@ def test_gain_is_defined_where_the_optimum_earns():
     ppo = by["ppo_best_none"]  # mean 0.1 over seeds, sample std 0.1414
     assert ppo["gain_pct_of_optimum"] == pytest.approx(50.0) and ppo["seeds"] == 2
     assert ppo["gain_pct_std"] == pytest.approx(100 * 0.1414213562 / 0.4)
-    body = gap.render_block(rec)
+    body = gap_table.render_block(rec)
     assert "loss, %" not in body and "| 50.0 % ± 35.4 |" in body
 
 
 def test_ppo_rows_must_come_from_the_same_states():
     rec = _rec([0.2, 0.4], [-0.1, -0.1], [0.1, 0.1])
     with pytest.raises(ValueError, match="not measured on the same states"):
-        gap.combine(rec, ppo=_ppo(-0.1 * (1 + 1e-6), [0.0, 0.2]))
+        gap_table.combine(rec, ppo=_ppo(-0.1 * (1 + 1e-6), [0.0, 0.2]))
     with pytest.raises(ValueError, match="test protocol"):
-        gap.combine(rec, ppo=_ppo(-0.1, [0.0, 0.2], test_seed=1))
+        gap_table.combine(rec, ppo=_ppo(-0.1, [0.0, 0.2], test_seed=1))
     with pytest.raises(ValueError, match="test protocol"):
-        gap.combine(rec, ppo=_ppo(-0.1, [0.0, 0.2], network="cigre_mv"))
+        gap_table.combine(rec, ppo=_ppo(-0.1, [0.0, 0.2], network="cigre_mv"))
     with pytest.raises(ValueError, match="lacks a test return"):
-        gap.combine(rec, ppo=_ppo(-0.1, [0.0, None]))
+        gap_table.combine(rec, ppo=_ppo(-0.1, [0.0, None]))
     no_dn = copy.deepcopy(rec)
     del no_dn["rows"]["do_nothing"]
     with pytest.raises(ValueError, match="do_nothing row"):
-        gap.combine(no_dn, ppo=_ppo(-0.1, [0.0, 0.2]))
+        gap_table.combine(no_dn, ppo=_ppo(-0.1, [0.0, 0.2]))
 
 
 def test_each_network_has_its_own_block():
-    assert gap.readme_block("anm6_easy").pattern == gap.README_BLOCK.pattern
+    assert gap_table.readme_block("anm6_easy").pattern == gap_table.README_BLOCK.pattern
     text = "<!-- optimum:gap -->\nA\n<!-- /optimum:gap -->\n<!-- optimum:gap:case33bw -->\nB\n<!-- /optimum:gap:case33bw -->"
-    assert gap.readme_block("case33bw").search(text).group(2) == "B\n"
-    assert gap.readme_block("cigre_mv").search(text) is None
+    assert gap_table.readme_block("case33bw").search(text).group(2) == "B\n"
+    assert gap_table.readme_block("cigre_mv").search(text) is None
 
 
 @pytest.mark.parametrize("path", TABLES, ids=[p.name for p in TABLES])
@@ -84,9 +84,9 @@ def test_gap_blocks_are_rendered_from_the_records(path):
     rec = json.loads(path.read_text())
     src = json.loads((REPO / rec["command"].split("--combine ")[1].split()[0]).read_text())
     mine = [r for r in rec["rows"] if r["source"] == "gap"]
-    assert mine == [r for r in gap.combine(src, record=rec["record"])["rows"] if r["source"] == "gap"]
-    body = gap.render_block(rec)
-    block = gap.readme_block(gap.network_of(rec["protocol"]))
+    assert mine == [r for r in gap_table.combine(src, record=rec["record"])["rows"] if r["source"] == "gap"]
+    body = gap_table.render_block(rec)
+    block = gap_table.readme_block(gap_table.network_of(rec["protocol"]))
     pages = [p for p in ("README.md", "docs/OPTIMAL.md") if f" {p}" in rec["command"].split("--readme")[1]]
     assert "docs/OPTIMAL.md" in pages
     for page in pages:
@@ -105,12 +105,12 @@ def test_results_page_holds_every_gap_table():
 
 
 def test_a_page_without_the_block_refuses_the_table(tmp_path):
-    rec = gap.combine(_rec([0.2, 0.4], [-0.1, -0.1], [0.1, 0.1]))
+    rec = gap_table.combine(_rec([0.2, 0.4], [-0.1, -0.1], [0.1, 0.1]))
     good, bad = tmp_path / "good.md", tmp_path / "bad.md"
     good.write_text("<!-- optimum:gap:case33bw -->\nold\n<!-- /optimum:gap:case33bw -->\n")
     bad.write_text("no block here\n")
     with pytest.raises(ValueError, match="bad.md: no <!-- optimum:gap:case33bw -->"):
-        gap.update_pages([good, bad], rec)
+        gap_table.update_pages([good, bad], rec)
     assert "old" in good.read_text()  # nothing written when one page lacks the block
-    gap.update_pages([good], rec)
-    assert gap.render_block(rec) in good.read_text()
+    gap_table.update_pages([good], rec)
+    assert gap_table.render_block(rec) in good.read_text()

@@ -426,9 +426,9 @@ batch) to need > 30 s per step is "skipped"; "n/a": no trained model for that ne
 
 def optimum_section(tables: dict[str, dict] | None) -> str:
     """Issue 15's gap tables, one per network, from the committed ``results/optimal_gap_table*.json`` (file stem ->
-    record): each is :func:`anm_torchrl.baselines.gap.render_block` inside the network's own block markers, the
+    record): each is :func:`anm_torchrl.baselines.gap_table.render_block` inside the network's own block markers, the
     ones ``python -m anm_torchrl.baselines.optimal --combine ... --readme docs/RESULTS.md`` rewrites in place."""
-    from anm_torchrl.baselines import gap
+    from anm_torchrl.baselines import gap_table as gap
 
     blocks = []
     for net, rec in sorted(((gap.network_of(r["protocol"]), r) for r in (tables or {}).values()),
