@@ -11,7 +11,9 @@ Three parts, each optional (``cfg["parts"]``):
   the 1-minute load average read just before it, and the ratio to the numba backend at the same network and
   batch (measured next to it) is the figure to compare across rows. ``crossover``: per surrogate and batch, the
   smallest bus count at which it is cheaper per transition than the cheaper exact backend (None: never, over the
-  networks measured).
+  networks measured). A spec ``{name: xgb, dataset: ..., path: <a booster trained with a round cap>, capped: true}``
+  times that booster as a *lower bound* of the uncapped one's cost (:func:`capped_bound`; rows carry
+  ``lower_bound``): it settles the comparison where it already costs more than the exact backend.
 * ``accuracy`` — the PINN's accuracy and training time against bus count, read from the record of the generic
   PINN (``accuracy_record``, default ``results/pinn_generic_accuracy.json``); never trained here.
 * ``ppo`` — PPO (:func:`~anm_torchrl.training.ppo_loop.train_ppo`, the recipe's loop) on ``network`` with each
