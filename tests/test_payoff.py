@@ -123,3 +123,13 @@ def test_results_page_holds_the_payoff_section():
 
     rec = json.loads((REPO / "results" / "payoff.json").read_text())
     assert payoff_section(rec) in (REPO / "docs" / "RESULTS.md").read_text()
+
+
+def test_a_corrupted_record_is_named_before_anything_is_merged(tmp_path):
+    dst, src = tmp_path / "payoff.json", tmp_path / "cost.json"
+    dst.write_text(json.dumps({"name": "payoff", "data": {"rows": []}, "meta": {}}))
+    src.write_text('{"name": "payoff", "data": {"rows": [')  # cut short mid-write
+    before = dst.read_text()
+    with pytest.raises(ValueError, match=r"cost\.json is not valid JSON"):
+        payoff.merge_cost(src, dst, ["c"])
+    assert dst.read_text() == before

@@ -104,7 +104,16 @@ def write_json(path: str | Path, obj: Any) -> Path:
 
 
 def read_json(path: str | Path) -> Any:
-    return json.loads(Path(path).read_text())
+    """The JSON document at ``path``.
+
+    Raises:
+        FileNotFoundError: no file there.
+        ValueError: the file is not valid JSON (the message names it).
+    """
+    try:
+        return json.loads(Path(path).read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON ({err}): a truncated or hand-edited record?") from err
 
 
 def write_csv(path: str | Path, rows: list[dict[str, Any]]) -> Path | None:
