@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -276,7 +277,8 @@ def _envelope(ax: Axes, x: np.ndarray, ys: np.ndarray, names: list[str], what: s
             ax.plot(x, ys[:, i], color=f"C{i}", lw=1.2, label=n)
         ax.legend(fontsize=7, loc="upper left", ncol=2)
         return
-    with np.errstate(all="ignore"):
+    with warnings.catch_warnings():  # an all-NaN row (no value at that step) plots as a gap, as intended
+        warnings.simplefilter("ignore", RuntimeWarning)
         lo, mid, hi = np.nanmin(ys, 1), np.nanmean(ys, 1), np.nanmax(ys, 1)
     ax.fill_between(x, lo, hi, color="C0", alpha=0.25, label=f"{what}: min–max over {ys.shape[1]}")
     ax.plot(x, mid, color="C0", lw=1.2, label=f"{what}: mean")
