@@ -83,7 +83,7 @@ def surrogate_row(spec: dict, network: str, n_bus: int, batch: int, min_time: fl
 def capped_bound(spec: dict) -> str:
     """For a spec ``{name: xgb, dataset, path, capped: true}``: why its model's cost per transition is a lower
     bound of the uncapped model's (:func:`~anm_torchrl.surrogates._xgb.capped_prefix_reason`); its rows carry this
-    as ``lower_bound``. For a network where the early-stopped booster takes hours to train (SimBench: ~75 s per
+    as ``lower_bound``. For a network where the early-stopped booster takes hours to train (SimBench: 80-115 s per
     round on 2 cores), a capped one answers whether XGBoost can be cheaper than the exact simulator.
 
     Raises:
