@@ -89,16 +89,14 @@ def capped_bound(spec: dict) -> str:
     Raises:
         ValueError: not an XGBoost spec with a ``path``, or a model that bounds nothing.
     """
-    from anm_torchrl.artifacts import verify_manifest
     from anm_torchrl.surrogates._xgb import capped_prefix_reason
-    from anm_torchrl.surrogates.regressors.defaults import DEFAULT_PARAMS, FORMAT, FORMAT_VERSION, META_FILE
-    from anm_torchrl.surrogates.terminal import read_meta
+    from anm_torchrl.surrogates.regressors.defaults import DEFAULT_PARAMS
+    from anm_torchrl.surrogates.regressors.io import read_surrogate_meta
 
     if spec.get("name") != "xgb" or not spec.get("path"):
         raise ValueError(f"capped: true needs an xgb spec with the capped model's path, got {spec}")
     path = Path(spec["path"])
-    verify_manifest(path, FORMAT)
-    meta = read_meta(path / META_FILE, "data-driven surrogate", FORMAT, FORMAT_VERSION, "retrain it")
+    meta = read_surrogate_meta(path)
     try:
         return capped_prefix_reason(meta["params"], meta["train_info"], DEFAULT_PARAMS["xgb"])
     except ValueError as err:

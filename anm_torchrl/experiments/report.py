@@ -428,13 +428,13 @@ def optimum_section(tables: dict[str, dict] | None) -> str:
     """Issue 15's gap tables, one per network, from the committed ``results/optimal_gap_table*.json`` (file stem ->
     record): each is :func:`anm_torchrl.baselines.gap_table.render_block` inside the network's own block markers, the
     ones ``python -m anm_torchrl.baselines.optimal --combine ... --readme docs/RESULTS.md`` rewrites in place."""
-    from anm_torchrl.baselines import gap_table as gap
+    from anm_torchrl.baselines import gap_table
 
     blocks = []
-    for net, rec in sorted(((gap.network_of(r["protocol"]), r) for r in (tables or {}).values()),
-                           key=lambda x: x[0] != gap.ANM6):  # ANM6-Easy's table first, then in file order
-        start, end = gap.block_markers(net)
-        blocks.append(f"{start}\n{gap.render_block(rec)}{end}")
+    for net, rec in sorted(((gap_table.network_of(r["protocol"]), r) for r in (tables or {}).values()),
+                           key=lambda x: x[0] != gap_table.ANM6):  # ANM6-Easy's table first, then in file order
+        start, end = gap_table.block_markers(net)
+        blocks.append(f"{start}\n{gap_table.render_block(rec)}{end}")
     body = "\n\n".join(blocks) if blocks else "No gap table is recorded."
     return f"""## How far from the best achievable: the perfect-foresight AC optimum (issue 15)
 

@@ -54,17 +54,7 @@ def train_booster(params: dict, x: np.ndarray, y: np.ndarray, x_val: np.ndarray 
 
     if "nthread" not in params:
         raise ValueError("train_booster needs params['nthread'], the thread count to train on")
-    with openmp_threads(params["nthread"]):
-        return _train(xgb, params, x, y, x_val, y_val, num_boost_round, early_stopping_rounds, weight, progress,
-                      desc, min_delta)
-
-
-def _train(xgb, params, x, y, x_val, y_val, num_boost_round, early_stopping_rounds, weight, progress, desc,
-           min_delta):
-    dtrain = xgb.DMatrix(x, label=y, weight=weight)
-    evals = []
-    if x_val is not None and len(x_val):
-        evals = [(xgb.DMatrix(x_val, label=y_val), "val")]
+    has_val = x_val is not None and len(x_val) > 0
     bar = tqdm(total=num_boost_round, desc=desc, unit="round", disable=not progress, leave=False)
 
     class _Bar(xgb.callback.TrainingCallback):
@@ -77,15 +67,18 @@ def _train(xgb, params, x, y, x_val, y_val, num_boost_round, early_stopping_roun
 
     history: dict = {}
     callbacks: list = [_Bar()]
-    if evals and early_stopping_rounds:
+    if has_val and early_stopping_rounds:
         callbacks.append(xgb.callback.EarlyStopping(rounds=int(early_stopping_rounds), min_delta=float(min_delta),
                                                     save_best=False))
-    booster = xgb.train(params, dtrain, num_boost_round=num_boost_round, evals=evals, evals_result=history,
-                        verbose_eval=False, callbacks=callbacks)
+    with openmp_threads(params["nthread"]):  # binning the DMatrix is threaded too
+        dtrain = xgb.DMatrix(x, label=y, weight=weight)
+        evals = [(xgb.DMatrix(x_val, label=y_val), "val")] if has_val else []
+        booster = xgb.train(params, dtrain, num_boost_round=num_boost_round, evals=evals, evals_result=history,
+                            verbose_eval=False, callbacks=callbacks)
     bar.close()
     rounds = booster.num_boosted_rounds()
     info = {"rounds": rounds, "best_iteration": rounds - 1, "best_score": None, "metric": None}
-    if evals and early_stopping_rounds:
+    if has_val and early_stopping_rounds:
         best = int(booster.best_iteration)
         metric = next(iter(history["val"]))
         info.update(best_iteration=best, best_score=float(history["val"][metric][best]), metric=metric)

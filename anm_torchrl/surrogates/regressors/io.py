@@ -56,6 +56,19 @@ def save_surrogate(sur: RegressorSurrogate, path: str | os.PathLike, extra: dict
     return Path(path)
 
 
+def read_surrogate_meta(path: str | os.PathLike) -> dict:
+    """The description (``surrogate.json``) of the surrogate saved in folder ``path``, read after its manifest
+    is verified.
+
+    Raises:
+        ArtifactError: no manifest, or a file that changed since the save.
+        ModelFileError: a missing or unreadable description, or one of another format or version.
+    """
+    path = Path(path)
+    verify_manifest(path, FORMAT)
+    return read_meta(path / META_FILE, "data-driven surrogate", FORMAT, FORMAT_VERSION, "retrain it")
+
+
 def load_surrogate_folder(path: str | os.PathLike, kind: str | None = None, device="cpu",
                           sim: GridSimulator | None = None, n_jobs: int = 1) -> RegressorSurrogate:
     """Load a surrogate saved by :func:`save_surrogate` to run on ``sim``.
@@ -72,8 +85,7 @@ def load_surrogate_folder(path: str | os.PathLike, kind: str | None = None, devi
         ModelFileError: unreadable files, a model of another kind, another state layout or another network.
     """
     path = Path(path)
-    verify_manifest(path, FORMAT)
-    meta = read_meta(path / META_FILE, "data-driven surrogate", FORMAT, FORMAT_VERSION, "retrain it")
+    meta = read_surrogate_meta(path)
     stored = meta.get("kind")
     if stored not in KINDS:
         raise ModelFileError(f"{path / META_FILE} names an unknown surrogate kind {stored!r}")
