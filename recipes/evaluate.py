@@ -1,4 +1,5 @@
-"""Evaluate a PPO checkpoint or a baseline on the true simulator or on the original gym-anm package.
+"""Evaluate a training checkpoint (any algorithm: PPO, SAC, ...) or a baseline on the true simulator or on the
+original gym-anm package.
 
     python recipes/evaluate.py checkpoint=outputs/ppo/.../checkpoints/best.pt
     python recipes/evaluate.py checkpoint=... env=gym_anm episodes=2 steps=3000
@@ -6,8 +7,9 @@
     python recipes/evaluate.py policy=mpc_perfect policy_kwargs.horizon=32 episodes=4
     python recipes/evaluate.py checkpoint=... render=true steps=96   # + episode/ppo.png and episode/ppo.gif
 
-Options are ``key=value`` pairs checked against ``recipes/conf/evaluate.yaml`` (an unknown key or a value out of
-range fails before anything runs; ``--help`` lists them). By default the episodes start from the **test** states
+Options are Hydra overrides (``key=value``) of ``recipes/conf_evaluate/evaluate.yaml``, composed by Hydra's compose API like
+the other recipes' configs (an unknown key or a value out of range fails before anything runs; ``--help`` lists
+them; no run directory: ``output=`` and ``render_dir=`` say where files go). By default the episodes start from the **test** states
 (``seed=0``, the PPO recipe's ``eval.test_seed``), never from the validation states its model selection used. Both
 envs run the same episodes: ``episodes`` initial states drawn from gym-anm's reset distribution with ``seed``
 (:func:`anm_torchrl.training.evaluation.draw_initial_states`), set into ``ANM6Env`` with
@@ -30,11 +32,10 @@ import sys
 import time
 from pathlib import Path
 
-import torch
 from omegaconf import OmegaConf
-from omegaconf.errors import ConfigKeyError
 
-CONFIG = Path(__file__).parent / "conf" / "evaluate.yaml"
+CONFIG = Path(__file__).parent / "conf_evaluate" / "evaluate.yaml"  # not in conf/: "checkpoint" and "env"
+# are keys here but config groups there
 
 
 def usage() -> str:
@@ -44,24 +45,29 @@ def usage() -> str:
 
 
 def parse_args(argv: list[str]):
-    """The config of ``evaluate.yaml`` overridden by ``key=value`` arguments; raises SystemExit with a message."""
+    """The config of ``evaluate.yaml`` composed by Hydra with ``key=value`` overrides (``policy_kwargs.*`` keys are
+    free, every other key must exist); raises SystemExit with a message."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+
     from anm_torchrl.baselines import available_baselines
     from anm_torchrl.training.config_checks import check_evaluate_config
 
     if any(a in ("-h", "--help") for a in argv):
         print(usage())
         raise SystemExit(0)
-    cfg = OmegaConf.load(CONFIG)
-    OmegaConf.set_struct(cfg, True)
     bad = [a for a in argv if "=" not in a]
+    keys = sorted(OmegaConf.load(CONFIG).keys())
     if bad:
-        raise SystemExit(f"evaluate.py: arguments must be key=value, got {bad}; keys: {sorted(cfg.keys())}")
+        raise SystemExit(f"evaluate.py: arguments must be key=value, got {bad}; keys: {keys}")
+    # policy_kwargs is an open dict: its keys are the baseline's arguments (Hydra's "+" adds a key)
+    overrides = [("+" + a if a.startswith("policy_kwargs.") else a) for a in argv]
     try:
-        OmegaConf.set_struct(cfg.policy_kwargs, False)
-        cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist(argv))
-    except ConfigKeyError as err:
-        key = str(err).splitlines()[0]
-        raise SystemExit(f"evaluate.py: unknown option ({key}); valid keys: {sorted(cfg.keys())}") from None
+        with initialize_config_dir(config_dir=str(CONFIG.parent), version_base="1.3", job_name="evaluate"):
+            cfg = compose(config_name=CONFIG.stem, overrides=overrides)
+    except HydraException as err:
+        first = str(err).strip().splitlines()[0]
+        raise SystemExit(f"evaluate.py: unknown option or bad value ({first}); valid keys: {keys}") from None
     try:
         check_evaluate_config(cfg)
     except ValueError as err:
@@ -78,6 +84,8 @@ def parse_args(argv: list[str]):
 
 def main(argv: list[str] | None = None) -> dict:
     cfg = parse_args(sys.argv[1:] if argv is None else argv)
+    import torch
+
     torch.set_num_threads(int(cfg.threads))
 
     from anm_torchrl.baselines import make_baseline
@@ -98,7 +106,7 @@ def main(argv: list[str] | None = None) -> dict:
     env = make_true_env(episodes, network=network, seed=int(cfg.seed))  # states from its reset distribution
     states = draw_initial_states(episodes, int(cfg.seed), env.sim, env.init)
     if ckpt is not None:
-        policy, name = load_actor(ckpt, env=make_true_env(1, network=network)), "ppo"
+        policy, name = load_actor(ckpt, env=make_true_env(1, network=network)), ckpt["algorithm"]
     else:
         kwargs = OmegaConf.to_container(cfg.policy_kwargs, resolve=True)
         if cfg.policy == "random":

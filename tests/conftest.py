@@ -19,15 +19,15 @@ def ppo_checkpoint(tmp_path_factory):
 
     from anm_torchrl.envs import ANM6Env
     from anm_torchrl.training.checkpoint import save_checkpoint
-    from anm_torchrl.training.ppo_models import make_ppo_models
+    from anm_torchrl.training.models import make_ppo_models
 
     conf = Path(__file__).resolve().parents[1] / "recipes" / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         config = OmegaConf.to_container(compose(config_name="config"), resolve=True)
     actor, critic, normalizer = make_ppo_models(ANM6Env(1, seed=0), **config["model"])
     optim = torch.optim.Adam([*actor.parameters(), *critic.parameters()])
-    payload = {"config": config, "actor": actor.state_dict(), "critic": critic.state_dict(),
-               "optimizer": optim.state_dict(), "obs_norm": normalizer.stats(), "frames": 32, "update": 1,
+    payload = {"algorithm": "ppo", "config": config, "actor": actor.state_dict(), "obs_norm": normalizer.stats(),
+               "state": {"critic": critic.state_dict(), "optimizer": optim.state_dict()}, "frames": 32, "update": 1,
                "best_eval": None}
     return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "last.pt", payload)
 

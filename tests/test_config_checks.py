@@ -31,7 +31,7 @@ def ppo_config(*overrides: str):
 
 def test_default_configs_pass():
     check_ppo_config(ppo_config())
-    check_evaluate_config(OmegaConf.load(CONF / "evaluate.yaml"))
+    check_evaluate_config(OmegaConf.load(CONF.parent / "conf_evaluate" / "evaluate.yaml"))
 
 
 @pytest.mark.parametrize("override, message", [
@@ -76,7 +76,7 @@ def test_ppo_config_ranges(override, message):
     ("network", "nowhere", "network must be one of null, anm6_easy, case33bw"),
 ])
 def test_evaluate_config_ranges(key, value, message):
-    cfg = OmegaConf.load(CONF / "evaluate.yaml")
+    cfg = OmegaConf.load(CONF.parent / "conf_evaluate" / "evaluate.yaml")
     cfg[key] = value
     with pytest.raises(ValueError) as err:
         check_evaluate_config(cfg)
@@ -84,7 +84,7 @@ def test_evaluate_config_ranges(key, value, message):
 
 
 def test_gym_anm_is_anm6_only():
-    cfg = OmegaConf.load(CONF / "evaluate.yaml")
+    cfg = OmegaConf.load(CONF.parent / "conf_evaluate" / "evaluate.yaml")
     cfg.env, cfg.network = "gym_anm", "case33bw"
     with pytest.raises(ValueError, match="env=gym_anm runs gym-anm's ANM6Easy only"):
         check_evaluate_config(cfg)
@@ -93,7 +93,7 @@ def test_gym_anm_is_anm6_only():
 def test_evaluate_defaults_to_the_recipes_test_states():
     """evaluate.py's default seed is the PPO recipe's test seed, not its validation seed (model selection)."""
     cfg = ppo_config()
-    assert OmegaConf.load(CONF / "evaluate.yaml").seed == cfg.eval.test_seed != cfg.eval.seed
+    assert OmegaConf.load(CONF.parent / "conf_evaluate" / "evaluate.yaml").seed == cfg.eval.test_seed != cfg.eval.seed
 
 
 # ------------------------------------------------------------------------------------------------ checkpoints
@@ -115,18 +115,22 @@ def test_nan_weights_and_malformed_checkpoints_are_refused(ppo_checkpoint, tmp_p
     nan = copy.deepcopy(ckpt)
     nan["actor"]["module.0.module.1.0.bias"][3] = float("nan")
     path = save_checkpoint(tmp_path / "nan.pt", {k: v for k, v in nan.items() if k != "sha256"})  # hash of NaNs
-    with pytest.raises(ValueError, match=r"actor tensors \['module.0.module.1.0.bias'\] hold NaN"):
+    with pytest.raises(ValueError, match=r"tensors \['actor.module.0.module.1.0.bias'\] hold NaN"):
         load_checkpoint(path)
     stringy = {k: v for k, v in ckpt.items() if k != "sha256"} | {"config": "model: tanh"}
     path = save_checkpoint(tmp_path / "string_config.pt", stringy)
-    with pytest.raises(ValueError, match="malformed PPO checkpoint: config is str"):
+    with pytest.raises(ValueError, match="malformed checkpoint: config is str"):
         load_actor(path)
     (tmp_path / "notes.txt").write_text("not a checkpoint\n")
-    with pytest.raises(ValueError, match="notes.txt is not an anm_torchrl PPO checkpoint"):
+    with pytest.raises(ValueError, match="notes.txt is not an anm_torchrl training checkpoint"):
         load_checkpoint(tmp_path / "notes.txt")
     old = {k: v for k, v in ckpt.items() if k != "sha256"} | {"format_version": 1}
-    with pytest.raises(ValueError, match="unsupported PPO checkpoint format_version 1"):
+    with pytest.raises(ValueError, match="unsupported checkpoint format_version 1"):
         validate_checkpoint(old)
+    unknown = save_checkpoint(tmp_path / "unknown.pt", {k: v for k, v in ckpt.items() if k != "sha256"}
+                              | {"algorithm": "dqn"})
+    with pytest.raises(ValueError, match="trained by algorithm 'dqn', which this code does not know"):
+        load_actor(unknown)
 
 
 def test_resume_with_another_architecture_is_an_error(ppo_checkpoint):

@@ -113,7 +113,7 @@ def test_run_ppo_starts_from_an_empty_run_dir(tmp_path: Path, monkeypatch):
     """Logs left by an earlier run of the same cell are not read back as part of the new run's curve; the run is
     the recipe's loop called in-process (no subprocess), and a failing run is recorded with its error."""
     from anm_torchrl.experiments import ppo_runs
-    from anm_torchrl.training import ppo_loop
+    from anm_torchrl.training import protocol
 
     stale = tmp_path / "cell"
     (stale / "logs").mkdir(parents=True)
@@ -125,7 +125,7 @@ def test_run_ppo_starts_from_an_empty_run_dir(tmp_path: Path, monkeypatch):
         seen["max_minutes"] = cfg.collector.max_minutes
         raise RuntimeError("boom")
 
-    monkeypatch.setattr(ppo_loop, "train_ppo", fake_train)
+    monkeypatch.setattr(protocol, "train", fake_train)
     rec = ppo_runs.run_ppo(["surrogate=none"], stale, timeout_s=90)
     assert seen == {"existed": False, "surrogate": "none", "max_minutes": 1.5}
     assert rec["summary"] is None and rec["curve"] == [] and not rec["ok"]

@@ -17,8 +17,8 @@ from recipe_utils import ROOT, compose
 
 from anm_torchrl.baselines.simple import DoNothingPolicy
 from anm_torchrl.training.config_checks import check_ppo_config
-from anm_torchrl.training.ppo_loop import make_train_env
-from anm_torchrl.training.ppo_models import initial_mean_bias, make_ppo_models
+from anm_torchrl.training.factory import make_train_env
+from anm_torchrl.training.models import initial_mean_bias, make_ppo_models
 
 CLIP = 0.98
 

@@ -84,7 +84,7 @@ def test_bad_options_and_files_fail_clearly(evaluate, tmp_path):
     torch.save({"kind": "anm_torchrl.surrogate.xgb", "model": torch.zeros(2)}, bogus)
     assert "kind='anm_torchrl.surrogate.xgb'" in fails(evaluate, f"checkpoint={bogus}", "steps=5")
     (tmp_path / "notes.txt").write_text("hello\n")
-    assert "is not an anm_torchrl PPO checkpoint" in fails(evaluate, f"checkpoint={tmp_path / 'notes.txt'}")
+    assert "is not an anm_torchrl training checkpoint" in fails(evaluate, f"checkpoint={tmp_path / 'notes.txt'}")
     assert "checkpoint not found" in fails(evaluate, f"checkpoint={tmp_path / 'missing.pt'}")
     assert "unknown option" in fails(evaluate, "policy=do_nothing", "no_such_option=1")
     assert "gamma must be in (0, 1], got 1.5" in fails(evaluate, "policy=do_nothing", "gamma=1.5")
@@ -158,7 +158,7 @@ def test_load_checkpoint_rejects_other_files(tmp_path):
     from anm_torchrl.training.checkpoint import FORMAT_VERSION, CHECKPOINT_KIND, load_checkpoint, save_checkpoint
 
     torch.save({"state_dict": {}}, tmp_path / "plain.pt")
-    with pytest.raises(ValueError, match=r"not an anm_torchrl PPO checkpoint.*keys \[state_dict\]"):
+    with pytest.raises(ValueError, match=r"not an anm_torchrl training checkpoint.*keys \[state_dict\]"):
         load_checkpoint(tmp_path / "plain.pt")
     (tmp_path / "model.json").write_text('{"learner": {}}')
     with pytest.raises(ValueError, match="torch.load"):
@@ -166,8 +166,8 @@ def test_load_checkpoint_rejects_other_files(tmp_path):
     torch.save([1, 2], tmp_path / "list.pt")
     with pytest.raises(ValueError, match="type builtins.list"):
         load_checkpoint(tmp_path / "list.pt")
-    path = save_checkpoint(tmp_path / "c" / "x.pt", {"config": {}, "actor": {}, "critic": {}, "obs_norm": {},
-                                                     "frames": 1, "update": 1})
+    path = save_checkpoint(tmp_path / "c" / "x.pt", {"algorithm": "ppo", "config": {}, "actor": {}, "state": {},
+                                                     "obs_norm": {}, "frames": 1, "update": 1})
     assert load_checkpoint(path)["format_version"] == FORMAT_VERSION
     assert [p.name for p in path.parent.iterdir()] == ["x.pt"]  # no temporary left behind
     torch.save({"kind": CHECKPOINT_KIND, "format_version": 99}, tmp_path / "future.pt")

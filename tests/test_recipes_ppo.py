@@ -84,7 +84,7 @@ def test_ppo_writes_logs_checkpoints_and_summary(base_run):
         assert set(ckpt["obs_norm"]) == {"loc", "scale"} and ckpt["obs_norm"]["loc"].shape == (18,)
     last = load_checkpoint(base_run / "checkpoints" / "last.pt")
     assert last["frames"] == 80 and last["update"] == 3 and last["logger_step"] == 80
-    assert "optimizer" in last and last["best_eval"] is not None
+    assert last["algorithm"] == "ppo" and "optimizer" in last["state"] and last["best_eval"] is not None
 
     summary = json.loads((base_run / "summary.json").read_text())
     assert summary["frames"] == 80 and summary["updates"] == 3 and not summary["interrupted"]
@@ -214,7 +214,7 @@ def test_resume_from_wrong_kind_fails_clearly(tmp_path):
     proc = run(PPO, *TINY, f"checkpoint.resume={bogus}", f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path,
                check=False)
     assert proc.returncode != 0
-    assert "is not an anm_torchrl PPO checkpoint" in proc.stderr and "epoch, weights" in proc.stderr
+    assert "is not an anm_torchrl training checkpoint" in proc.stderr and "epoch, weights" in proc.stderr
 
 
 @pytest.mark.slow
@@ -237,7 +237,7 @@ def test_wall_clock_budget_stops_the_run(tmp_path):
 
 def test_budget_mask_keeps_the_first_frames_in_time_order():
     """The last batch of a run is cut to the budget: every env's step t before any env's step t + 1."""
-    from anm_torchrl.training.ppo_loop import budget_mask
+    from anm_torchrl.training.algorithms.ppo import budget_mask
 
     assert budget_mask(torch.Size([4, 8]), 32) is None and budget_mask(torch.Size([4, 8]), 99) is None
     keep = budget_mask(torch.Size([2, 3, 4]), 10)  # [workers, envs per worker, T]: 6 envs, 4 steps

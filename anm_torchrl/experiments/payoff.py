@@ -16,7 +16,7 @@ Three parts, each optional (``cfg["parts"]``):
   ``lower_bound``): it settles the comparison where it already costs more than the exact backend.
 * ``accuracy`` — the PINN's accuracy and training time against bus count, read from the record of the generic
   PINN (``accuracy_record``, default ``results/pinn_generic_accuracy.json``); never trained here.
-* ``ppo`` — PPO (:func:`~anm_torchrl.training.ppo_loop.train_ppo`, the recipe's loop) on ``network`` with each
+* ``ppo`` — PPO (:func:`~anm_torchrl.training.protocol.train`, the recipe's loop) on ``network`` with each
   training env (``none``: the true simulator; a surrogate spec), seeds ``seeds``, a wall-clock cap
   (``timeout_s``): the time (wall, training only, frames) to first reach a return ≥ ``threshold_fraction`` ×
   do-nothing's return on the same validation states (returns are < 0: 0.5 = half of do-nothing's loss), runs that never reach it censored at their length

@@ -1,7 +1,7 @@
 """PPO training curves against frames and wall time on the true simulator (paper Fig. 12 / §5.4 "training time").
 
 For every training env — the true simulator ``none``, the original package ``gym_anm`` and every available
-surrogate — and every seed, the PPO recipe's loop (:func:`~anm_torchrl.training.ppo_loop.train_ppo`) trains a
+surrogate — and every seed, the PPO recipe's loop (:func:`~anm_torchrl.training.protocol.train`) trains a
 policy and evaluates it on the true simulator after every update (deterministic policy, fixed initial states). Baselines (do-nothing, random, MPC when it fits the time
 budget) are evaluated once on the same initial states and drawn as horizontal lines.
 

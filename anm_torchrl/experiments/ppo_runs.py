@@ -1,6 +1,6 @@
 """Train PPO in-process with the recipe's own loop and read back its ``summary.json`` and CSV logs.
 
-:func:`anm_torchrl.training.ppo_loop.train_ppo` is the single definition of PPO training (``recipes/ppo.py`` calls
+:func:`anm_torchrl.training.protocol.train` is the single definition of PPO training (``recipes/ppo.py`` calls
 it too); the experiments only choose Hydra overrides of the recipe's config (``recipes/conf/config.yaml``), composed
 here with Hydra's compose API. Each run gets its own run directory, ``logger.backend=csv`` (files
 ``logs/*/scalars/<group>/<tag>.csv``, rows ``frames,value``) and no progress bar. A run that raises is recorded with
@@ -85,7 +85,7 @@ def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None =
     An existing ``run_dir`` (an earlier run of the same cell) is removed first: its logs
     would otherwise be read back with the new.
     """
-    from anm_torchrl.training.ppo_loop import train_ppo
+    from anm_torchrl.training import protocol
 
     run_dir = Path(run_dir).resolve()
     if run_dir.exists():
@@ -101,7 +101,7 @@ def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None =
         cfg = compose_ppo_config(overrides)
         if timeout_s is not None:  # the tighter of the run's own budget and the experiment's
             cfg.collector.max_minutes = min(float(cfg.collector.max_minutes or "inf"), float(timeout_s) / 60)
-        train_ppo(cfg, run_dir)
+        protocol.train(cfg, run_dir)
     except Exception as err:  # noqa: BLE001 - one failed cell is recorded, the experiment goes on
         rec["error"] = f"{type(err).__name__}: {err}\n" + traceback.format_exc()[-2000:]
     rec["wall_s"] = time.perf_counter() - t0

@@ -1,6 +1,6 @@
 """Returns on the held-out **test** states: PPO trained on each env, and the baselines, under one protocol.
 
-PPO runs train with the recipe's loop (:func:`~anm_torchrl.training.ppo_loop.train_ppo`): validation states
+PPO runs train with the recipe's loop (:func:`~anm_torchrl.training.protocol.train`): validation states
 (``eval.seed``) choose ``best.pt`` and the early stop, and the loop evaluates ``best.pt`` and ``last.pt`` once on
 the test states (``eval.test_seed``, ``summary.json["test"]``). The baselines (do-nothing, random, MPC …) are
 evaluated here on the same test states (:func:`~anm_torchrl.training.evaluation.draw_initial_states` with the test

@@ -1,14 +1,20 @@
-"""PPO checkpoints: one ``torch.save``'d dict with a kind marker and a content hash, written atomically.
+"""Training checkpoints of every algorithm: one ``torch.save``'d dict with a kind marker, the algorithm's name and
+a content hash, written atomically.
 
-Layout (format version 2)::
+Layout (format version 3)::
 
-    {"kind": "anm_torchrl.ppo", "format_version": 2, "sha256": str,
+    {"kind": "anm_torchrl.checkpoint", "format_version": 3, "sha256": str,
+     "algorithm": "ppo" | "sac" | ...,     # anm_torchrl.training.algorithms.ALGORITHMS
      "config": {...},                      # resolved Hydra config (plain containers)
-     "actor": state_dict, "critic": state_dict, "optimizer": state_dict,
+     "actor": state_dict,                  # the policy evaluate.py loads
      "obs_norm": {"loc": (obs_dim,), "scale": (obs_dim,)},
+     "state": {...},                       # the algorithm's other networks and optimisers (to resume)
      "frames": int, "update": int, "logger_step": int,
      "best_eval": {metric: float, "frames": int, "update": int} | None,
      "evals_since_best": int, "wall_time": float}
+
+Version 2 files (``kind: anm_torchrl.ppo``, PPO's ``critic`` and ``optimizer`` at the top level) are read as PPO
+checkpoints of this layout, after the same checks.
 
 ``sha256`` is :func:`anm_torchrl.artifacts.tensors_sha256` of every tensor of the payload (named by its path,
 e.g. ``actor.module.0.module.1.0.weight``) and of the JSON of everything else, so one flipped byte in a weight or
@@ -29,11 +35,10 @@ import torch
 from anm_torchrl.artifacts import tensors_sha256
 from anm_torchrl.paths import atomic_torch_save
 
-CHECKPOINT_KIND = "anm_torchrl.ppo"
-FORMAT_VERSION = 2
-REQUIRED_KEYS = ("config", "actor", "critic", "obs_norm", "frames", "update")
-# config keys that define the networks' shapes and functions: resuming with other values is an error
-ARCHITECTURE_KEYS = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip")
+CHECKPOINT_KIND = "anm_torchrl.checkpoint"
+FORMAT_VERSION = 3
+PPO_V2_KIND = "anm_torchrl.ppo"  # format version 2: PPO only
+REQUIRED_KEYS = ("algorithm", "config", "actor", "state", "obs_norm", "frames", "update")
 
 
 def _split(obj: Any, prefix: str, tensors: dict[str, torch.Tensor]) -> Any:
@@ -75,48 +80,77 @@ def describe(obj: Any) -> str:
     return f"an object of type {type(obj).__module__}.{type(obj).__qualname__}"
 
 
+def _tensors(obj: Any, prefix: str = ""):
+    """(path, tensor) of every tensor nested in dicts and lists."""
+    if isinstance(obj, torch.Tensor):
+        yield prefix, obj
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _tensors(v, f"{prefix}.{k}" if prefix else str(k))
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            yield from _tensors(v, f"{prefix}.{i}")
+
+
+def _from_v2(ckpt: dict[str, Any]) -> dict[str, Any]:
+    """A version-2 PPO checkpoint (hash already checked) in the version-3 layout."""
+    out = {k: v for k, v in ckpt.items() if k not in ("critic", "optimizer")}
+    out.update(kind=CHECKPOINT_KIND, format_version=FORMAT_VERSION, algorithm="ppo",
+               state={"critic": ckpt["critic"], "optimizer": ckpt.get("optimizer", {})})
+    return out
+
+
 def validate_checkpoint(ckpt: Any, source: str = "checkpoint") -> dict[str, Any]:
-    """Check a loaded object is a PPO checkpoint this code can read; returns it.
+    """Check a loaded object is a training checkpoint this code can read; returns it (version 3 layout).
 
     Raises:
-        ValueError: wrong kind, unsupported version, missing entries, a content hash that does not match or
-            non-finite weights; the message names what was found.
+        ValueError: wrong kind, unsupported version, an unknown algorithm, missing entries, a content hash that
+            does not match or non-finite weights; the message names what was found.
     """
-    if not isinstance(ckpt, dict) or ckpt.get("kind") != CHECKPOINT_KIND:
-        raise ValueError(f"{source} is not an anm_torchrl PPO checkpoint (expected a dict with "
+    from anm_torchrl.training.algorithms import ALGORITHMS
+
+    kind = ckpt.get("kind") if isinstance(ckpt, dict) else None
+    if kind not in (CHECKPOINT_KIND, PPO_V2_KIND):
+        raise ValueError(f"{source} is not an anm_torchrl training checkpoint (expected a dict with "
                          f"kind={CHECKPOINT_KIND!r}); found {describe(ckpt)}")
     version = ckpt.get("format_version")
-    if version != FORMAT_VERSION:
-        raise ValueError(f"{source}: unsupported PPO checkpoint format_version {version!r} "
-                         f"(this code reads version {FORMAT_VERSION})")
-    missing = [k for k in REQUIRED_KEYS + ("sha256",) if k not in ckpt]
+    if (kind, version) not in ((CHECKPOINT_KIND, FORMAT_VERSION), (PPO_V2_KIND, 2)):
+        raise ValueError(f"{source}: unsupported checkpoint format_version {version!r} of kind {kind!r} "
+                         f"(this code reads version {FORMAT_VERSION}, and version 2 of {PPO_V2_KIND!r})")
+    required = ("config", "actor", "critic", "obs_norm", "frames", "update") if version == 2 else REQUIRED_KEYS
+    missing = [k for k in required + ("sha256",) if k not in ckpt]
     if missing:
-        raise ValueError(f"{source}: PPO checkpoint is missing entries {missing}; found {describe(ckpt)}")
-    types = {"config": dict, "actor": dict, "critic": dict, "obs_norm": dict, "frames": int, "update": int,
-             "sha256": str}
+        raise ValueError(f"{source}: checkpoint is missing entries {missing}; found {describe(ckpt)}")
+    types = {"config": dict, "actor": dict, "obs_norm": dict, "frames": int, "update": int, "sha256": str,
+             **({"critic": dict} if version == 2 else {"state": dict, "algorithm": str})}
     wrong = [f"{k} is {type(ckpt[k]).__name__} (expected {t.__name__})" for k, t in types.items()
              if not isinstance(ckpt[k], t)]
-    wrong += [f"{name}[{k!r}] is {type(v).__name__} (expected Tensor)" for name in ("actor", "critic", "obs_norm")
+    wrong += [f"{name}[{k!r}] is {type(v).__name__} (expected Tensor)" for name in ("actor", "obs_norm")
               if isinstance(ckpt[name], dict) for k, v in ckpt[name].items() if not isinstance(v, torch.Tensor)]
     if wrong:
-        raise ValueError(f"{source}: malformed PPO checkpoint: {'; '.join(wrong)}")
+        raise ValueError(f"{source}: malformed checkpoint: {'; '.join(wrong)}")
     got = content_hash(ckpt)
     if got != ckpt["sha256"]:
         raise ValueError(f"{source} is corrupted: content hash {got[:12]}… does not match the recorded "
                          f"{str(ckpt['sha256'])[:12]}…")
-    for name in ("actor", "critic"):
-        bad = [k for k, t in ckpt[name].items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
-        if bad:
-            raise ValueError(f"{source} is corrupted: {name} tensors {bad} hold NaN or inf values")
+    if version == 2:
+        ckpt = _from_v2(ckpt)
+    if ckpt["algorithm"] not in ALGORITHMS:
+        raise ValueError(f"{source} was trained by algorithm {ckpt['algorithm']!r}, which this code does not know "
+                         f"(registered: {', '.join(sorted(ALGORITHMS))})")
+    bad = [path for path, t in _tensors({"actor": ckpt["actor"], "state": ckpt["state"]})
+           if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+    if bad:
+        raise ValueError(f"{source} is corrupted: tensors {bad} hold NaN or inf values")
     return ckpt
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Load and validate a PPO checkpoint.
+    """Load and validate a training checkpoint (any algorithm).
 
     Raises:
         FileNotFoundError: no file at ``path``.
-        ValueError: not a PPO checkpoint (not loadable by ``torch.load(weights_only=True)``, or the wrong kind or
+        ValueError: not a training checkpoint (not loadable by ``torch.load(weights_only=True)``, or the wrong kind or
             version); the message names the file and what it holds.
     """
     path = Path(path)
@@ -126,19 +160,20 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as err:  # noqa: BLE001 - arbitrary bytes make the unpickler raise anything (KeyError, ...)
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ValueError(f"{path} is not an anm_torchrl PPO checkpoint (expected a torch.save'd dict with "
+        raise ValueError(f"{path} is not an anm_torchrl training checkpoint (expected a torch.save'd dict with "
                          f"kind={CHECKPOINT_KIND!r}); torch.load(weights_only=True) failed: {first}") from err
     return validate_checkpoint(ckpt, source=str(path))
 
 
 def load_actor(checkpoint: str | os.PathLike | dict[str, Any], env=None, map_location: str | torch.device = "cpu"):
-    """The trained PPO actor of a checkpoint (a path or an already loaded dict), in eval mode.
+    """The trained actor of a checkpoint (a path or an already loaded dict) of any registered algorithm, in eval
+    mode.
 
-    The networks are rebuilt with the checkpoint's ``model`` config and normalisation statistics for the specs of
-    ``env`` (default: one grid of the checkpoint's ``network``, ANM6-Easy for runs that predate that key; a true
-    env and every surrogate of one network have the same specs).
+    The actor is rebuilt by the checkpoint's algorithm (``build_actor``) with its config and normalisation
+    statistics for the specs of ``env`` (default: one grid of the checkpoint's ``network``, ANM6-Easy for runs that
+    predate that key; a true env and every surrogate of one network have the same specs).
     """
-    from anm_torchrl.training.ppo_models import make_ppo_models
+    from anm_torchrl.training.algorithms import get_algorithm
 
     ckpt = checkpoint if isinstance(checkpoint, dict) else load_checkpoint(checkpoint, map_location)
     ckpt = validate_checkpoint(ckpt)
@@ -146,8 +181,7 @@ def load_actor(checkpoint: str | os.PathLike | dict[str, Any], env=None, map_loc
         from anm_torchrl.training.factory import make_true_env
 
         env = make_true_env(1, seed=0, network=ckpt["config"].get("network"))
-    model = dict(ckpt["config"].get("model", {}))
-    actor, _, _ = make_ppo_models(env, obs_stats=ckpt["obs_norm"], **model)
+    actor = get_algorithm(ckpt["algorithm"]).build_actor(env, ckpt["config"], ckpt["obs_norm"])
     actor.load_state_dict(ckpt["actor"])
     return actor.eval()
 
@@ -172,12 +206,15 @@ def check_resume_config(saved: dict, config: dict, source: str = "checkpoint") -
         The dotted keys that differ (the caller decides what to ignore and what to warn about).
 
     Raises:
-        ValueError: an :data:`ARCHITECTURE_KEYS` entry differs (the saved weights belong to another network); the
+        ValueError: one of the algorithm's ``architecture_keys`` (network, layer widths, ...) differs (the saved weights belong to another network); the
             message gives both values.
     """
-    saved = {"network": "anm6_easy", **saved}  # checkpoints that predate the key were trained on ANM6-Easy
+    from anm_torchrl.training.algorithms import get_algorithm
+
+    # checkpoints that predate the keys: PPO on ANM6-Easy
+    saved = {"network": "anm6_easy", "algorithm": "ppo", **saved}
     changed = config_diff(saved, config)
-    arch = [k for k in changed if k in ARCHITECTURE_KEYS]
+    arch = [k for k in changed if k in get_algorithm(saved["algorithm"]).architecture_keys]
     if arch:
         def value(cfg: dict, key: str):
             for part in key.split("."):

@@ -1,4 +1,4 @@
-"""Range checks of the PPO and evaluation configs, run before any work starts (one function per recipe).
+"""Range checks of the training and evaluation configs, run before any work starts (one function per recipe).
 
 Hydra checks key names and types; these functions check what it cannot: numeric ranges, choices and relations
 between keys. Every failure is a ``ValueError`` naming the dotted key, what was expected and what was received,
@@ -72,63 +72,32 @@ def _cells(cfg: Mapping, key: str) -> None:
         raise ValueError(f"{key} must be a list of positive layer widths, got {value!r}")
 
 
-def check_ppo_config(cfg: Mapping) -> None:
-    """Check every numeric range and choice of ``recipes/conf/config.yaml`` (``recipes/ppo.py``).
+def check_protocol_config(cfg: Mapping) -> None:
+    """Check the keys every algorithm shares (``anm_torchrl.training.protocol``): network, seed, threads, env,
+    budget, logger, eval, checkpoint.
 
     Raises:
         ValueError: the first offending key, with the expected range and the value received.
     """
     from anm_torchrl.networks import list_networks
-    from anm_torchrl.training.ppo_models import ACTIVATIONS
 
     _choice(cfg, "network", tuple(list_networks()))
     _int(cfg, "seed", low=0)
     _int(cfg, "threads")
     # env
-    n = _int(cfg, "env.num_envs")
+    _int(cfg, "env.num_envs")
     _int(cfg, "env.max_steps", optional=True)
     _choice(cfg, "env.action_mode", ACTION_MODES)
     _choice(cfg, "env.init", ENV_INITS)
-    # model
-    _cells(cfg, "model.actor_cells")
-    _cells(cfg, "model.critic_cells")
-    _choice(cfg, "model.activation", tuple(sorted(ACTIVATIONS)))
-    _in_range(cfg, "model.max_obs_scale", 0, math.inf, True, True, optional=True)
-    _in_range(cfg, "model.obs_clip", 0, math.inf, True, True)
-    _number(cfg, "model.init_log_std")
-    _choice(cfg, "model.init_action", ("center", "do_nothing"))
-    _in_range(cfg, "model.init_action_clip", 0, 1, True, True)
-    # collector
-    fpb = _int(cfg, "collector.frames_per_batch")
+    # budget: frames (reproducible); a wall-clock cap is opt-in
     _int(cfg, "collector.total_frames")
-    workers = _int(cfg, "collector.num_workers")
-    if n % workers:
-        raise ValueError(f"env.num_envs ({n}) must be a positive multiple of collector.num_workers ({workers})")
-    if fpb < n or fpb % n:
-        raise ValueError(f"collector.frames_per_batch ({fpb}) must be a positive multiple of env.num_envs ({n}): "
-                         f"frames_per_batch = num_envs x steps per env")
     _in_range(cfg, "collector.max_minutes", 0, math.inf, True, True, optional=True)
-    # loss
-    _in_range(cfg, "loss.gamma", 0, 1, True, False)
-    _in_range(cfg, "loss.gae_lambda", 0, 1, False, False)
-    _in_range(cfg, "loss.clip_epsilon", 0, math.inf, True, True)
-    _int(cfg, "loss.ppo_epochs")
-    mini = _int(cfg, "loss.mini_batch_size")
-    if mini > fpb:
-        raise ValueError(f"loss.mini_batch_size ({mini}) must be <= collector.frames_per_batch ({fpb})")
-    _in_range(cfg, "loss.critic_coeff", 0, math.inf, False, True)
-    _in_range(cfg, "loss.entropy_coeff", 0, math.inf, False, True)
-    _choice(cfg, "loss.loss_critic_type", ("l2", "l1", "smooth_l1"))
+    # reward scale (every algorithm scales its training rewards the same way)
     if isinstance(_get(cfg, "loss.reward_scale"), str) and _get(cfg, "loss.reward_scale") != "auto":
         raise ValueError(f"loss.reward_scale must be a number > 0 or auto, got {_get(cfg, 'loss.reward_scale')!r}")
     if _get(cfg, "loss.reward_scale") != "auto":
         _in_range(cfg, "loss.reward_scale", 0, math.inf, True, True)
     _in_range(cfg, "loss.auto_step_reward", 0, math.inf, True, True)
-    # optim
-    _in_range(cfg, "optim.lr", 0, math.inf, True, True)
-    _in_range(cfg, "optim.eps", 0, math.inf, True, True)
-    _in_range(cfg, "optim.weight_decay", 0, math.inf, False, True)
-    _in_range(cfg, "optim.max_grad_norm", 0, math.inf, True, True, optional=True)
     # logger
     _choice(cfg, "logger.backend", LOGGER_BACKENDS)
     _int(cfg, "logger.interval")
@@ -150,8 +119,92 @@ def check_ppo_config(cfg: Mapping) -> None:
     _int(cfg, "checkpoint.interval")
 
 
+def _check_model(cfg: Mapping) -> None:
+    from anm_torchrl.training.models import ACTIVATIONS
+
+    _cells(cfg, "model.actor_cells")
+    _cells(cfg, "model.critic_cells")
+    _choice(cfg, "model.activation", tuple(sorted(ACTIVATIONS)))
+    _in_range(cfg, "model.max_obs_scale", 0, math.inf, True, True, optional=True)
+    _in_range(cfg, "model.obs_clip", 0, math.inf, True, True)
+    _number(cfg, "model.init_log_std")
+    _choice(cfg, "model.init_action", ("center", "do_nothing"))
+    _in_range(cfg, "model.init_action_clip", 0, 1, True, True)
+
+
+def _check_collector(cfg: Mapping) -> int:
+    """Frames per batch, workers; returns ``collector.frames_per_batch``."""
+    n = _int(cfg, "env.num_envs")
+    fpb = _int(cfg, "collector.frames_per_batch")
+    workers = _int(cfg, "collector.num_workers")
+    if n % workers:
+        raise ValueError(f"env.num_envs ({n}) must be a positive multiple of collector.num_workers ({workers})")
+    if fpb < n or fpb % n:
+        raise ValueError(f"collector.frames_per_batch ({fpb}) must be a positive multiple of env.num_envs ({n}): "
+                         f"frames_per_batch = num_envs x steps per env")
+    return fpb
+
+
+def _check_adam(cfg: Mapping) -> None:
+    _in_range(cfg, "optim.lr", 0, math.inf, True, True)
+    _in_range(cfg, "optim.eps", 0, math.inf, True, True)
+    _in_range(cfg, "optim.weight_decay", 0, math.inf, False, True)
+    _in_range(cfg, "optim.max_grad_norm", 0, math.inf, True, True, optional=True)
+
+
+def check_ppo_config(cfg: Mapping) -> None:
+    """Check every numeric range and choice of ``recipes/conf/config.yaml`` (``recipes/ppo.py``): the shared keys
+    (:func:`check_protocol_config`) and PPO's model, collector, loss and optimiser.
+
+    Raises:
+        ValueError: the first offending key, with the expected range and the value received.
+    """
+    check_protocol_config(cfg)
+    _check_model(cfg)
+    fpb = _check_collector(cfg)
+    _in_range(cfg, "loss.gamma", 0, 1, True, False)
+    _in_range(cfg, "loss.gae_lambda", 0, 1, False, False)
+    _in_range(cfg, "loss.clip_epsilon", 0, math.inf, True, True)
+    _int(cfg, "loss.ppo_epochs")
+    mini = _int(cfg, "loss.mini_batch_size")
+    if mini > fpb:
+        raise ValueError(f"loss.mini_batch_size ({mini}) must be <= collector.frames_per_batch ({fpb})")
+    _in_range(cfg, "loss.critic_coeff", 0, math.inf, False, True)
+    _in_range(cfg, "loss.entropy_coeff", 0, math.inf, False, True)
+    _choice(cfg, "loss.loss_critic_type", ("l2", "l1", "smooth_l1"))
+    _check_adam(cfg)
+
+
+def check_sac_config(cfg: Mapping) -> None:
+    """Check ``recipes/conf/sac.yaml`` (``recipes/sac.py``): the shared keys and SAC's model, collector, replay
+    buffer, loss and optimiser.
+
+    Raises:
+        ValueError: the first offending key, with the expected range and the value received.
+    """
+    check_protocol_config(cfg)
+    _check_model(cfg)
+    fpb = _check_collector(cfg)
+    _int(cfg, "collector.init_random_frames", low=0)
+    buffer = _int(cfg, "replay.size")
+    batch = _int(cfg, "replay.batch_size")
+    if buffer < fpb:
+        raise ValueError(f"replay.size ({buffer}) must be >= collector.frames_per_batch ({fpb})")
+    if batch > buffer:
+        raise ValueError(f"replay.batch_size ({batch}) must be <= replay.size ({buffer})")
+    _in_range(cfg, "replay.samples_per_frame", 0, math.inf, True, True)
+    _in_range(cfg, "loss.gamma", 0, 1, True, False)
+    _in_range(cfg, "loss.tau", 0, 1, True, False)
+    _number(cfg, "loss.alpha_init")
+    if not _get(cfg, "loss.alpha_init") > 0:
+        raise ValueError(f"loss.alpha_init must be > 0, got {_get(cfg, 'loss.alpha_init')!r}")
+    _number(cfg, "loss.target_entropy_per_dim")
+    _choice(cfg, "loss.loss_function", ("l2", "l1", "smooth_l1"))
+    _check_adam(cfg)
+
+
 def check_evaluate_config(cfg: Mapping) -> None:
-    """Check the ranges of ``recipes/conf/evaluate.yaml`` (``recipes/evaluate.py``).
+    """Check the ranges of ``recipes/conf_evaluate/evaluate.yaml`` (``recipes/evaluate.py``).
 
     Raises:
         ValueError: the first offending key, with the expected range and the value received.

@@ -142,3 +142,26 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
         else:
             env = TransformedEnv(env, StepCounter(int(max_steps)))
     return env
+
+
+def make_train_env(surrogate: dict, num_envs: int, max_steps: int | None, seed: int, action_mode: str,
+                   init: str | None, device: str, threads: int, network: str | None = None):
+    """The training env: ``make_env`` + ``RewardSum`` (episode returns for logging). Also a collector-worker factory."""
+    import torch
+    from torchrl.envs import RewardSum
+
+    torch.set_num_threads(int(threads))
+    options = {k: v for k, v in surrogate.items() if k != "name"}
+    env = make_env(surrogate["name"], num_envs=num_envs, max_steps=max_steps, device=device, seed=seed,
+                   action_mode=action_mode, init=init, network=network, **options)
+    return env.append_transform(RewardSum()) if isinstance(env, TransformedEnv) else TransformedEnv(env, RewardSum())
+
+
+def train_env_kwargs(cfg, device: str, num_workers: int = 1) -> dict:
+    """:func:`make_train_env`'s arguments (all but ``seed``) from the config's ``env``, ``surrogate``, ``network``."""
+    from omegaconf import OmegaConf
+
+    return dict(surrogate=OmegaConf.to_container(cfg.surrogate, resolve=True),
+                num_envs=int(cfg.env.num_envs) // num_workers, max_steps=cfg.env.max_steps,
+                action_mode=cfg.env.action_mode, init=cfg.env.init, device=str(device), threads=int(cfg.threads),
+                network=cfg.network)

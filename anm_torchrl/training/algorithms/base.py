@@ -1,0 +1,63 @@
+"""What an algorithm provides to the training protocol: models, loss and update, nothing else.
+
+The protocol (:func:`anm_torchrl.training.protocol.train`) owns the run directory, resume, budget, validation
+and test states, early stop, checkpoints, logging and Ctrl-C; it calls an algorithm through this interface only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+from omegaconf import DictConfig
+
+
+class Algorithm:
+    """One training algorithm. Subclasses set the class attributes and implement every method.
+
+    Attributes:
+        name: the registry name (``anm_torchrl.training.algorithms.ALGORITHMS``), stored in checkpoints.
+        architecture_keys: dotted config keys that fix the saved networks' shapes; resuming or loading with other
+            values is an error.
+        actor: the policy (a ``ProbabilisticActor`` reading ``"observation"``, writing ``"action"`` inside the box);
+            evaluated in deterministic mode, saved as the checkpoint's ``"actor"``.
+        normalizer: its observation normaliser (``stats()`` goes into the checkpoint's ``"obs_norm"``).
+    """
+
+    name: ClassVar[str]
+    architecture_keys: ClassVar[tuple[str, ...]] = ("network",)
+
+    def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
+                 resume: Mapping[str, Any] | None):
+        """Build envs, models, loss and optimisers.
+
+        Args:
+            cfg: the recipe's composed config.
+            device: torch device of models and envs.
+            seed: the run's seed (already offset by the resumed update count).
+            budget: training-env frames this run may still use (``collector.total_frames`` minus resumed frames).
+            reward_scale: multiplier of training rewards (logged rewards stay unscaled).
+            resume: a loaded checkpoint of this algorithm to continue from, or None.
+        """
+        raise NotImplementedError
+
+    def iterate(self, remaining: int) -> tuple[int, dict[str, float]]:
+        """One iteration (collect, update). Uses at most ``remaining`` training-env frames.
+
+        Returns:
+            (frames of the training env used, metrics as ``{"train/...": value, "time/...": seconds}``).
+        """
+        raise NotImplementedError
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything beyond the actor needed to resume (other networks, optimisers, buffers' counters)."""
+        raise NotImplementedError
+
+    def close(self, interrupted: bool = False) -> None:
+        """Release collectors and worker processes (after Ctrl-C, workers may already be gone)."""
+
+    @staticmethod
+    def build_actor(env, config: Mapping[str, Any], obs_stats: Mapping[str, Any]):
+        """The untrained actor for ``env``'s specs with a checkpoint's ``config`` and ``obs_norm`` (to load weights
+        into)."""
+        raise NotImplementedError

@@ -1,0 +1,193 @@
+"""PPO behind the training protocol: TorchRL's ``Collector`` -> GAE (recomputed every epoch) -> minibatches
+without replacement -> ``ClipPPOLoss`` -> Adam, as TorchRL's ``sota-implementations/ppo/ppo_mujoco.py``.
+
+Config groups it reads: ``model`` (actor/critic), ``collector`` (frames per update, workers), ``loss`` (PPO/GAE),
+``optim`` (Adam, schedule, clipping). Logged: ``train/{reward, episode_return, episode_length, loss_objective,
+loss_critic, loss_entropy, entropy, clip_fraction, kl_approx, grad_norm, explained_variance, lr, action_scale}``
+and ``time/{collect, update, fps}``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from functools import partial
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDict
+
+from anm_torchrl.training.algorithms.base import Algorithm
+
+
+def budget_mask(batch_size, remaining: int):
+    """Frames of a collected batch ``[..., T]`` that fit in the remaining budget of ``remaining`` frames.
+
+    Returns:
+        None when the whole batch fits, else a bool mask of ``batch_size`` keeping the first ``remaining`` frames in
+        time order (every env's step t before any env's step t + 1), so ``collector.total_frames`` is exact.
+    """
+    n_steps = int(batch_size[-1])
+    n_envs = batch_size.numel() // n_steps
+    if n_envs * n_steps <= remaining:
+        return None
+    rank = torch.arange(n_steps)[None, :] * n_envs + torch.arange(n_envs)[:, None]  # [envs, T], time-major order
+    return (rank < remaining).reshape(batch_size)
+
+
+def make_collector(cfg: DictConfig, policy, device, seed: int, budget: int, env=None):
+    """TorchRL's collector over the training env (one process: ``env`` if given; or ``collector.num_workers``
+    processes, each building its own), collecting whole batches of ``collector.frames_per_batch`` up to ``budget``
+    frames (the last batch is cut by :func:`budget_mask`). Returns None for a budget of 0 (``env`` is closed)."""
+    from torchrl.collectors import Collector
+
+    from anm_torchrl.training.factory import make_train_env, train_env_kwargs
+
+    num_workers = int(cfg.collector.num_workers)
+    if budget <= 0 or num_workers > 1:
+        if env is not None:
+            env.close()
+        env = None
+    if budget <= 0:
+        return None
+    frames_per_batch = int(cfg.collector.frames_per_batch)
+    env_kwargs = train_env_kwargs(cfg, str(device), num_workers)
+    kwargs = dict(policy=policy, frames_per_batch=frames_per_batch, device=device,
+                  total_frames=-(-budget // frames_per_batch) * frames_per_batch, auto_register_policy_transforms=False)
+    if num_workers == 1:
+        return Collector(env if env is not None else make_train_env(seed=seed, **env_kwargs), **kwargs)
+    factories = [partial(make_train_env, seed=seed + 1000 * i, **env_kwargs) for i in range(num_workers)]
+    return Collector(factories, num_collectors=num_workers, sync=bool(cfg.collector.sync), **kwargs)
+
+
+def episode_metrics(kept: TensorDict) -> dict[str, torch.Tensor]:
+    """``train/reward`` and, over the episodes that ended in ``kept``, ``train/episode_return`` and
+    ``train/episode_length`` (frames to the end: termination or time limit)."""
+    out = {"train/reward": kept["next", "reward"].mean()}
+    done = kept["next", "done"]
+    if done.any():
+        out["train/episode_return"] = kept["next", "episode_reward"][done].mean()
+        if ("next", "step_count") in kept.keys(True):
+            out["train/episode_length"] = kept["next", "step_count"][done].float().mean()
+    return out
+
+
+def explained_variance(value: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``1 - Var(target - value) / Var(target)`` (CleanRL's diagnostic of the critic; NaN when Var(target) = 0)."""
+    var = target.var()
+    return 1.0 - (target - value).var() / var if var > 0 else torch.tensor(math.nan)
+
+
+class PPO(Algorithm):
+    """Clipped PPO with GAE (TorchRL ``ClipPPOLoss``), the PPO recipe's defaults in ``recipes/conf/``."""
+
+    name = "ppo"
+    architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip")
+
+    def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
+                 resume: Mapping[str, Any] | None):
+        from torchrl.objectives import ClipPPOLoss
+        from torchrl.objectives.value import GAE
+
+        from anm_torchrl.training.models import make_ppo_models
+        from anm_torchrl.training.factory import make_train_env, train_env_kwargs
+
+        self.cfg, self.device, self.reward_scale = cfg, device, float(reward_scale)
+        # one env to build the models from; with one worker it is also the collector's
+        spec_env = make_train_env(seed=seed, **train_env_kwargs(cfg, str(device), int(cfg.collector.num_workers)))
+        self.actor, self.critic, self.normalizer = make_ppo_models(
+            spec_env, actor_cells=cfg.model.actor_cells, critic_cells=cfg.model.critic_cells,
+            activation=cfg.model.activation, max_obs_scale=cfg.model.max_obs_scale, obs_clip=cfg.model.obs_clip,
+            init_log_std=cfg.model.init_log_std, obs_stats=resume["obs_norm"] if resume else None,
+            init_action=cfg.model.init_action, init_action_clip=cfg.model.init_action_clip)
+        self.actor, self.critic = self.actor.to(device), self.critic.to(device)
+        self.adv_module = GAE(gamma=cfg.loss.gamma, lmbda=cfg.loss.gae_lambda, value_network=self.critic,
+                              average_gae=False, device=device)
+        self.loss_module = ClipPPOLoss(
+            actor_network=self.actor, critic_network=self.critic, clip_epsilon=cfg.loss.clip_epsilon,
+            loss_critic_type=cfg.loss.loss_critic_type, entropy_coeff=cfg.loss.entropy_coeff,
+            critic_coeff=cfg.loss.critic_coeff, normalize_advantage=cfg.loss.normalize_advantage)
+        self.optim = torch.optim.Adam(self.loss_module.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps,
+                                      weight_decay=cfg.optim.weight_decay)
+        if resume:
+            self.actor.load_state_dict(resume["actor"])
+            self.critic.load_state_dict(resume["state"]["critic"])
+            self.optim.load_state_dict(resume["state"]["optimizer"])
+        self.total_frames = int(cfg.collector.total_frames)
+        self.frames = int(resume["frames"]) if resume else 0
+        self.collector = make_collector(cfg, self.actor, device, seed, budget, env=spec_env)
+        self._batches = iter(self.collector) if self.collector is not None else iter(())
+
+    def iterate(self, remaining: int) -> tuple[int, dict[str, float]]:
+        cfg, optim = self.cfg, self.optim
+        t0 = time.perf_counter()
+        data = next(self._batches)
+        t_collect = time.perf_counter() - t0
+        # data: [num_envs, T] (one process) or [workers, envs per worker, T] (multi-process); time is last
+        keep = budget_mask(data.batch_size, remaining)  # None except for a cut last batch
+        kept = data if keep is None else data[keep]
+        n_frames = kept.numel()
+        metrics = {**episode_metrics(kept), "train/action_scale": kept["scale"].mean()}
+        if self.reward_scale != 1.0:
+            data.set(("next", "reward"), data.get(("next", "reward")) * self.reward_scale)
+
+        # GAE recomputed before every epoch (on the whole batch: its bootstrap needs every step), minibatches
+        # without replacement over the kept frames
+        t0 = time.perf_counter()
+        if cfg.optim.anneal_lr:
+            for group in optim.param_groups:
+                group["lr"] = float(cfg.optim.lr) * max(1.0 - self.frames / self.total_frames, 0.0)
+        mini = int(cfg.loss.mini_batch_size)
+        losses = []
+        for _ in range(int(cfg.loss.ppo_epochs)):
+            with torch.no_grad():
+                data = self.adv_module(data)
+            flat = data.reshape(-1) if keep is None else data[keep]
+            perm = torch.randperm(flat.numel(), device=flat.device)
+            for start in range(0, flat.numel(), mini):
+                batch = flat[perm[start:start + mini]]
+                loss = self.loss_module(batch)
+                total = loss["loss_objective"] + loss["loss_critic"] + loss["loss_entropy"]
+                optim.zero_grad(set_to_none=True)
+                total.backward()
+                grad_norm = (torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), cfg.optim.max_grad_norm)
+                             if cfg.optim.max_grad_norm else torch.zeros(()))
+                optim.step()
+                losses.append(loss.select("loss_objective", "loss_critic", "loss_entropy", "entropy",
+                                          "clip_fraction", "kl_approx", strict=False).detach()
+                              .set("grad_norm", grad_norm.detach()))
+        self.collector.update_policy_weights_()
+        metrics["train/explained_variance"] = explained_variance(flat["state_value"].reshape(-1),
+                                                                 flat["value_target"].reshape(-1))
+        t_update = time.perf_counter() - t0
+        self.frames += n_frames
+        loss_means = torch.stack(losses).apply(lambda x: x.float().mean(), batch_size=[])
+        metrics.update({f"train/{key}": value for key, value in loss_means.items()})
+        metrics["train/lr"] = optim.param_groups[0]["lr"]
+        metrics.update({"time/collect": t_collect, "time/update": t_update,
+                        "time/fps": n_frames / max(t_collect + t_update, 1e-9)})
+        return n_frames, metrics
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"critic": self.critic.state_dict(), "optimizer": self.optim.state_dict()}
+
+    def close(self, interrupted: bool = False) -> None:
+        if self.collector is None:
+            return
+        try:
+            self.collector.shutdown()
+        except Exception as err:  # noqa: BLE001 - after Ctrl-C, worker processes got the SIGINT too
+            if not interrupted:
+                raise
+            import logging
+
+            logging.getLogger(__name__).warning("collector shutdown after Ctrl-C: %s", err)
+        self.collector = None
+
+    @staticmethod
+    def build_actor(env, config: Mapping[str, Any], obs_stats: Mapping[str, Any]):
+        from anm_torchrl.training.models import make_ppo_models
+
+        return make_ppo_models(env, obs_stats=obs_stats, **dict(config.get("model", {})))[0]

@@ -1,0 +1,136 @@
+"""SAC behind the training protocol: TorchRL's ``Collector`` -> replay buffer -> ``SACLoss`` (twin Q networks,
+target networks by Polyak averaging, a learned temperature) -> Adam, as TorchRL's ``sota-implementations/sac/``.
+
+The batched env makes many frames per collection step, so the update count is set per frame: every iteration
+collects ``collector.frames_per_batch`` frames (``env.num_envs`` x steps) and draws ``replay.samples_per_frame`` x
+that many samples, in minibatches of ``replay.batch_size``. The first ``collector.init_random_frames`` frames are
+collected by a uniformly random policy (they count in the budget).
+
+Config groups it reads (``recipes/conf/sac.yaml``): ``model`` (actor/Q widths), ``collector``, ``replay``, ``loss``
+(γ, τ, temperature), ``optim``. Logged: ``train/{reward, episode_return, episode_length, loss_actor, loss_qvalue,
+loss_alpha, alpha, entropy, grad_norm, buffer_size}`` and ``time/{collect, update, fps}``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+
+from anm_torchrl.training.algorithms.base import Algorithm
+from anm_torchrl.training.algorithms.ppo import budget_mask, episode_metrics
+
+
+class SAC(Algorithm):
+    """Soft actor-critic (TorchRL ``SACLoss``, version 2: no separate value network)."""
+
+    name = "sac"
+    architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip")
+
+    def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
+                 resume: Mapping[str, Any] | None):
+        from torchrl.collectors import Collector
+        from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+        from torchrl.objectives import SACLoss, SoftUpdate
+
+        from anm_torchrl.training.factory import make_train_env, train_env_kwargs
+        from anm_torchrl.training.models import make_sac_models
+
+        if int(cfg.collector.num_workers) != 1:
+            raise ValueError("sac runs one collector process: collector.num_workers must be 1, got "
+                             f"{cfg.collector.num_workers}")
+        self.cfg, self.device, self.reward_scale = cfg, device, float(reward_scale)
+        env = make_train_env(seed=seed, **train_env_kwargs(cfg, str(device)))
+        self.actor, qvalue, self.normalizer = make_sac_models(
+            env, actor_cells=cfg.model.actor_cells, critic_cells=cfg.model.critic_cells,
+            activation=cfg.model.activation, max_obs_scale=cfg.model.max_obs_scale, obs_clip=cfg.model.obs_clip,
+            init_log_std=cfg.model.init_log_std, obs_stats=resume["obs_norm"] if resume else None,
+            init_action=cfg.model.init_action, init_action_clip=cfg.model.init_action_clip)
+        self.actor, qvalue = self.actor.to(device), qvalue.to(device)
+        act_dim = int(env.full_action_spec["action"].shape[-1])
+        self.loss_module = SACLoss(actor_network=self.actor, qvalue_network=qvalue, num_qvalue_nets=2,
+                                   loss_function=cfg.loss.loss_function, alpha_init=float(cfg.loss.alpha_init),
+                                   target_entropy=float(cfg.loss.target_entropy_per_dim) * act_dim,
+                                   action_spec=env.full_action_spec["action"])
+        self.loss_module.make_value_estimator(gamma=float(cfg.loss.gamma))
+        self.target_updater = SoftUpdate(self.loss_module, tau=float(cfg.loss.tau))
+        critic_params = list(self.loss_module.qvalue_network_params.flatten_keys().values())
+        actor_params = list(self.loss_module.actor_network_params.flatten_keys().values())
+        adam = dict(lr=float(cfg.optim.lr), eps=float(cfg.optim.eps), weight_decay=float(cfg.optim.weight_decay))
+        self.optims = {"actor": torch.optim.Adam(actor_params, **adam),
+                       "qvalue": torch.optim.Adam(critic_params, **adam),
+                       "alpha": torch.optim.Adam([self.loss_module.log_alpha], lr=float(cfg.optim.lr))}
+        if resume:
+            self.actor.load_state_dict(resume["actor"])
+            self.loss_module.load_state_dict(resume["state"]["loss"])
+            for name, optim in self.optims.items():
+                optim.load_state_dict(resume["state"]["optimizers"][name])
+        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(int(cfg.replay.size), device=device),
+                                             batch_size=int(cfg.replay.batch_size))
+        frames_per_batch = int(cfg.collector.frames_per_batch)
+        resumed = int(resume["frames"]) if resume else 0
+        self.collector = None
+        if budget > 0:
+            self.collector = Collector(
+                env, self.actor, frames_per_batch=frames_per_batch, device=device,
+                total_frames=-(-budget // frames_per_batch) * frames_per_batch,
+                init_random_frames=max(int(cfg.collector.init_random_frames) - resumed, 0),
+                auto_register_policy_transforms=False)
+        self._batches = iter(self.collector) if self.collector is not None else iter(())
+
+    def iterate(self, remaining: int) -> tuple[int, dict[str, float]]:
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        data = next(self._batches)
+        t_collect = time.perf_counter() - t0
+        keep = budget_mask(data.batch_size, remaining)
+        kept = (data if keep is None else data[keep]).reshape(-1)
+        n_frames = kept.numel()
+        metrics = episode_metrics(kept)
+        if self.reward_scale != 1.0:
+            kept.set(("next", "reward"), kept.get(("next", "reward")) * self.reward_scale)
+        self.buffer.extend(kept.exclude("loc", "scale", "action_log_prob"))  # the random warm-up writes none
+
+        t0 = time.perf_counter()
+        n_updates = max(1, math.ceil(float(cfg.replay.samples_per_frame) * n_frames / int(cfg.replay.batch_size)))
+        losses = []
+        for _ in range(n_updates):
+            batch = self.buffer.sample()
+            loss = self.loss_module(batch)
+            for name, key in (("qvalue", "loss_qvalue"), ("actor", "loss_actor"), ("alpha", "loss_alpha")):
+                self.optims[name].zero_grad(set_to_none=True)
+            (loss["loss_qvalue"] + loss["loss_actor"] + loss["loss_alpha"]).backward()
+            grad_norm = (torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), cfg.optim.max_grad_norm)
+                         if cfg.optim.max_grad_norm else torch.zeros(()))
+            for optim in self.optims.values():
+                optim.step()
+            self.target_updater.step()
+            losses.append(loss.select("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy",
+                                      strict=False).detach().set("grad_norm", grad_norm.detach()))
+        self.collector.update_policy_weights_()
+        t_update = time.perf_counter() - t0
+        loss_means = torch.stack(losses).apply(lambda x: x.float().mean(), batch_size=[])
+        metrics.update({f"train/{key}": value for key, value in loss_means.items()})
+        metrics.update({"train/buffer_size": len(self.buffer), "time/collect": t_collect, "time/update": t_update,
+                        "time/fps": n_frames / max(t_collect + t_update, 1e-9)})
+        return n_frames, metrics
+
+    def state_dict(self) -> dict[str, Any]:
+        # the replay buffer is not saved (hundreds of MB): a resumed run refills it from its own collection
+        return {"loss": self.loss_module.state_dict(),
+                "optimizers": {name: optim.state_dict() for name, optim in self.optims.items()}}
+
+    def close(self, interrupted: bool = False) -> None:
+        if self.collector is not None:
+            self.collector.shutdown()
+            self.collector = None
+
+    @staticmethod
+    def build_actor(env, config: Mapping[str, Any], obs_stats: Mapping[str, Any]):
+        from anm_torchrl.training.models import make_sac_models
+
+        return make_sac_models(env, obs_stats=obs_stats, **dict(config.get("model", {})))[0]

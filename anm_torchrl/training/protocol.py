@@ -1,0 +1,291 @@
+"""The training protocol every algorithm shares: one function, :func:`train`, read top to bottom.
+
+An algorithm (``anm_torchrl/training/algorithms/``, chosen by the config's ``algorithm`` key) provides models, loss
+and update behind :class:`~anm_torchrl.training.algorithms.base.Algorithm`; everything else lives here, once:
+
+* the run directory (``logs/`` TensorBoard or CSV, ``checkpoints/{best,last}.pt``, ``summary.json``);
+* resume from a checkpoint (``checkpoint.resume``), refusing another algorithm or architecture;
+* the budget: ``collector.total_frames`` frames of the training env (exact), optionally a wall-clock cap
+  (``collector.max_minutes``, opt-in: a result that depends on machine load is not reproducible);
+* two disjoint sets of initial states of the network's **true** simulator: the **validation** states
+  (``eval.seed``) are evaluated every ``eval.interval`` iterations and choose ``best.pt`` and the early stop
+  (``eval.patience``); the **test** states (``eval.test_seed``) are evaluated once at the end, for ``best.pt`` and
+  ``last.pt`` (``test/*`` tags, ``summary.json["test"]``): every reported figure comes from them;
+* Ctrl-C: ``last.pt`` and ``summary.json`` (``"interrupted": true``) are written, then ``KeyboardInterrupt``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+log = logging.getLogger(__name__)
+
+# keys a resumed run may change without a warning
+EXCLUDED_CONFIG_DIFF = ("checkpoint", "logger", "collector.total_frames", "collector.max_minutes", "eval.patience")
+EVAL_KEYS = ("return", "discounted_return", "e_loss", "penalty", "steps", "terminated")
+
+
+def reward_scale_of(cfg: DictConfig, eval_env, val_states) -> dict:
+    """``{"reward_scale": s, ...}``: ``loss.reward_scale`` as given, or derived once per run from do-nothing on the
+    validation states (``auto``, :mod:`anm_torchrl.training.reward_scale`)."""
+    if cfg.loss.reward_scale != "auto":
+        return {"reward_scale": float(cfg.loss.reward_scale)}
+    from anm_torchrl.training.reward_scale import do_nothing_reward_scale
+
+    info = do_nothing_reward_scale(eval_env, val_states, int(cfg.eval.max_steps), float(cfg.loss.auto_step_reward))
+    log.info("loss.reward_scale=auto: %.4g (do-nothing mean step reward %.4g on the validation states)",
+             info["reward_scale"], info["do_nothing_step_reward"])
+    return info
+
+
+def train(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a training loop, read top to bottom
+    """Train ``cfg.algorithm`` as configured by ``cfg`` (a recipe's composed config) into ``run_dir``; returns the
+    summary (also written to ``run_dir/summary.json``).
+
+    ``cfg.checkpoint.resume`` is a path (absolute, or relative to the current directory). Every range of ``cfg`` is
+    checked first.
+
+    Raises:
+        ValueError: a config value out of range, or a resume checkpoint of another algorithm or architecture.
+        KeyboardInterrupt: re-raised after a Ctrl-C, once ``last.pt`` and ``summary.json`` (``"interrupted":
+            true``) are written.
+    """
+    from anm_torchrl.training.algorithms import check_algorithm_config, get_algorithm
+
+    check_algorithm_config(cfg)  # before the heavy imports: a bad value fails in a second
+    import torch
+
+    algorithm_cls = get_algorithm(str(cfg.algorithm))
+
+    torch.set_num_threads(int(cfg.threads))
+    from torchrl.record.loggers import generate_exp_name, get_logger
+    from tqdm import tqdm
+
+    from anm_torchrl.training.checkpoint import check_resume_config, load_checkpoint, save_checkpoint
+    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.training.factory import make_true_env
+
+    t_start = time.perf_counter()
+    config = OmegaConf.to_container(cfg, resolve=True)
+    device = torch.device(cfg.env.device)
+    run_dir = Path(run_dir).resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_dir = run_dir / "checkpoints"
+    log.info("%s run directory: %s", algorithm_cls.name, run_dir)
+
+    # ---- resume -------------------------------------------------------------------------------------------
+    resume = None
+    if cfg.checkpoint.resume:
+        resume_path = Path(str(cfg.checkpoint.resume)).expanduser().resolve()
+        resume = load_checkpoint(resume_path, map_location=device)
+        if resume["algorithm"] != algorithm_cls.name:
+            raise ValueError(f"cannot resume from {resume_path}: it was trained by {resume['algorithm']!r}, this run "
+                             f"is {algorithm_cls.name!r}")
+        changed = [k for k in check_resume_config(resume["config"], config, source=str(resume_path))
+                   if not any(k == e or k.startswith(e + ".") for e in EXCLUDED_CONFIG_DIFF)]
+        if changed:
+            log.warning("resuming with a config that differs from the checkpoint's in: %s", ", ".join(changed))
+        log.info("resuming from %s at %d frames, update %d", resume_path, resume["frames"], resume["update"])
+        if (resume_path.parent / "best.pt").is_file() and resume_path.parent != ckpt_dir:
+            ckpt_dir.mkdir(parents=True, exist_ok=True)  # the best policy so far stays next to the new last.pt
+            shutil.copy2(resume_path.parent / "best.pt", ckpt_dir / "best.pt")
+    frames = int(resume["frames"]) if resume else 0
+    update = int(resume["update"]) if resume else 0
+    seed = int(cfg.seed) + update  # a resumed run does not replay the first run's random streams
+    torch.manual_seed(seed)
+    total_frames = int(cfg.collector.total_frames)
+
+    # ---- evaluation states: the network's true simulator, from its reset distribution -----------------------------
+    eval_env = make_true_env(int(cfg.eval.num_episodes), device, seed=int(cfg.eval.seed), network=cfg.network)
+    test_env = make_true_env(int(cfg.eval.test_episodes), device, seed=int(cfg.eval.test_seed), network=cfg.network)
+    val_states = draw_initial_states(int(cfg.eval.num_episodes), int(cfg.eval.seed), eval_env.sim, eval_env.init)
+    test_states = draw_initial_states(int(cfg.eval.test_episodes), int(cfg.eval.test_seed), test_env.sim,
+                                      test_env.init)
+    reward_scale = reward_scale_of(cfg, eval_env, val_states)
+
+    # ---- the algorithm: its envs, models, loss, optimisers ---------------------------------------------------------
+    algo = algorithm_cls(cfg, device=device, seed=seed, budget=max(total_frames - frames, 0),
+                         reward_scale=reward_scale["reward_scale"], resume=resume)
+    actor = algo.actor
+
+    # ---- logger -------------------------------------------------------------------------------------------
+    logger = None
+    if cfg.logger.backend:
+        exp_name = generate_exp_name(algorithm_cls.name.upper(), f"{cfg.logger.exp_name}_{cfg.surrogate.name}")
+        logger = get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"), experiment_name=exp_name)
+        if hasattr(logger.experiment, "add_text"):
+            logger.experiment.add_text("config", "```yaml\n" + OmegaConf.to_yaml(cfg, resolve=True) + "```", frames)
+
+    def log_metrics(metrics: dict, step: int) -> None:
+        if logger is not None:
+            for name, value in metrics.items():
+                logger.log_scalar(name, float(value), step=step)
+
+    # ---- evaluation and checkpoints ----------------------------------------------------------------------------
+    best = resume.get("best_eval") if resume else None
+    evals_since_best = int(resume.get("evals_since_best", 0)) if resume else 0
+    n_evals = 0
+    last_eval = None
+    wall_before = float(resume.get("wall_time", 0.0)) if resume else 0.0
+
+    def checkpoint_payload() -> dict:
+        return {"algorithm": algorithm_cls.name, "config": config, "actor": actor.state_dict(),
+                "obs_norm": algo.normalizer.stats(), "state": algo.state_dict(), "frames": frames, "update": update,
+                "logger_step": frames, "best_eval": best, "evals_since_best": evals_since_best,
+                "wall_time": wall_before + time.perf_counter() - t_start}
+
+    test_max_steps = int(cfg.eval.max_steps if cfg.eval.test_max_steps is None else cfg.eval.test_max_steps)
+
+    def run_eval(policy, states, env, trained: tuple[int, int] | None = None, steps: int = int(cfg.eval.max_steps)
+                 ) -> dict:
+        """Metrics of ``policy`` on ``states`` over ``steps`` steps, tagged with the (frames, update) it was trained
+        for."""
+        policy.eval()
+        result = evaluate_policy(policy, states, max_steps=steps, gamma=float(cfg.eval.gamma), env=env)
+        policy.train()
+        at_frames, at_update = trained if trained is not None else (frames, update)
+        return {**result.metrics(), "frames": at_frames, "update": at_update, "seconds": result.wall_time}
+
+    # ---- training loop ----------------------------------------------------------------------------------------
+    eval_interval, patience = cfg.eval.interval, cfg.eval.patience
+    render_interval = int(cfg.eval.render_interval)
+    max_minutes = cfg.collector.max_minutes
+    stopped_early = out_of_time = interrupted = False
+    if frames >= total_frames:
+        log.warning("checkpoint already has %d >= collector.total_frames=%d frames; nothing to train", frames,
+                    total_frames)
+    pbar = tqdm(total=total_frames, initial=frames, unit="frames", dynamic_ncols=True,
+                disable=not cfg.logger.progress)
+    try:
+        while frames < total_frames:
+            n_frames, train_metrics = algo.iterate(total_frames - frames)
+            frames += n_frames  # counted once the update is done: an interrupted update is not a trained batch
+            update += 1
+            pbar.update(n_frames)
+
+            # evaluation on the true simulator, deterministic policy, fixed validation states
+            is_last = frames >= total_frames
+            eval_metrics = {}
+            if eval_interval is not None and (update % int(eval_interval) == 0 or is_last):
+                last_eval = run_eval(actor, val_states, eval_env)
+                n_evals += 1
+                eval_metrics = {f"eval/{k}": last_eval[k] for k in EVAL_KEYS}
+                eval_metrics["time/eval"] = last_eval["seconds"]
+                if best is None or last_eval["discounted_return"] > best["discounted_return"]:
+                    best, evals_since_best = dict(last_eval), 0
+                    save_checkpoint(ckpt_dir / "best.pt", checkpoint_payload())
+                else:
+                    evals_since_best += 1
+                if render_interval and n_evals % render_interval == 0:
+                    log_episode_figure(logger, actor, val_states[:1], cfg, frames)
+                pbar.set_postfix(eval=f"{last_eval['discounted_return']:.1f}", best=f"{best['discounted_return']:.1f}")
+                log.info("update %d, %d frames, %.0f s: eval/discounted_return %.2f (best %.2f), return %.1f, "
+                         "penalty %.1f, terminated %.2f", update, frames, time.perf_counter() - t_start,
+                         last_eval["discounted_return"], best["discounted_return"], last_eval["return"],
+                         last_eval["penalty"], last_eval["terminated"])
+            train_metrics["time/total_fps"] = frames / (wall_before + time.perf_counter() - t_start)
+            if update % int(cfg.logger.interval) == 0 or eval_metrics:
+                log_metrics({**train_metrics, **eval_metrics}, step=frames)
+
+            stopped_early = patience is not None and evals_since_best >= int(patience)
+            out_of_time = max_minutes is not None and time.perf_counter() - t_start >= 60 * float(max_minutes)
+            if update % int(cfg.checkpoint.interval) == 0 or is_last or stopped_early or out_of_time:
+                save_checkpoint(ckpt_dir / "last.pt", checkpoint_payload())
+            if stopped_early:
+                log.info("early stop: %d evaluations without improvement of eval/discounted_return",
+                         evals_since_best)
+                break
+            if out_of_time:
+                log.info("stop: collector.max_minutes=%s of wall time used", max_minutes)
+                break
+    except KeyboardInterrupt:
+        interrupted = True
+        log.warning("interrupted (Ctrl-C) after %d frames: writing last.pt and summary.json", frames)
+
+    pbar.close()
+    algo.close(interrupted=interrupted)
+    save_checkpoint(ckpt_dir / "last.pt", checkpoint_payload())
+
+    # ---- test states: best.pt and last.pt, once -----------------------------------------------------------------
+    test = {"seed": int(cfg.eval.test_seed), "num_episodes": int(cfg.eval.test_episodes),
+            "max_steps": test_max_steps, "gamma": float(cfg.eval.gamma)}
+    try:
+        policies = {}
+        if (ckpt_dir / "best.pt").is_file():
+            best_ckpt = load_checkpoint(ckpt_dir / "best.pt", map_location=device)
+            policies["best"] = (copy.deepcopy(actor), (best_ckpt["frames"], best_ckpt["update"]))
+            policies["best"][0].load_state_dict(best_ckpt["actor"])
+        policies["last"] = (actor, (frames, update))
+        for name, (policy, trained) in policies.items():
+            test[name] = run_eval(policy, test_states, test_env, trained=trained, steps=test_max_steps)
+            log_metrics({f"test/{name}/{k}": test[name][k] for k in EVAL_KEYS}, step=frames)
+    except KeyboardInterrupt:
+        interrupted = True
+        log.warning("test evaluation interrupted (Ctrl-C): summary.json has no test figures")
+
+    summary = {"algorithm": algorithm_cls.name, "best_eval": best, "final_eval": last_eval, "frames": frames,
+               "updates": update, "stopped_early": stopped_early, "out_of_time": out_of_time,
+               "interrupted": interrupted, "wall_time": wall_before + time.perf_counter() - t_start,
+               "run_dir": str(run_dir),
+               "validation": {"seed": int(cfg.eval.seed), "num_episodes": int(cfg.eval.num_episodes),
+                              "max_steps": int(cfg.eval.max_steps), "gamma": float(cfg.eval.gamma)},
+               "test": test, "reward_scale": reward_scale,
+               "checkpoints": {name: str(ckpt_dir / f"{name}.pt") if (ckpt_dir / f"{name}.pt").is_file() else None
+                               for name in ("best", "last")},
+               "config": config}
+    from anm_torchrl.artifacts import atomic_write
+
+    atomic_write(run_dir / "summary.json", json.dumps(summary, indent=2, default=float).encode())
+    if logger is not None and hasattr(logger.experiment, "flush"):
+        logger.experiment.flush()
+    log.info("done: %d frames in %.0f s, best eval/discounted_return %s, test/best/discounted_return %s", frames,
+             summary["wall_time"], None if best is None else f"{best['discounted_return']:.2f}",
+             f"{test['best']['discounted_return']:.2f}" if "best" in test else None)
+    if interrupted:
+        raise KeyboardInterrupt
+    return summary
+
+
+def log_episode_figure(logger, actor, state, cfg: DictConfig, step: int) -> None:
+    """Log the episode figure (:func:`anm_torchrl.render.episode_figure`) of ``actor`` from one validation state
+    (1, D) on the true simulator, ``eval.max_steps`` steps, to TensorBoard as ``eval/episode`` at ``step`` frames."""
+    import torch
+    from tensordict import TensorDict
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from anm_torchrl.render import episode_figure, episode_from_rollout, network_tables
+    from anm_torchrl.training.factory import make_true_env
+
+    env = make_true_env(1, state.device, seed=int(cfg.eval.seed), network=cfg.network)
+    td = env.reset(TensorDict({"state": state.to(torch.float64)}, [1], device=env.device), set_state=True)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        roll = env.rollout(int(cfg.eval.max_steps), actor, tensordict=td, auto_reset=False, break_when_any_done=True)
+    fig = episode_figure(episode_from_rollout(roll, env.sim.net.base_mva), network_tables(env.sim.net),
+                         title=f"validation state 0 after {step} frames")
+    logger.experiment.add_figure("eval/episode", fig, global_step=step, close=True)
+
+
+def run_recipe(cfg: DictConfig) -> dict:
+    """The body of a training recipe under ``hydra.main`` (``recipes/ppo.py``, ``recipes/sac.py``): train into the
+    Hydra run directory (the working directory, ``hydra.job.chdir``), printing it when the run starts and when it
+    ends (finished, failed or interrupted). Ctrl-C exits with status 130 after ``summary.json`` is written with
+    ``"interrupted": true``."""
+    import hydra
+
+    if cfg.checkpoint.resume:  # relative to where the command was typed, not to the run directory
+        cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
+    run_dir = Path.cwd()
+    print(f"run directory: {run_dir}", flush=True)
+    try:
+        return train(cfg, run_dir)
+    except KeyboardInterrupt:
+        raise SystemExit(130) from None
+    finally:
+        print(f"run directory: {run_dir}", flush=True)
