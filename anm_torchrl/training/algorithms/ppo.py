@@ -22,6 +22,10 @@ from tensordict import TensorDict
 from anm_torchrl.training.algorithms.base import Algorithm
 
 
+# what ClipPPOLoss reads once GAE has written the advantage and value target
+LOSS_KEYS = ("observation", "action", "action_log_prob", "advantage", "value_target", "state_value")
+
+
 def budget_mask(batch_size, remaining: int):
     """Frames of a collected batch ``[..., T]`` that fit in the remaining budget of ``remaining`` frames.
 
@@ -144,7 +148,9 @@ class PPO(Algorithm):
         for _ in range(int(cfg.loss.ppo_epochs)):
             with torch.no_grad():
                 data = self.adv_module(data)
-            flat = data.reshape(-1) if keep is None else data[keep]
+            # only what the loss reads: indexing a minibatch out of every collected key (grid diagnostics, next
+            # states, ...) cost as much as the loss itself
+            flat = (data.reshape(-1) if keep is None else data[keep]).select(*LOSS_KEYS)
             perm = torch.randperm(flat.numel(), device=flat.device)
             for start in range(0, flat.numel(), mini):
                 batch = flat[perm[start:start + mini]]

@@ -1,0 +1,121 @@
+"""Where a training iteration's time goes: the env alone, collection with the policy, the update, the whole loop.
+
+For every batch size N and algorithm, in one run (ratios compare, seconds do not: these machines are shared):
+
+* ``env``: ``ANMEnv`` stepped under uniformly random actions over the box (TorchRL ``rollout``, terminated
+  envs reset in place), frames/s;
+* ``collect``: the algorithm's own collector with its policy (one batch of ``collector.frames_per_batch``);
+* ``update``: its update on that batch (PPO: GAE + epochs of minibatches; SAC: the replay steps);
+* ``loop``: collect + update, i.e. what ``recipes/ppo.py`` / ``recipes/sac.py`` do between evaluations.
+
+Each is reported as frames/s of wall time and of process CPU time (one torch thread: CPU time is the work done,
+whatever else the machine runs), after one warm-up iteration. The ``loop / env`` column is the issue's target
+(≥ 0.5).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import torch
+
+from anm_torchrl.training.factory import make_env
+
+STEPS = 16  # steps per env per iteration: frames_per_batch = N x STEPS
+
+
+def _config(algorithm: str, network: str, n_envs: int, overrides: list[str]):
+    from hydra import compose, initialize_config_dir
+
+    conf = Path(__file__).resolve().parents[2] / "recipes" / "conf"
+    name = {"ppo": "config", "sac": "sac"}[algorithm]
+    over = [f"network={network}", f"env.num_envs={n_envs}", f"collector.frames_per_batch={n_envs * STEPS}",
+            "collector.init_random_frames=0", *overrides]
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        return compose(config_name=name, overrides=over if algorithm == "sac" else
+                       [o for o in over if not o.startswith("collector.init_random")])
+
+
+def _clock():
+    return time.perf_counter(), time.process_time()
+
+
+def time_env(network: str, n_envs: int, steps: int = STEPS, repeats: int = 3) -> dict[str, float]:
+    """frames/s (wall, CPU) of the true env under random actions, ``steps`` per env, best of ``repeats``."""
+    env = make_env("none", network=network, num_envs=n_envs, seed=0, max_steps=1000)
+    env.rollout(2, break_when_any_done=False)  # warm-up (numba compile, caches)
+    best = (0.0, 0.0)
+    for _ in range(repeats):
+        w0, c0 = _clock()
+        env.rollout(steps, break_when_any_done=False)
+        w1, c1 = _clock()
+        n = n_envs * steps
+        best = max(best, (n / (w1 - w0), n / max(c1 - c0, 1e-9)))
+    return {"wall_fps": best[0], "cpu_fps": best[1]}
+
+
+def time_algorithm(algorithm: str, network: str, n_envs: int, iterations: int = 3,
+                   overrides: list[str] | None = None) -> dict[str, float]:
+    """frames/s (wall and CPU) of collection, update and the loop of ``algorithm`` at ``n_envs`` envs."""
+    from anm_torchrl.training.algorithms import get_algorithm
+
+    cfg = _config(algorithm, network, n_envs, list(overrides or []))
+    algo = get_algorithm(algorithm)(cfg, device=torch.device("cpu"), seed=0, budget=10**12,
+                                    reward_scale=0.01, resume=None)
+    algo.iterate(10**12)  # warm-up
+    frames = 0
+    wall = {"collect": 0.0, "update": 0.0}
+    w0, c0 = _clock()
+    for _ in range(iterations):
+        n, metrics = algo.iterate(10**12)
+        frames += n
+        wall["collect"] += float(metrics["time/collect"])
+        wall["update"] += float(metrics["time/update"])
+    w1, c1 = _clock()
+    algo.close()
+    return {"frames": frames, "collect_fps": frames / wall["collect"], "update_fps": frames / wall["update"],
+            "loop_fps": frames / (w1 - w0), "loop_cpu_fps": frames / max(c1 - c0, 1e-9),
+            "update_share": wall["update"] / (w1 - w0)}
+
+
+def measure(network: str = "anm6_easy", batch_sizes=(256, 1024, 4096), algorithms=("ppo", "sac"),
+            iterations: int = 3) -> dict:
+    """Every row of the table (one dict per (algorithm, N)), measured in this one run."""
+    torch.set_num_threads(1)
+    rows = []
+    for n in batch_sizes:
+        env = time_env(network, n)
+        for algorithm in algorithms:
+            row = time_algorithm(algorithm, network, n, iterations)
+            rows.append({"algorithm": algorithm, "num_envs": n, "env_fps": env["wall_fps"],
+                         "env_cpu_fps": env["cpu_fps"], **row,
+                         "loop_over_env": row["loop_fps"] / env["wall_fps"],
+                         "loop_over_env_cpu": row["loop_cpu_fps"] / env["cpu_fps"]})
+    import os
+
+    return {"network": network, "steps_per_env": STEPS, "threads": 1, "iterations": iterations,
+            "load_avg_1min": os.getloadavg()[0], "torch": torch.__version__, "rows": rows}
+
+
+def markdown(record: dict) -> str:
+    """The table of :func:`measure`'s record."""
+    lines = [f"Training loop throughput on {record['network']} ({record['steps_per_env']} steps per env per "
+             f"iteration, 1 thread, load {record['load_avg_1min']:.1f}); frames/s of wall time (CPU time)",
+             "", "| algorithm | envs | env alone | collect | update | loop | loop / env |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    for r in record["rows"]:
+        lines.append(f"| {r['algorithm']} | {r['num_envs']:,} | {r['env_fps']:,.0f} ({r['env_cpu_fps']:,.0f}) | "
+                     f"{r['collect_fps']:,.0f} | {r['update_fps']:,.0f} | {r['loop_fps']:,.0f} "
+                     f"({r['loop_cpu_fps']:,.0f}) | {r['loop_over_env']:.2f} ({r['loop_over_env_cpu']:.2f}) |")
+    return "\n".join(lines) + "\n"
+
+
+def write(record: dict, out: str | Path) -> None:
+    """``<out>.json`` and ``<out>.md``, atomically."""
+    from anm_torchrl.artifacts import atomic_write
+
+    out = Path(out)
+    atomic_write(out.with_suffix(".json"), json.dumps(record, indent=2).encode())
+    atomic_write(out.with_suffix(".md"), markdown(record).encode())
