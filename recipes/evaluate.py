@@ -95,8 +95,10 @@ def main(argv: list[str] | None = None) -> dict:
 
     ckpt = None
     if cfg.checkpoint is not None:
+        from anm_torchrl.policies import resolve
+
         try:
-            ckpt = load_checkpoint(cfg.checkpoint)
+            ckpt = load_checkpoint(resolve(cfg.checkpoint))  # pretrained:<name>: a shipped, hash-checked policy
         except (ValueError, FileNotFoundError) as err:
             raise SystemExit(f"evaluate.py: {err}") from None
     network = network_of(cfg, ckpt)

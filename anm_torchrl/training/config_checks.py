@@ -185,6 +185,9 @@ def check_sac_config(cfg: Mapping) -> None:
     check_protocol_config(cfg)
     _check_model(cfg)
     fpb = _check_collector(cfg)
+    if _get(cfg, "collector.num_workers") != 1:
+        raise ValueError(f"collector.num_workers must be 1 for sac (one collector process), got "
+                         f"{_get(cfg, 'collector.num_workers')!r}")
     _int(cfg, "collector.init_random_frames", low=0)
     buffer = _int(cfg, "replay.size")
     batch = _int(cfg, "replay.batch_size")

@@ -40,9 +40,6 @@ class SAC(Algorithm):
         from anm_torchrl.training.factory import make_train_env, train_env_kwargs
         from anm_torchrl.training.models import make_sac_models
 
-        if int(cfg.collector.num_workers) != 1:
-            raise ValueError("sac runs one collector process: collector.num_workers must be 1, got "
-                             f"{cfg.collector.num_workers}")
         self.cfg, self.device, self.reward_scale = cfg, device, float(reward_scale)
         env = make_train_env(seed=seed, **train_env_kwargs(cfg, str(device)))
         self.actor, qvalue, self.normalizer = make_sac_models(

@@ -1,0 +1,78 @@
+"""Smoke tests of recipes/sac.py through the shared training protocol (tiny runs in temp dirs): the run directory
+PPO's runs have, finite SAC losses under their tags, the exact frame budget across the random warm-up, resume,
+evaluate.py loading a SAC checkpoint, and the protocol refusing to resume another algorithm's checkpoint."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from tests.test_recipes_ppo import EVAL_KEYS, PPO, ROOT, TINY, run, scalars
+
+SAC = ROOT / "recipes" / "sac.py"
+TINY_SAC = ["env.num_envs=4", "collector.frames_per_batch=32", "collector.total_frames=96",
+            "collector.init_random_frames=32", "eval.interval=1", "eval.max_steps=10", "eval.num_episodes=2",
+            "eval.test_episodes=2", "replay.batch_size=16", "replay.samples_per_frame=1", "model.actor_cells=[16]",
+            "model.critic_cells=[16]", "logger.interval=1", "logger.progress=false"]
+
+
+@pytest.fixture(scope="module")
+def sac_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("sac") / "run"
+    run(SAC, *TINY_SAC, "collector.total_frames=80", f"hydra.run.dir={run_dir}", cwd=run_dir.parent)
+    return run_dir
+
+
+def test_sac_writes_the_protocols_run_directory(sac_run):
+    from anm_torchrl.training.checkpoint import load_checkpoint
+
+    summary = json.loads((sac_run / "summary.json").read_text())
+    assert summary["algorithm"] == "sac" and summary["frames"] == 80 and summary["updates"] == 3  # 32 + 32 + 16
+    assert set(EVAL_KEYS) <= set(summary["best_eval"]) and not summary["interrupted"]
+    assert all(math.isfinite(summary["test"][c]["discounted_return"]) for c in ("best", "last"))
+    last = load_checkpoint(sac_run / "checkpoints" / "last.pt")
+    assert last["algorithm"] == "sac" and last["frames"] == 80 and {"loss", "optimizers"} <= set(last["state"])
+    assert set(last["state"]["optimizers"]) == {"actor", "qvalue", "alpha"}
+    tags = scalars(sac_run)
+    for tag in ("train/loss_actor", "train/loss_qvalue", "train/loss_alpha", "train/alpha", "train/buffer_size",
+                "eval/discounted_return", "test/best/discounted_return", "time/fps"):
+        assert tag in tags, tag
+        assert all(math.isfinite(v) for _, v in tags[tag]), (tag, tags[tag])
+    assert [v for _, v in tags["train/buffer_size"]] == [32, 64, 80]  # every kept frame is stored once
+
+
+def test_sac_resumes_and_evaluate_loads_it(sac_run, tmp_path, evaluate_recipe, capsys):
+    resumed = tmp_path / "resumed"
+    run(SAC, *TINY_SAC, f"checkpoint.resume={sac_run / 'checkpoints' / 'last.pt'}", f"hydra.run.dir={resumed}",
+        cwd=tmp_path)
+    summary = json.loads((resumed / "summary.json").read_text())
+    assert summary["frames"] == 96 and summary["updates"] == 4  # from 80 frames, 3 updates: one more batch of 16
+    out = evaluate_recipe.main([f"checkpoint={sac_run / 'checkpoints' / 'best.pt'}", "steps=5", "episodes=2"])
+    assert out["policy"] == "sac" and out["episodes"] == 2 and math.isfinite(out["discounted_return"])
+
+
+def test_resuming_another_algorithms_checkpoint_is_refused(sac_run, tmp_path):
+    proc = run(PPO, *TINY, f"checkpoint.resume={sac_run / 'checkpoints' / 'last.pt'}",
+               f"hydra.run.dir={tmp_path / 'ppo'}", cwd=tmp_path, check=False)
+    assert proc.returncode != 0 and "it was trained by 'sac', this run is 'ppo'" in proc.stderr
+
+
+@pytest.mark.parametrize("override, message", [
+    ("replay.batch_size=0", "replay.batch_size must be an integer >= 1, got 0"),
+    ("replay.size=8", "replay.size (8) must be >= collector.frames_per_batch (32)"),
+    ("loss.tau=0", "loss.tau must be in (0, 1], got 0"),
+    ("loss.alpha_init=-1", "loss.alpha_init must be > 0, got -1"),
+    ("collector.num_workers=2", "collector.num_workers must be 1 for sac (one collector process), got 2"),
+])
+def test_sac_config_errors_name_the_key(override, message):
+    from hydra import compose, initialize_config_dir
+
+    from anm_torchrl.training.algorithms import check_algorithm_config
+
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
+        cfg = compose(config_name="sac", overrides=[*TINY_SAC, override])
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        check_algorithm_config(cfg)
