@@ -21,8 +21,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 PPO = ROOT / "recipes" / "ppo.py"
 TINY = ["env.num_envs=4", "collector.frames_per_batch=32", "collector.total_frames=64", "eval.max_steps=10",
-        "eval.num_episodes=2", "eval.test_episodes=3", "loss.mini_batch_size=16", "loss.ppo_epochs=2",
-        "logger.progress=false"]
+        "eval.interval=1", "eval.num_episodes=2", "eval.test_episodes=3", "loss.mini_batch_size=16",
+        "loss.ppo_epochs=2", "logger.progress=false"]
 EVAL_KEYS = ("return", "discounted_return", "e_loss", "penalty", "steps", "terminated")
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
 
@@ -167,6 +167,9 @@ def test_bad_override_fails_clearly(override, message, tmp_path):
     proc = run(PPO, *TINY, override, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path, check=False)
     assert proc.returncode != 0
     assert message in proc.stdout + proc.stderr, proc.stderr[-2000:]
+    if "must be" in message:  # our range checks: one line, no traceback, no run directory left behind
+        assert proc.stderr.strip() == f"ppo.py: {message}", proc.stderr[-2000:]
+        assert not (tmp_path / "run").exists()
 
 
 def test_help_lists_only_this_recipes_groups(tmp_path):

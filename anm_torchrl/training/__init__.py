@@ -1,9 +1,26 @@
-"""Factories for recipes: envs, PPO models, evaluation, checkpoints."""
+"""Training: ``make_env``, the protocol every algorithm shares, the algorithms, models, checkpoints.
 
-from anm_torchrl.training.checkpoint import load_checkpoint, save_checkpoint
-from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
-from anm_torchrl.training.factory import make_env
-from anm_torchrl.training.models import make_ppo_models
+Names are imported on first use (module ``__getattr__``), so a config check (``training.config_checks``) does not
+pay for torch's import.
+"""
 
-__all__ = ["draw_initial_states", "evaluate_policy", "load_checkpoint", "make_env", "make_ppo_models",
-           "save_checkpoint"]
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "load_checkpoint": "anm_torchrl.training.checkpoint",
+    "save_checkpoint": "anm_torchrl.training.checkpoint",
+    "load_actor": "anm_torchrl.training.checkpoint",
+    "make_env": "anm_torchrl.training.factory",
+    "make_ppo_models": "anm_torchrl.training.models",
+    "make_sac_models": "anm_torchrl.training.models",
+    "train": "anm_torchrl.training.protocol",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'anm_torchrl.training' has no attribute {name!r}")

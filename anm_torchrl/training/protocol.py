@@ -276,12 +276,24 @@ def run_recipe(cfg: DictConfig) -> dict:
     """The body of a training recipe under ``hydra.main`` (``recipes/ppo.py``, ``recipes/sac.py``): train into the
     Hydra run directory (the working directory, ``hydra.job.chdir``), printing it when the run starts and when it
     ends (finished, failed or interrupted). Ctrl-C exits with status 130 after ``summary.json`` is written with
-    ``"interrupted": true``."""
+    ``"interrupted": true``.
+
+    A config error (a value out of range, an unknown algorithm or network) exits with one line naming the key,
+    before anything heavy is imported, and removes the run directory Hydra made for it (it holds only Hydra's own
+    files then).
+    """
     import hydra
 
+    from anm_torchrl.training.algorithms import check_algorithm_config
+
+    run_dir = Path.cwd()
+    try:
+        check_algorithm_config(cfg)
+    except ValueError as err:
+        remove_hydra_only_dir(run_dir)
+        raise SystemExit(f"{hydra.core.hydra_config.HydraConfig.get().job.name}.py: {err}") from None
     if cfg.checkpoint.resume:  # relative to where the command was typed, not to the run directory
         cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
-    run_dir = Path.cwd()
     print(f"run directory: {run_dir}", flush=True)
     try:
         return train(cfg, run_dir)
@@ -289,3 +301,12 @@ def run_recipe(cfg: DictConfig) -> dict:
         raise SystemExit(130) from None
     finally:
         print(f"run directory: {run_dir}", flush=True)
+
+
+def remove_hydra_only_dir(run_dir: Path) -> None:
+    """Remove ``run_dir`` if it holds nothing but what Hydra writes at start (``.hydra/``, ``<job>.log``)."""
+    if run_dir.is_dir() and all(p.name == ".hydra" or p.suffix == ".log" for p in run_dir.iterdir()):
+        import os
+
+        os.chdir(run_dir.parent)  # hydra.job.chdir made it the working directory
+        shutil.rmtree(run_dir)
