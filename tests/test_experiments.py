@@ -263,7 +263,7 @@ def test_scaled_simulator_drives_the_true_env():
     from anm_torchrl.envs import ANM6Env
     from anm_torchrl.experiments.common import set_state_and_step
     from anm_torchrl.experiments.rollout_error import _default_sim, scaled_simulator
-    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.evaluation import draw_initial_states
 
     s0, a = draw_initial_states(4, 0), torch.zeros(4, 6)
     base = set_state_and_step(ANM6Env(4, action_mode="clip"), s0, a)["state"]

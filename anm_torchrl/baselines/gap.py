@@ -12,7 +12,7 @@ Rows (``--rows``, comma-separated): ``optimal`` (:class:`~anm_torchrl.baselines.
 of the previous solution shifted, to measure that warm start; ``acmpc_<N>_free``: the free storage split applied
 without the pinned re-solve, the controller before that fix), ``mpc_<N>`` (gym-anm's DC-OPF MPC, perfect forecast, β = 0.92),
 ``do_nothing``, ``optimal<K>_then_do_nothing`` (the K-step optimum, then do-nothing: a lower bound of the
-optimum when the full horizon is too costly). Every row is evaluated by :func:`~anm_torchrl.training.evaluation.evaluate_policy` on the
+optimum when the full horizon is too costly). Every row is evaluated by :func:`~anm_torchrl.evaluation.evaluate_policy` on the
 network's true env (``--network``; ``ANM6Env`` for ANM6-Easy, else ``ANMEnv`` of the registered network) from the
 states ``draw_initial_states(episodes, seed, sim, init)`` (the env's reset distribution; seed 0: the PPO recipe's
 test states), deterministic, T = ``steps``, γ = 0.995; ``--only`` restricts a row to some of those states (the row
@@ -43,10 +43,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from anm_torchrl.evaluation import EVAL_GAMMA, EVAL_MAX_STEPS
+
 log = logging.getLogger(__name__)
 
 DEFAULT_ROWS = ("optimal", "acmpc_16", "acmpc_64", "mpc_16", "mpc_64", "do_nothing")
-GAMMA = 0.995
 MPC_MARGIN = 0.92
 # an MPC row's name: controller, horizon N and AC-MPC variant (one home for the suffixes _policy, _label and
 # _order read)
@@ -70,7 +71,7 @@ def _policy(name: str, sim, steps: int):
     if m.group(1) == "acmpc":
         return make_baseline("acmpc", sim, horizon=int(m.group(2)), forecast="perfect",
                              warm_start=m.group(3) != "_cold", pin_direction=m.group(3) != "_free")
-    return make_baseline("mpc_perfect", sim, horizon=int(m.group(2)), safety_margin=MPC_MARGIN, gamma=GAMMA)
+    return make_baseline("mpc_perfect", sim, horizon=int(m.group(2)), safety_margin=MPC_MARGIN, gamma=EVAL_GAMMA)
 
 
 def _machine() -> dict:
@@ -125,9 +126,9 @@ def optimum_then_do_nothing(sim, states: torch.Tensor, steps: int, k: int, netwo
     t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
     rets, undiscounted, terms, plans = [], [], [], []
     for s in states.numpy():
-        opt = solve_optimal(sim, s, k, GAMMA)
+        opt = solve_optimal(sim, s, k, EVAL_GAMMA)
         acts = np.concatenate([opt.setpoints, warm_start_actions(sim, opt.states[-1], steps - k, "do_nothing")])
-        rep = replay_in_env(acts, s, GAMMA, env=true_env(network, 1))
+        rep = replay_in_env(acts, s, EVAL_GAMMA, env=true_env(network, 1))
         rets.append(rep["discounted_return"])
         undiscounted.append(float(rep["rewards"].sum()))
         terms.append(rep["terminated"])
@@ -143,14 +144,14 @@ def evaluate_row(name: str, sim, states: torch.Tensor, steps: int, network: str 
     """One row: per-episode discounted returns and timings of policy ``name`` on the network's true env
     (``optimal<K>_then_do_nothing``: :func:`optimum_then_do_nothing`)."""
     from anm_torchrl.baselines.optimal import replay_in_env
-    from anm_torchrl.training.evaluation import evaluate_policy
+    from anm_torchrl.evaluation import evaluate_policy
 
     m = re.fullmatch(r"optimal(\d+)_then_do_nothing", name)
     if m:
         return optimum_then_do_nothing(sim, states, steps, int(m.group(1)), network)
     pol = _policy(name, sim, steps)
     t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
-    res = evaluate_policy(pol, states, max_steps=steps, gamma=GAMMA, env=true_env(network, len(states)))
+    res = evaluate_policy(pol, states, max_steps=steps, gamma=EVAL_GAMMA, env=true_env(network, len(states)))
     row = {"discounted_return": res.discounted_returns.tolist(), "return": res.returns.tolist(),
            "terminated": res.terminated.tolist(), "mean_discounted_return": float(res.discounted_returns.mean()),
            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
@@ -160,7 +161,7 @@ def evaluate_row(name: str, sim, states: torch.Tensor, steps: int, network: str 
     if name == "optimal":
         plans = []
         for plan, s in zip(pol.plans, states):
-            env = replay_in_env(plan.setpoints, s.numpy(), GAMMA, env=true_env(network, 1))
+            env = replay_in_env(plan.setpoints, s.numpy(), EVAL_GAMMA, env=true_env(network, 1))
             plans.append({**plan.summary(), "env_replay_return": env["discounted_return"],
                           "env_replay_gap": abs(env["discounted_return"] - plan.discounted_return)
                           / abs(plan.discounted_return), "env_replay_terminated": env["terminated"]})
@@ -173,12 +174,12 @@ def stability(sim, states: torch.Tensor, steps: int, n: int, seed: int) -> list[
     from anm_torchrl.baselines.nlp_model import ACHorizonNLP
     from anm_torchrl.baselines.optimal import WARM_STARTS, solve_optimal
 
-    nlp = ACHorizonNLP(sim, steps, GAMMA)
+    nlp = ACHorizonNLP(sim, steps, EVAL_GAMMA)
     out = []
     for i in range(n):
         rec = {}
         for ws in WARM_STARTS:
-            r = solve_optimal(sim, states[i].numpy(), steps, GAMMA, warm_start=ws, seed=seed, nlp=nlp)
+            r = solve_optimal(sim, states[i].numpy(), steps, EVAL_GAMMA, warm_start=ws, seed=seed, nlp=nlp)
             rec[ws] = {"discounted_return": r.discounted_return, "exact_return": r.exact_return,
                        "warm_return": r.warm_return, "wall_time": r.wall_time,
                        "iterations": [x["iterations"] for x in r.rounds]}
@@ -195,9 +196,9 @@ def compare_formulations(sim, state: torch.Tensor, steps: int) -> dict:
     out = {"steps": steps}
     for form in ("polar", "rectangular"):
         c0, t0 = time.process_time(), time.perf_counter()
-        nlp = ACHorizonNLP(sim, steps, GAMMA, form)
+        nlp = ACHorizonNLP(sim, steps, EVAL_GAMMA, form)
         build = time.perf_counter() - t0
-        r = solve_optimal(sim, state.numpy(), steps, GAMMA, warm_start="do_nothing", nlp=nlp)
+        r = solve_optimal(sim, state.numpy(), steps, EVAL_GAMMA, warm_start="do_nothing", nlp=nlp)
         out[form] = {"discounted_return": r.discounted_return, "build_s": build,
                      "iterations": [x["iterations"] for x in r.rounds],
                      "solve_s": [x["solve_time_s"] for x in r.rounds], "cpu_s": time.process_time() - c0,
@@ -271,7 +272,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--network", default=ANM6, help="registered network (default anm6_easy)")
     ap.add_argument("--episodes", type=int, default=4, help="number of test states (default 4)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the test states (default 0, the test seed)")
-    ap.add_argument("--steps", type=int, default=3000, help="episode length T (default 3000)")
+    ap.add_argument("--steps", type=int, default=EVAL_MAX_STEPS, help=f"episode length T (default {EVAL_MAX_STEPS})")
     ap.add_argument("--rows", default=",".join(DEFAULT_ROWS), help="comma-separated rows (default: all)")
     ap.add_argument("--only", default="", help="comma-separated state indices the rows run on (default: all)")
     ap.add_argument("--stability", type=int, default=0,
@@ -310,12 +311,14 @@ def main(argv: list[str] | None = None) -> dict:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     torch.set_num_threads(1)
     from anm_torchrl.data.generic import simulator_for
-    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.evaluation import draw_initial_states
 
     sim, env = simulator_for(args.network), true_env(args.network, 1)
     states = draw_initial_states(args.episodes, args.seed, sim, env.init)
+    # "states" names the draw as the committed records do (from when the protocol lived in training/): a record
+    # key compared on --out and --merge, so it stays verbatim
     protocol = {"network": args.network, "episodes": args.episodes, "seed": args.seed, "steps": args.steps,
-                "gamma": GAMMA, "states": "training.evaluation.draw_initial_states(episodes, seed)"}
+                "gamma": EVAL_GAMMA, "states": "training.evaluation.draw_initial_states(episodes, seed)"}
     if args.network != ANM6:  # ANM6-Easy's records predate this key (gym-anm's reset distribution)
         protocol.update(init=env.init, states="training.evaluation.draw_initial_states(episodes, seed, sim, init)")
     only = [int(i) for i in args.only.split(",") if i]

@@ -195,7 +195,7 @@ def do_nothing_return(network: str, base: dict[str, Any]) -> dict[str, Any]:
     """Do-nothing's metrics on the PPO runs' validation states (same seed, count, length, network)."""
     from anm_torchrl.baselines import make_baseline
     from anm_torchrl.experiments.ppo_runs import compose_ppo_config, ppo_overrides
-    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.factory import make_true_env
 
     cfg = compose_ppo_config(ppo_overrides({"name": "none"}, 0, {**base, "network": network}))
@@ -214,7 +214,7 @@ def test_baselines(network: str, base: dict[str, Any], specs: list) -> dict[str,
     ``eval.gamma``): label -> metrics, wall and CPU seconds."""
     from anm_torchrl.baselines import make_baseline
     from anm_torchrl.experiments.ppo_runs import compose_ppo_config, ppo_overrides
-    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.factory import make_true_env
 
     ev = compose_ppo_config(ppo_overrides({"name": "none"}, 0, {**base, "network": network})).eval

@@ -30,7 +30,7 @@ def evaluate_baselines(names: list[str], num_episodes: int, max_steps: int, eval
     out: dict[str, Any] = {}
     try:
         from anm_torchrl.baselines import make_baseline
-        from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+        from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     except ImportError as err:
         return {n: {"available": False, "reason": str(err)} for n in names}
     states = draw_initial_states(num_episodes, eval_seed)

@@ -123,7 +123,7 @@ def run(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0, sim=None, na
         include_true: bool = True) -> dict:
     """cfg keys: ``episodes``, ``steps``, ``agents`` (``expert``/``random``), ``expert`` (baseline name),
     ``expert_budget_s``, ``mpc_horizon``, ``free_running`` (bool)."""
-    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.evaluation import draw_initial_states
 
     n, steps = int(cfg.get("episodes", 4)), int(cfg.get("steps", 288))
     init = draw_initial_states(n, seed)

@@ -3,7 +3,7 @@
 PPO runs train with the recipe's loop (:func:`~anm_torchrl.training.ppo_loop.train_ppo`): validation states
 (``eval.seed``) choose ``best.pt`` and the early stop, and the loop evaluates ``best.pt`` and ``last.pt`` once on
 the test states (``eval.test_seed``, ``summary.json["test"]``). The baselines (do-nothing, random, MPC …) are
-evaluated here on the same test states (:func:`~anm_torchrl.training.evaluation.draw_initial_states` with the test
+evaluated here on the same test states (:func:`~anm_torchrl.evaluation.draw_initial_states` with the test
 seed and count), deterministic, T = ``max_steps``, discount ``gamma``. Every figure the README's PPO table shows
 comes from this record.
 """
@@ -22,7 +22,7 @@ from anm_torchrl.experiments.ppo_runs import aggregate, ppo_overrides, run_ppo
 def evaluate_baseline(name: str, kwargs: dict[str, Any], states, max_steps: int, gamma: float) -> dict[str, Any]:
     """Metrics of baseline ``name`` (built with ``kwargs``) from the initial ``states`` (E, 18) on the true env."""
     from anm_torchrl.baselines import make_baseline
-    from anm_torchrl.training.evaluation import evaluate_policy
+    from anm_torchrl.evaluation import evaluate_policy
 
     t0 = time.perf_counter()
     res = evaluate_policy(make_baseline(name, **kwargs), states, max_steps=max_steps, gamma=gamma)
@@ -56,7 +56,7 @@ def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path) -> dic
     n, seed = int(cfg["test_episodes"]), int(cfg["test_seed"])
     max_steps, gamma = int(cfg["max_steps"]), float(cfg["gamma"])
     protocol = {"eval.test_episodes": n, "eval.test_seed": seed, "eval.max_steps": max_steps, "eval.gamma": gamma}
-    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.evaluation import draw_initial_states
 
     states = draw_initial_states(n, seed)
     protocol_rec = {"test_episodes": n, "test_seed": seed, "max_steps": max_steps, "gamma": gamma}

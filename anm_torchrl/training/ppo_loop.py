@@ -89,7 +89,7 @@ def train_ppo(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a t
     from tqdm import tqdm
 
     from anm_torchrl.training.checkpoint import check_resume_config, load_checkpoint, save_checkpoint
-    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.factory import make_true_env
     from anm_torchrl.training.ppo_models import make_ppo_models
 
