@@ -151,7 +151,7 @@ def render(out_dir: Path, results_md: Path | None, run_info: dict, write_run: bo
 
     results = load_results(out_dir)
     figs = plots.make_all(results, out_dir / "figures")
-    # issue 15's gap tables (records of python -m anm_torchrl.baselines.optimal --combine, not experiments)
+    # issue 15's gap tables (records of python -m anm_torchrl.cli.gap --combine, not experiments)
     results["optimal_gap_tables"] = {f.stem: read_json(f) for f in sorted(out_dir.glob("optimal_gap_table*.json"))}
     if write_run:
         run_info["figures"] = {k: os.path.relpath(v, out_dir) if v else None for k, v in figs.items()}

@@ -161,7 +161,7 @@ def test_km_median_counts_censored_runs():
 
 def test_claim_two_reports_both_views_and_censoring():
     from anm_torchrl.experiments.ppo_curves import threshold_columns
-    from anm_torchrl.experiments.report import claim_training_time
+    from anm_torchrl.experiments.claims import claim_training_time
 
     def runs(times, length):
         return [{"time_to_threshold": {"wall_s": t, "frames": None if t is None else 1}, "curve": [
@@ -314,9 +314,9 @@ def test_load_results_refuses_a_record_named_unlike_its_file(tmp_path):
 
 def test_portable_paths_drop_the_machines_top_level_folder():
     """A run directory directly under /tmp once rendered as '.../tmp/<run>' in docs/RESULTS.md."""
-    from anm_torchrl.experiments.report import _portable, _portable_command
+    from anm_torchrl.experiments.formatting import portable, portable_command
 
-    assert _portable("/tmp/repro10_run1") == ".../repro10_run1"
-    assert _portable("/tmp/repro/tr_full") == ".../repro/tr_full"
-    assert _portable("/tmp") == "..."
-    assert "/tmp" not in _portable_command("reproduce.py out_dir=/tmp/run1 publish=true")
+    assert portable("/tmp/repro10_run1") == ".../repro10_run1"
+    assert portable("/tmp/repro/tr_full") == ".../repro/tr_full"
+    assert portable("/tmp") == "..."
+    assert "/tmp" not in portable_command("reproduce.py out_dir=/tmp/run1 publish=true")

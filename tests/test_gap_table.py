@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from anm_torchrl.baselines import gap, gap_table
+from anm_torchrl.experiments import gap, gap_table
 
 REPO = Path(__file__).resolve().parents[1]
 TABLES = sorted((REPO / "results").glob("optimal_gap_table*.json"))

@@ -9,7 +9,7 @@ import torch
 pytest.importorskip("casadi")
 
 from anm_torchrl.baselines import available_baselines, make_baseline  # noqa: E402
-from anm_torchrl.baselines import gap  # noqa: E402
+from anm_torchrl.experiments import gap  # noqa: E402
 from anm_torchrl.baselines.acmpc import ACMPCPolicy  # noqa: E402
 from anm_torchrl.baselines.mpc import MPCPolicy  # noqa: E402
 from anm_torchrl.baselines.nlp_model import ACHorizonNLP, rollout  # noqa: E402

@@ -16,7 +16,7 @@ CasADi + IPOPT). :func:`solve_optimal` solves it in rounds, each warm-started fr
 :func:`~anm_torchrl.evaluation.evaluate_policy`: it solves the horizon when it meets a state that is on
 none of its plans (an episode's first state) and then replays the plan step by step.
 
-The gap table (``python -m anm_torchrl.baselines.optimal --help``) lives in :mod:`anm_torchrl.baselines.gap`.
+The gap study (``python -m anm_torchrl.cli.gap --help``) lives in :mod:`anm_torchrl.experiments.gap`.
 """
 
 from __future__ import annotations
@@ -324,8 +324,3 @@ class OptimalPolicy(TensorDictModuleBase):
         tensordict.set(self.out_keys[0], self.act(tensordict.get(self.in_keys[0])))
         return tensordict
 
-
-if __name__ == "__main__":
-    from anm_torchrl.baselines.gap import main
-
-    main()

@@ -413,30 +413,3 @@ def merge_cost(src: str | Path, dst: str | Path, networks: list[str], note: str 
     write_json(dst, rec)
     return rec
 
-
-if __name__ == "__main__":
-    import argparse
-    import sys
-
-    parser = argparse.ArgumentParser(description="print the payoff study's tables from its record")
-    parser.add_argument("record", nargs="?", default="results/payoff.json")
-    parser.add_argument("--merge-ppo", metavar="SRC", help="first replace the record's ppo part by SRC's (merge_ppo)")
-    parser.add_argument("--merge-cost", metavar="SRC", help="first replace the record's cost rows of --networks by "
-                        "SRC's (merge_cost)")
-    parser.add_argument("--networks", nargs="*", default=[], help="with --merge-cost: the networks to replace")
-    parser.add_argument("--note", help="with --merge-ppo / --merge-cost: how SRC was made (replaces the record's "
-                        "note about that part)")
-    parser.add_argument("--reread-accuracy", action="store_true", help="first replace the record's pinn_accuracy "
-                        "part by the generic PINN's record (accuracy_part)")
-    args = parser.parse_args()
-    if args.reread_accuracy:
-        reread_accuracy(args.record)
-    if args.merge_ppo:
-        merge_ppo(args.merge_ppo, args.record, args.note)
-    if args.merge_cost:
-        if not args.networks:
-            raise ValueError("--merge-cost needs --networks <names> (the networks whose rows it replaces)")
-        merge_cost(args.merge_cost, args.record, args.networks, args.note)
-    from anm_torchrl.experiments.payoff_report import markdown
-
-    sys.stdout.write(markdown(read_json(args.record)) + "\n")

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+
+from anm_torchrl.experiments.claims import CLAIMS, load_note
+from anm_torchrl.experiments.formatting import fmt, md_table, portable, portable_command
 
 TEMPLATE = """# Results: reproducing the paper's experiments on anm_torchrl
 
@@ -31,54 +33,13 @@ the fixed states named in their section, the `test_returns` figures on the held-
 """
 
 
-def _fmt(x: Any, spec: str = ".3g") -> str:
-    if x is None:
-        return "–"
-    if isinstance(x, float):
-        return format(x, spec)
-    return str(x)
-
-
-def _table(rows: list[dict], cols: list[str], fmt: dict[str, str] | None = None) -> str:
-    fmt = fmt or {}
-    if not rows:
-        return "_(no rows)_"
-    out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    for r in rows:
-        out.append("| " + " | ".join(_fmt(r.get(c), fmt.get(c, ".3g")) for c in cols) + " |")
-    return "\n".join(out)
-
-
-def _portable(path: str) -> str:
-    """``path`` without this machine's folders: under the artifact home as ``$ANM_TORCHRL_HOME/...``, under the
-    repository relative to it, else only its last two parts below the top-level folder (``/tmp/run`` -> ``.../run``:
-    the top-level folder is this machine's, e.g. ``/tmp``)."""
-    from anm_torchrl.paths import artifact_home
-
-    p = Path(path)
-    for root, name in ((artifact_home(), "$ANM_TORCHRL_HOME"), (Path(__file__).resolve().parents[2], ".")):
-        try:
-            return f"{name}/{p.resolve().relative_to(root.resolve())}"
-        except ValueError:
-            continue
-    tail = p.parts[2:][-2:]
-    return ".../" + "/".join(tail) if tail else "..."
-
-
-def _portable_command(cmd: str) -> str:
-    """A recorded command line or message with its absolute paths made portable (:func:`_portable`)."""
-    import re
-
-    return re.sub(r"(?<![\w.])(/(?:[\w.\-]+/)*[\w.\-]+)", lambda m: _portable(m.group(1)), str(cmd))
-
-
 def _status(rec: dict | None) -> str:
     if not rec:
         return "**not run** (not selected in this preset)"
     if rec["status"] in ("not available", "error"):
-        return f"**{rec['status']}**: {_portable_command(rec.get('reason'))}"
+        return f"**{rec['status']}**: {portable_command(rec.get('reason'))}"
     na = rec.get("data", {}).get("not_available") or {}
-    extra = ("; not available: " + "; ".join(f"`{k}` ({_portable_command(v)[:160]})" for k, v in na.items())
+    extra = ("; not available: " + "; ".join(f"`{k}` ({portable_command(v)[:160]})" for k, v in na.items())
              if na else "")
     return f"status **{rec['status']}**{extra}"
 
@@ -90,170 +51,6 @@ def _fig(figs: dict, name: str, rel_to: Path) -> str:
     return f"![{name}]({os.path.relpath(p, rel_to)})"
 
 
-# ----------------------------------------------------------------------------------------------- claims
-# PPO-based verdicts need real training budgets: below this many frames per run (the tiny and quick presets)
-# a verdict is reported as indicative only — an untrained policy already beats do-nothing on ANM6-Easy.
-MIN_VERDICT_FRAMES = 200_000
-
-
-def _budget_note(rows: list[dict]) -> str | None:
-    frames = [r.get("frames") or 0 for r in rows]
-    if frames and max(frames) < MIN_VERDICT_FRAMES:
-        return f"indicative only: ≤ {max(frames):,.0f} frames per run (< {MIN_VERDICT_FRAMES:,}); run preset=full"
-    return None
-
-
-def _load_note(rec: dict | None) -> str:
-    """The 1-minute load average before/after the speed timings (other processes stretch every time), if recorded."""
-    load = ((rec or {}).get("data") or {}).get("load_avg_1min")
-    return f"1-minute load average before / after the timings: {load[0]:.2f} / {load[1]:.2f}.\n" if load else ""
-
-
-def claim_speed(res: dict) -> tuple[str, str]:
-    rec = res.get("speed")
-    if not rec or rec["status"] not in ("ok", "partial"):
-        return "not measured", "not measured"
-    rows = {(r["impl"], r["mode"]): r["s_per_transition"] for r in rec["data"]["table"]}
-    gym = rows.get(("gym_anm", "batch 1"))
-    pinn = rows.get(("pinn", "batch 1"))
-    env1, envb = rows.get(("anm6env", "batch 1")), rows.get(("anm6env", "batched"))
-    parts = []
-    if gym and env1:
-        parts.append(f"ANM6Env batch 1: {gym / env1:.1f}× faster than gym-anm ({env1 * 1e3:.2f} vs {gym * 1e3:.2f} ms)")
-    if gym and envb:
-        parts.append(f"ANM6Env batched: {gym / envb:.0f}×")
-    if pinn is None or gym is None:
-        return "; ".join(parts) + "; PINN not available", "not measured (PINN surrogate not available)"
-    ratio = gym / pinn
-    parts.insert(0, f"PINN batch 1: {ratio:.1f}× faster than gym-anm ({pinn * 1e3:.2f} vs {gym * 1e3:.2f} ms)")
-    if env1:
-        parts.append(f"PINN vs ANM6Env at batch 1: {env1 / pinn:.2f}×")
-    # "≈10×": within 20 % of the paper's ratio holds; a smaller but real speed-up is reported as such
-    verdict = "holds" if ratio >= 8 else (f"partly: {ratio:.1f}× rather than ≈10×" if ratio > 1 else "does not hold")
-    return "; ".join(parts), verdict
-
-
-def _time_to(row: dict, with_training: bool) -> tuple[float | None, str]:
-    """(time to the threshold in s, or a lower bound; its text) of a ppo_curves table row, KM median over seeds."""
-    key = "threshold_wall_with_training_s" if with_training else "threshold_wall_s"
-    offset = (row.get("surrogate_train_s") or 0.0) if with_training else 0.0
-    n, k = row.get("threshold_runs") or 0, row.get("threshold_reached") or 0
-    if row.get(key) is not None:
-        return row[key], f"{row[key]:.0f} s ({k}/{n} seeds reached it)"
-    censored = row.get("threshold_censored_at_s") or []
-    if not n or not censored:
-        return None, "not measured"
-    bound = max(censored) + offset  # the table's censoring times are PPO alone
-    return bound, f"> {bound:.0f} s (only {k}/{n} seeds reached it; the others are censored at their run length)"
-
-
-def claim_training_time(res: dict) -> tuple[str, str]:
-    rec = res.get("ppo_curves")
-    if not rec or rec["status"] not in ("ok", "partial"):
-        return "not measured", "not measured"
-    t = {r["env"]: r for r in rec["data"]["table"] if r["seeds"]}
-    if "pinn" not in t:
-        return "PINN runs not available", "not measured (PINN surrogate not available)"
-    if "threshold_runs" not in t["pinn"]:
-        return "record predates censored time-to-return; re-run ppo_curves", "not measured"
-    ref_name = "gym_anm" if "gym_anm" in t else ("none" if "none" in t else None)
-    if ref_name is None:
-        return "no reference run", "not measured"
-    p, r = t["pinn"], t[ref_name]
-    comparable = (p["last_mean_return"] is not None and r["last_mean_return"] is not None
-                  and p["last_mean_return"] >= r["last_mean_return"] - 0.1 * abs(r["last_mean_return"]))
-    ref_t, ref_txt = _time_to(r, False)
-    parts, verdicts = [f"time to return ≥ {_fmt(rec['data'].get('threshold'))} (median over seeds): "
-                       f"{ref_name} {ref_txt}"], []
-    for with_training in (False, True):
-        p_t, p_txt = _time_to(p, with_training)
-        if with_training and p.get("surrogate_train_s") is None:
-            parts.append("PINN training time not measured in this run")
-            verdicts.append("with training: not measured")
-            continue
-        if p.get("threshold_wall_s") is None:
-            verdicts.append("does not hold: most PINN runs did not reach the threshold")
-            break
-        if ref_t is None:
-            verdicts.append(f"{'with' if with_training else 'without'} training: not measured")
-            continue
-        saving = 1 - p_t / ref_t
-        exact = "at least " if r.get("threshold_wall_s") is None else ""
-        label = (f"PINN incl. its training ({p['surrogate_train_s']:.0f} s)" if with_training
-                 else "PINN, PPO alone")
-        parts.append(f"{label} {p_txt}: {exact}{100 * saving:.0f} % less")
-        ok = saving >= 0.4 and (comparable or r.get("threshold_wall_s") is None)
-        verdicts.append(f"{'holds' if ok else 'does not hold'} {'with' if with_training else 'without'} "
-                        f"the PINN's training counted")
-    parts.append(f"final return PINN {_fmt(p['last_mean_return'])} vs {ref_name} {_fmt(r['last_mean_return'])}")
-    exact = t.get("none")
-    if ref_name != "none" and exact:
-        # the same question against the batched exact simulator of this package, not the paper's baseline
-        parts.append(f"the batched exact simulator (`none`, nothing to train) {_time_to(exact, False)[1]}, "
-                     f"final {_fmt(exact['last_mean_return'])}")
-    verdict = "; ".join(verdicts)
-    note = _budget_note([p, r])
-    return "; ".join(parts), f"{note} ({verdict})" if note else verdict
-
-
-def claim_only_pinn(res: dict) -> tuple[str, str]:
-    rec = res.get("ppo_curves")
-    if not rec or rec["status"] not in ("ok", "partial"):
-        return "not measured", "not measured"
-    base = rec["data"].get("baselines", {}).get("do_nothing", {})
-    thr = base.get("return") if base.get("available") else rec["data"].get("threshold")
-    t = {r["env"]: r for r in rec["data"]["table"] if r["seeds"]}
-    surrogate_labels = [k for k in t if k not in ("none", "gym_anm")]
-    if "pinn" not in t or len(surrogate_labels) < 2 or thr is None:
-        return (f"surrogates trained: {surrogate_labels or 'none'}; do-nothing {_fmt(thr)}",
-                "not measured (needs the PINN and at least one data-driven surrogate)")
-    # usable = at least 2x better than do-nothing (half its loss) on the true simulator, the issues' bar
-    usable = {k: t[k]["last_mean_return"] is not None and t[k]["last_mean_return"] >= thr / 2 for k in surrogate_labels}
-    what = f"usable = last eval return ≥ {thr / 2:.3g} (half do-nothing's {thr:.3g}): " + ", ".join(
-        f"{k} {'yes' if v else 'no'} ({_fmt(t[k]['last_mean_return'])})" for k, v in usable.items())
-    ref = (t.get("none") or {}).get("last_mean_return")
-    if ref is not None and ref < 0:  # a stricter bar: within 2x the loss of PPO trained on the true simulator
-        near = [k for k in surrogate_labels
-                if t[k]["last_mean_return"] is not None and t[k]["last_mean_return"] >= 2 * ref]
-        what += f"; within 2× the loss of PPO on the true simulator ({_fmt(ref)}): {', '.join(near) or 'none'}"
-    holds = usable["pinn"] and not any(v for k, v in usable.items() if k != "pinn")
-    verdict = "holds" if holds else "does not hold"
-    note = _budget_note([t[k] for k in surrogate_labels])
-    return what, f"{note} ({verdict})" if note else verdict
-
-
-def claim_structure(res: dict) -> tuple[str, str]:
-    rec = res.get("sweep")
-    if not rec or rec["status"] not in ("ok", "partial") or not rec["data"].get("best"):
-        return "not measured", "not measured"
-    b = rec["data"]["best"]
-    grid = rec["data"]["grid"]
-    std = f" ± {_fmt(b['mean_return_std'])} over {b['seeds']} seeds" if b.get("mean_return_std") is not None else ""
-    ref = next((r for r in grid if (r["n_envs"], r["buffer"]) == (100, 30)), None)  # the paper's best cell
-    tested = ref is not None
-    what = (f"best of {len(grid)} cells on `{rec['data']['surrogate']}`: n_envs={b['n_envs']}, buffer={b['buffer']} "
-            f"(mean return {_fmt(b['mean_return'])}{std})")
-    if ref is not None and ref is not b:
-        what += f"; 100 × 30: {_fmt(ref['mean_return'])}"
-    if rec["data"].get("note"):
-        what += f"; {rec['data']['note']}"
-    if not tested:
-        return what, "not tested (n_envs=100, buffer=30 is not in this grid)"
-    verdict = "holds" if (b["n_envs"], b["buffer"]) == (100, 30) else "does not hold"
-    if rec["data"]["surrogate"] != "pinn":
-        verdict += " (on a fallback env, not the PINN)"
-    note = _budget_note(grid)
-    return what, f"{note} ({verdict})" if note else verdict
-
-
-CLAIMS = [
-    ("≈10× faster inference of the PINN surrogate (0.0021 s vs 0.0194 s per transition)", claim_speed),
-    ("≈50 % less PPO training time with the PINN, comparable score", claim_training_time),
-    ("only the PINN surrogate yields a usable policy", claim_only_pinn),
-    ("best structural parameters n_envs = 100, buffer = 30", claim_structure),
-]
-
-
 # --------------------------------------------------------------------------------------------- sections
 def sections(res: dict, figs: dict, rel: Path, machine: str) -> str:
     out = []
@@ -261,13 +58,13 @@ def sections(res: dict, figs: dict, rel: Path, machine: str) -> str:
     out.append(f"""## Fig. 5 — PINN loss components
 
 **Paper.** The generator KKT, storage KKT and power-balance losses decrease over training.
-**Measured** on {machine}: {_status(rec)}. {("Read from the PINN training's TensorBoard run (" + _portable(rec['data']['log_dir']) + "); final values: " + ", ".join(
+**Measured** on {machine}: {_status(rec)}. {("Read from the PINN training's TensorBoard run (" + portable(rec['data']['log_dir']) + "); final values: " + ", ".join(
         f"`{k}` {v[-1][1]:.3g}" for k, v in sorted(rec['data']['scalars'].items()) if k.endswith('/loss'))) if rec and rec['status'] == 'ok' else ''}
 
 {_fig(figs, 'fig5_pinn_losses', rel)}
 """)
     rec = res.get("speed")
-    table = _table(rec["data"]["table"], ["impl", "mode", "batch", "median", "q25", "q75", "speedup_vs_gym_anm"]) \
+    table = md_table(rec["data"]["table"], ["impl", "mode", "batch", "median", "q25", "q75", "speedup_vs_gym_anm"]) \
         if rec and rec["status"] in ("ok", "partial") else ""
     out.append(f"""## Fig. 6 — inference time per transition (the honest speed table)
 
@@ -276,7 +73,7 @@ def sections(res: dict, figs: dict, rel: Path, machine: str) -> str:
 `anm6env` the batched true simulator on its default CPU backend (the compiled numba loop), `anm6env_torch` the
 same env on its batched-torch backend, `grid_sim` the raw physics without TorchRL; every other row is a surrogate
 env. Batch-1 times are dominated by per-call overhead (TorchRL's `step_and_maybe_reset`, model dispatch).
-{_load_note(rec)}
+{load_note(rec)}
 {table}
 
 {_fig(figs, 'fig6_speed', rel)} {_fig(figs, 'fig6b_speed_scaling', rel)}
@@ -284,7 +81,7 @@ env. Batch-1 times are dominated by per-call overhead (TorchRL's `step_and_maybe
     rec = res.get("accuracy")
     table = ""
     if rec and rec["status"] in ("ok", "partial"):
-        table = _table(rec["data"]["rows"], ["model", "train_dataset", "eval_dataset", "split", "r2", "mae"])
+        table = md_table(rec["data"]["rows"], ["model", "train_dataset", "eval_dataset", "split", "r2", "mae"])
     out.append(f"""## Fig. 7 — R² and MAE of the data-driven surrogates, in- and cross-dataset
 
 **Paper.** Agent-based data beat generative data; XGB has the best R²/MAE, barely ahead of the PINN.
@@ -302,7 +99,7 @@ env. Batch-1 times are dominated by per-call overhead (TorchRL's `step_and_maybe
             for lab, r in a["surrogates"].items():
                 rows.append({"agent": agent, "policy": a["policy"], "surrogate": lab, "one-step MAE": r["one_step"]["mae"],
                              "free-running MAE": (r.get("free_running") or {}).get("mae")})
-        table = _table(rows, ["agent", "policy", "surrogate", "one-step MAE", "free-running MAE"])
+        table = md_table(rows, ["agent", "policy", "surrogate", "one-step MAE", "free-running MAE"])
     out.append(f"""## Figs. 8–9 — surrogate error along expert and random episodes; free-running rollouts
 
 **Paper.** The PINN has the lowest one-step MAE along expert- and random-agent episodes, even where others have
@@ -318,10 +115,10 @@ higher R²; its error over an expert episode shows daily periodicity.
     rec = res.get("sweep")
     table = ""
     if rec and rec["status"] in ("ok", "partial"):
-        table = _table(rec["data"]["grid"], ["n_envs", "buffer", "frames_per_batch", "seeds", "mean_return",
+        table = md_table(rec["data"]["grid"], ["n_envs", "buffer", "frames_per_batch", "seeds", "mean_return",
                                              "mean_return_std", "train_time_s",
                                              "frames", "evaluations"]) + "\n\nCorrelations: " + ", ".join(
-            f"{a}–{b} {_fmt(rec['data']['correlation'][a][b], '.2f')}" for a, b in
+            f"{a}–{b} {fmt(rec['data']['correlation'][a][b], '.2f')}" for a, b in
             (("buffer", "mean_return"), ("n_envs", "mean_return"), ("buffer", "train_time_s"),
              ("n_envs", "train_time_s"))) + f".\n\nMultirun form: `{rec['data']['command']}`"
     out.append(f"""## Figs. 10–11 — structural sweep n_envs × buffer (PPO on the PINN surrogate)
@@ -337,13 +134,13 @@ training time grows with both.
     rec = res.get("ppo_curves")
     table = ""
     if rec and rec["status"] in ("ok", "partial"):
-        table = _table(rec["data"]["table"], ["env", "seeds", "last_mean_return", "last_mean_return_std",
+        table = md_table(rec["data"]["table"], ["env", "seeds", "last_mean_return", "last_mean_return_std",
                                               "best_return", "wall_s", "train_s", "frames", "threshold_reached",
                                               "threshold_runs", "threshold_wall_s", "threshold_wall_s_mean",
                                               "surrogate_train_s", "threshold_wall_with_training_s",
                                               "threshold_frames"])
         bl = [{"baseline": k, **v} for k, v in rec["data"]["baselines"].items()]
-        table += "\n\nBaselines on the same evaluation states:\n\n" + _table(
+        table += "\n\nBaselines on the same evaluation states:\n\n" + md_table(
             bl, ["baseline", "available", "return", "discounted_return", "reason"])
         reused = {lab: r[0]["reused_from"] for lab, r in rec["data"]["runs"].items() if r and r[0].get("reused_from")}
         if reused:
@@ -354,7 +151,7 @@ training time grows with both.
             table += (f"\n\n1-minute load average before / after each PPO run: {min(loads):.1f}–{max(loads):.1f} "
                       f"({rec['meta'].get('machine', {}).get('logical_cores')} logical cores).")
         seed = (rec["meta"].get("config") or {}).get("base", {}).get("eval.seed")
-        table += (f"\n\nThreshold for 'time to reach': return ≥ {_fmt(rec['data']['threshold'])} on the evaluation "
+        table += (f"\n\nThreshold for 'time to reach': return ≥ {fmt(rec['data']['threshold'])} on the evaluation "
                   f"states (`eval.seed={seed}`). `threshold_wall_s` is the Kaplan–Meier median over seeds of the PPO wall time "
                   "(collection, updates, evaluations) to the first evaluation at or above it, a run that never reaches it counted "
                   "as censored at its run length (empty when fewer than half reached it); `_mean` is the mean of "
@@ -382,7 +179,7 @@ states, the baselines on the same ones: {_status(rec)}.
 {block_test_returns(res) if rec and rec["status"] in ("ok", "partial") else ""}
 """)
     rec = res.get("adaptability")
-    table = _table(rec["data"]["rows"], ["scenario", "shift", "agent", "surrogate", "one_step_mae"]) \
+    table = md_table(rec["data"]["rows"], ["scenario", "shift", "agent", "surrogate", "one_step_mae"]) \
         if rec and rec["status"] in ("ok", "partial") else ""
     out.append(f"""## Beyond the paper — changed demand / generation profiles without retraining
 
@@ -426,9 +223,9 @@ batch) to need > 30 s per step is "skipped"; "n/a": no trained model for that ne
 
 def optimum_section(tables: dict[str, dict] | None) -> str:
     """Issue 15's gap tables, one per network, from the committed ``results/optimal_gap_table*.json`` (file stem ->
-    record): each is :func:`anm_torchrl.baselines.gap_table.render_block` inside the network's own block markers, the
-    ones ``python -m anm_torchrl.baselines.optimal --combine ... --readme docs/RESULTS.md`` rewrites in place."""
-    from anm_torchrl.baselines import gap_table
+    record): each is :func:`anm_torchrl.experiments.gap_table.render_block` inside the network's own block markers, the
+    ones ``python -m anm_torchrl.cli.gap --combine ... --readme docs/RESULTS.md`` rewrites in place."""
+    from anm_torchrl.experiments import gap_table
 
     blocks = []
     for net, rec in sorted(((gap_table.network_of(r["protocol"]), r) for r in (tables or {}).values()),
@@ -465,19 +262,19 @@ def write_results_md(res: dict, figs: dict, path: str | Path, run_info: dict) ->
         except Exception as err:  # noqa: BLE001
             what, verdict = f"error: {err}", "not measured"
         claims.append(f"| {text} | {what} | **{verdict}** |")
-    updates = "".join(f"\n_Updated by `{_portable_command(u['command'])}` on {u['date']} ({u['wall_s']:.0f} s): experiments "
+    updates = "".join(f"\n_Updated by `{portable_command(u['command'])}` on {u['date']} ({u['wall_s']:.0f} s): experiments "
                       f"{', '.join(u['experiments'])} re-run with git commit {u['versions'].get('git_commit')}._"
                       for u in run_info.get("updates", []))
-    prov = [{"experiment": k, "status": v.get("status"), "command": f"`{_portable_command(run_info.get('command'))}`",
+    prov = [{"experiment": k, "status": v.get("status"), "command": f"`{portable_command(run_info.get('command'))}`",
              "date": run_info.get("date"), "git commit": (v.get("git_commit") or v_commit)[:7],
              "wall_s": v.get("wall_s")} for k, v in run_info.get("experiments", {}).items()
             for v_commit in [str((run_info.get("versions") or {}).get("git_commit"))]]
     for u in run_info.get("updates", []):  # a later merged run replaces the rows of the experiments it re-ran
         prov = [r for r in prov if r["experiment"] not in u["experiments"]] + [
-            {"experiment": k, "status": e.get("status"), "command": f"`{_portable_command(u['command'])}`", "date": u["date"],
+            {"experiment": k, "status": e.get("status"), "command": f"`{portable_command(u['command'])}`", "date": u["date"],
              "git commit": str(e.get("git_commit") or (u.get("versions") or {}).get("git_commit"))[:7],
              "wall_s": e.get("wall_s")} for k, e in u["experiments"].items()]
-    md = TEMPLATE.format(provenance=_table(prov, ["experiment", "status", "command", "date", "git commit",
+    md = TEMPLATE.format(provenance=md_table(prov, ["experiment", "status", "command", "date", "git commit",
                                                   "wall_s"], {"wall_s": ".0f"}),
                          command=run_info.get("command", "python recipes/reproduce.py"), date=run_info.get("date"),
                          updates=updates,

@@ -1,7 +1,7 @@
-"""The published gap table: a gap record (:mod:`anm_torchrl.baselines.gap`) combined with the PPO rows measured on
+"""The published gap table: a gap record (:mod:`anm_torchrl.experiments.gap`) combined with the PPO rows measured on
 the same test states, rendered as a Markdown block per network into README and the docs.
 
-``python -m anm_torchrl.baselines.optimal --combine rec.json [--test-returns ...|--ppo ...] --readme <pages>
+``python -m anm_torchrl.cli.gap --combine rec.json [--test-returns ...|--ppo ...] --readme <pages>
 --out results/optimal_gap_table[_<network>].json`` calls :func:`combine` and :func:`update_pages`.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from anm_torchrl.baselines.gap import ANM6, MPC_MARGIN, MPC_ROW, MPC_VARIANT, covered, table
+from anm_torchrl.experiments.gap import ANM6, MPC_MARGIN, MPC_ROW, MPC_VARIANT, covered, table
 
 LABELS = {"optimal": "perfect-foresight AC optimum", "do_nothing": "do-nothing"}  # other rows: _label
 PPO_ROWS = {"none": "PPO trained on the true env", "pinn": "PPO trained on the PINN"}
