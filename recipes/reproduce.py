@@ -6,10 +6,11 @@
     python recipes/reproduce.py preset=tiny out_dir=/tmp/r        # smoke test
     python recipes/reproduce.py report_only=true publish=true     # redraw results/ figures and pages, run nothing
 
-Every experiment is a module of :mod:`anm_torchrl.experiments`; each writes ``<out_dir>/<name>.json`` (status,
-data, machine, versions, seeds, wall time). A piece whose code or trained files are missing is recorded as
-"not available" and the run goes on. Then the figures (``<out_dir>/figures``) and ``<out_dir>/RESULTS.md`` are
-generated from those files only. A run never writes outside its run directory unless ``publish=true``: then its
+Every experiment is an entry of :data:`anm_torchrl.experiments.registry.EXPERIMENTS` (one signature,
+``run(cfg, ctx)``); each writes ``<out_dir>/<name>.json`` (status, data, machine, versions, seeds, wall time). A
+piece whose code or trained files are missing is recorded as "not available" and the run goes on; any other
+error stops the run (the records already written stay). Then the figures (``<out_dir>/figures``) and
+``<out_dir>/RESULTS.md`` are generated from those files only. A run never writes outside its run directory unless ``publish=true``: then its
 records are copied into ``publish_dir`` (``results/``; merged experiment by experiment with ``merge=true``) and
 the figures, ``docs/RESULTS.md`` and README's result blocks are rendered from the published records. Publishing
 another preset over the committed record, or a subset of experiments without ``merge=true``, is refused before
@@ -24,7 +25,6 @@ import logging
 import os
 import sys
 import time
-import traceback
 from pathlib import Path
 
 import hydra
@@ -85,48 +85,15 @@ def prepare_pinn(pcfg: dict, out_dir: Path) -> tuple[dict, list[Path], dict | No
     return spec, logs, {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
 
 
-def run_experiment(name: str, cfg: DictConfig, out_dir: Path, surrogates: list[dict], pinn_logs: list[Path],
-                   train_s: dict[str, float]) -> dict:
-    """Run one experiment by name; any exception becomes an ``error`` record. ``train_s``: seconds this run spent
-    training each surrogate (label -> s), counted in claim 2's time to return."""
-    from anm_torchrl.experiments import (accuracy, adaptability, payoff, pinn_losses, ppo_curves, rollout_error,
-                                         speed, sweep, test_returns)
-    from anm_torchrl.experiments.io import result
+def run_experiment(name: str, cfg: DictConfig, ctx) -> dict:
+    """Run experiment ``name`` of the registry on its preset section with the run's context, timed. An experiment
+    records what it cannot measure ("not available"); any other error propagates: the records already written
+    stay in the run directory, and ``merge=true`` re-runs the rest."""
+    from anm_torchrl.experiments import registry
 
-    p = OmegaConf.to_container(cfg.preset, resolve=True)
-    sub = p.get(name, {}) or {}
-    seed = int(cfg.seed)
+    sub = OmegaConf.to_container(cfg.preset, resolve=True).get(name, {}) or {}
     t0 = time.perf_counter()
-    try:
-        if name == "pinn_losses":
-            rec = pinn_losses.run(sub, pinn_logs)
-        elif name == "speed":
-            rec = speed.run(sub, surrogates, seed)
-        elif name == "accuracy":
-            rec = accuracy.run(sub)
-        elif name == "rollout_error":
-            rec = rollout_error.run(sub, surrogates, seed)
-        elif name == "adaptability":
-            rec = adaptability.run(sub, surrogates, seed)
-        elif name == "sweep":
-            sub = {**sub, "base": {**sub.get("base", {}), "threads": int(cfg.threads)}}
-            if sub.get("surrogate", {}).get("name") == "pinn":
-                sub["surrogate"] = next((s for s in surrogates if s["name"] == "pinn"), sub["surrogate"])
-            rec = sweep.run(sub, out_dir, seed)
-        elif name == "ppo_curves":
-            sub = {**sub, "base": {**sub.get("base", {}), "threads": int(cfg.threads)}, "surrogate_train_s": train_s}
-            rec = ppo_curves.run(sub, surrogates, out_dir, [int(s) for s in p.get("seeds", [0])])
-        elif name == "test_returns":
-            ppo = sub.get("ppo", {})
-            sub = {**sub, "ppo": {**ppo, "base": {**ppo.get("base", {}), "threads": int(cfg.threads)}}}
-            rec = test_returns.run(sub, surrogates, out_dir)
-        elif name == "payoff":  # issue 13's study: python recipes/reproduce.py preset=payoff
-            rec = payoff.run(sub, surrogates, out_dir, seed)
-        else:
-            raise ValueError(f"unknown experiment {name!r}")
-    except Exception as err:  # noqa: BLE001 - one experiment never stops the others
-        log.exception("experiment %s failed", name)
-        rec = result(name, "error", reason=f"{type(err).__name__}: {err}", traceback=traceback.format_exc())
+    rec = registry.get(name)(sub, ctx)
     rec["meta"]["wall_s"] = time.perf_counter() - t0
     return rec
 
@@ -171,6 +138,7 @@ def main(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
     from hydra.core.hydra_config import HydraConfig
 
+    from anm_torchrl.experiments.common import RunContext
     from anm_torchrl.experiments.io import machine_info, versions, write_json
     from anm_torchrl.experiments.publish import check_publish, committed_run, publish
 
@@ -191,6 +159,10 @@ def main(cfg: DictConfig) -> dict:
         return run_info
     p = OmegaConf.to_container(cfg.preset, resolve=True)
     experiments = list(p.get("experiments", []))
+    from anm_torchrl.experiments import registry
+
+    for name in experiments:  # an unknown name is refused before anything runs
+        registry.get(name)
     if cfg.publish:  # refuse before anything runs
         check_publish(target, str(p.get("name")), experiments, bool(cfg.merge), bool(cfg.force))
     out_dir = _abs(cfg.out_dir) if cfg.out_dir is not None else Path(HydraConfig.get().runtime.output_dir)
@@ -207,9 +179,12 @@ def main(cfg: DictConfig) -> dict:
         "seeds": {"seed": int(cfg.seed), "ppo_seeds": p.get("seeds")}, "machine": machine_info(),
         "versions": versions(), "surrogate_training": {} if pinn_train_s is None else {"pinn": pinn_train_s}, "config": OmegaConf.to_container(cfg, resolve=True),
         "experiments": {}}
+    ctx = RunContext(out_dir=out_dir, surrogates=tuple(surrogates), seed=int(cfg.seed),
+                     seeds=tuple(int(s) for s in p.get("seeds", [0])), threads=int(cfg.threads),
+                     pinn_logs=tuple(pinn_logs), surrogate_train_s=train_s)
     for name in experiments:
         log.info("experiment %s ...", name)
-        rec = run_experiment(name, cfg, out_dir, surrogates, pinn_logs, train_s)
+        rec = run_experiment(name, cfg, ctx)
         rec["meta"].update(machine=run_info["machine"], versions=run_info["versions"])
         write_json(out_dir / f"{name}.json", rec)
         write_tables(rec, out_dir)

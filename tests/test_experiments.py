@@ -94,6 +94,7 @@ def test_accuracy_records_what_shaped_each_model(tmp_path: Path):
     """The accuracy record names each model's dataset (checksum) and the training budget it reached, read from the
     surrogate.json beside its metrics (a DNN cut short by wall time was invisible in the metrics alone)."""
     from anm_torchrl.experiments import accuracy
+    from anm_torchrl.experiments.common import RunContext
 
     folder = tmp_path / "dnn_agent"
     folder.mkdir()
@@ -103,7 +104,7 @@ def test_accuracy_records_what_shaped_each_model(tmp_path: Path):
     (folder / "surrogate.json").write_text(json.dumps({
         "dataset_meta": ds, "simulator": {"network_key": "k1"}, "seed": 0, "params": {"max_epochs": 150},
         "train_info": {"epochs": 150, "stop": "max_epochs", "params": {"max_epochs": 150}}}))
-    rec = accuracy.run({"paths": [str(folder / "metrics.json")]})
+    rec = accuracy.run({"paths": [str(folder / "metrics.json")]}, RunContext(out_dir=tmp_path))
     m = rec["data"]["models"]["dnn_agent"]
     assert m["dataset_meta"] == ds and m["network_key"] == "k1"
     assert m["train_info"] == {"epochs": 150, "stop": "max_epochs"}  # hyper-parameters once, under "params"
@@ -280,7 +281,7 @@ def test_reused_measurements_must_share_states(tmp_path: Path):
     threshold / protocol), and are marked with that record's commit when accepted."""
     from anm_torchrl.experiments.io import write_json
     from anm_torchrl.experiments.ppo_curves import reused_runs
-    from anm_torchrl.experiments.test_returns import reused_rows
+    from anm_torchrl.experiments.heldout_returns import reused_rows
 
     meta = {"versions": {"git_commit": "abc1234"}}
     curves = write_json(tmp_path / "ppo_curves.json", {"name": "ppo_curves", "meta": meta, "data": {
@@ -320,3 +321,21 @@ def test_portable_paths_drop_the_machines_top_level_folder():
     assert portable("/tmp/repro/tr_full") == ".../repro/tr_full"
     assert portable("/tmp") == "..."
     assert "/tmp" not in portable_command("reproduce.py out_dir=/tmp/run1 publish=true")
+
+
+def test_every_experiment_has_the_one_signature():
+    """The registry is what reproduce.py loops over: every entry is ``run(cfg, ctx)``, every preset names only
+    registered experiments, and an unknown name is refused with the list of known ones."""
+    import inspect
+
+    from omegaconf import OmegaConf
+
+    from anm_torchrl.experiments import registry
+
+    for name, entry in registry.EXPERIMENTS.items():
+        assert list(inspect.signature(entry.run).parameters) == ["cfg", "ctx"], name
+    for preset in sorted((REPO / "recipes" / "conf" / "preset").glob("*.yaml")):
+        names = OmegaConf.load(preset).get("experiments", [])
+        assert set(names) <= set(registry.EXPERIMENTS), (preset.name, names)
+    with pytest.raises(ValueError, match="unknown experiment 'nope'.*pinn_losses"):
+        registry.get("nope")

@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.experiments.common import label, make_env_or_reason
+from anm_torchrl.experiments.common import RunContext, label, make_env_or_reason
 from anm_torchrl.experiments.io import read_json, result, write_json
 
 log = logging.getLogger(__name__)
@@ -308,10 +308,11 @@ def ppo_part(cfg: dict[str, Any], out_dir: Path) -> dict[str, Any]:
             "runs": runs, "table": table}
 
 
-def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seed: int = 0) -> dict:
+def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
     """cfg keys: ``parts`` (subset of :data:`PARTS`), ``networks`` (default every registered one), ``batch_sizes``,
     ``min_time``, ``min_steps``, ``gym_steps``, ``backends``, ``accuracy_record``, ``ppo`` (see :func:`ppo_part`).
-    ``surrogates``: the specs timed in ``cost`` (those without a model on a network get a reason)."""
+    ``ctx.surrogates``: the specs timed in ``cost`` (those without a model on a network get a reason)."""
+    surrogates, out_dir, seed = list(ctx.surrogates), ctx.out_dir, ctx.seed
     from anm_torchrl.networks import list_networks
 
     parts = list(cfg.get("parts", PARTS))
