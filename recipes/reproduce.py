@@ -11,8 +11,9 @@ Every experiment is an entry of :data:`anm_torchrl.experiments.registry.EXPERIME
 piece whose code or trained files are missing is recorded as "not available" and the run goes on; any other
 error stops the run (the records already written stay). Then the figures (``<out_dir>/figures``) and
 ``<out_dir>/RESULTS.md`` are generated from those files only. A run never writes outside its run directory unless ``publish=true``: then its
-records are copied into ``publish_dir`` (``results/``; merged experiment by experiment with ``merge=true``) and
-the figures, ``docs/RESULTS.md`` and README's result blocks are rendered from the published records. Publishing
+records are copied into their study folders under ``publish_dir`` (``results/reproduction/``, ``results/payoff/``;
+merged experiment by experiment with ``merge=true``) and the figures, ``docs/RESULTS.md`` and README's result blocks
+are rendered from the published records (``results/INDEX.json`` lists every record). Publishing
 another preset over the committed record, or a subset of experiments without ``merge=true``, is refused before
 anything runs (``force=true`` overrides).
 """
@@ -109,17 +110,21 @@ def write_tables(rec: dict, out_dir: Path) -> None:
 
 
 def render(out_dir: Path, results_md: Path | None, run_info: dict, write_run: bool = False,
-           readme: Path | None = None) -> tuple[dict, Path | None]:
+           readme: Path | None = None, studies_root: Path | None = None) -> tuple[dict, Path | None]:
     """Draw every figure from ``out_dir``'s records and write ``results_md`` (if set) and README's result blocks
-    (if ``readme``); with ``write_run``, also store ``run_info`` (with the figure paths) as ``run.json``.
-    Returns (figures, page path)."""
+    (if ``readme``); with ``write_run``, also store ``run_info`` (with the figure paths) as ``run.json``. With
+    ``studies_root`` (the published ``results/``), the page also reads the other studies' folders there: the payoff
+    record (``payoff/``) and the gap tables (``gap/``). Returns (figures, page path)."""
     from anm_torchrl.experiments import plots, readme_blocks, report
     from anm_torchrl.experiments.io import load_results, read_json, write_json
+    from anm_torchrl.experiments.records import load_published
 
-    results = load_results(out_dir)
+    if studies_root is not None:
+        results = load_published(studies_root)
+    else:  # a run directory: its own records (issue 15's gap tables are records of python -m anm_torchrl.cli.gap)
+        results = load_results(out_dir)
+        results["optimal_gap_tables"] = {f.stem: read_json(f) for f in sorted(out_dir.glob("optimal_gap_table*.json"))}
     figs = plots.make_all(results, out_dir / "figures")
-    # issue 15's gap tables (records of python -m anm_torchrl.cli.gap --combine, not experiments)
-    results["optimal_gap_tables"] = {f.stem: read_json(f) for f in sorted(out_dir.glob("optimal_gap_table*.json"))}
     if write_run:
         run_info["figures"] = {k: os.path.relpath(v, out_dir) if v else None for k, v in figs.items()}
         write_json(out_dir / "run.json", run_info)
@@ -128,6 +133,16 @@ def render(out_dir: Path, results_md: Path | None, run_info: dict, write_run: bo
     if readme is not None:
         readme_blocks.update_readme(readme, results)
     return figs, md
+
+
+def by_study(experiments: list[str]) -> dict[str, list[str]]:
+    """The experiments grouped by the study folder (``results/<study>/``) their records are published into."""
+    from anm_torchrl.experiments.registry import EXPERIMENTS
+
+    out: dict[str, list[str]] = {}
+    for name in experiments:
+        out.setdefault(EXPERIMENTS[name].study, []).append(name)
+    return out
 
 
 register_help()  # --help lists only this recipe's config groups (recipes/conf/hydra/help/recipe.yaml)
@@ -141,15 +156,17 @@ def main(cfg: DictConfig) -> dict:
     from anm_torchrl.experiments.common import RunContext
     from anm_torchrl.experiments.io import machine_info, versions, write_json
     from anm_torchrl.experiments.publish import check_publish, committed_run, publish
+    from anm_torchrl.experiments.records import REPRODUCTION
 
     t0 = time.perf_counter()
     target, target_md = _abs(cfg.publish_dir), _abs(cfg.publish_md)
     readme = REPO / "README.md" if cfg.publish_readme else None
     if cfg.report_only:  # run nothing: redraw figures and pages from records already written
         if cfg.publish:
-            render(target, target_md, committed_run(target), readme=readme)
+            render(target / REPRODUCTION, target_md, committed_run(target / REPRODUCTION), readme=readme,
+                   studies_root=target)
             log.info("report only: redrew %s, %s", target, target_md)
-            return committed_run(target)
+            return committed_run(target / REPRODUCTION)
         if cfg.out_dir is None:
             raise ValueError("report_only=true needs out_dir=<a run directory> (or publish=true for results/)")
         out_dir = _abs(cfg.out_dir)
@@ -164,7 +181,8 @@ def main(cfg: DictConfig) -> dict:
     for name in experiments:  # an unknown name is refused before anything runs
         registry.get(name)
     if cfg.publish:  # refuse before anything runs
-        check_publish(target, str(p.get("name")), experiments, bool(cfg.merge), bool(cfg.force))
+        for study, names in by_study(experiments).items():
+            check_publish(target / study, str(p.get("name")), names, bool(cfg.merge), bool(cfg.force))
     out_dir = _abs(cfg.out_dir) if cfg.out_dir is not None else Path(HydraConfig.get().runtime.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     surrogates = [dict(s) for s in p.get("surrogates", [])]
@@ -200,8 +218,11 @@ def main(cfg: DictConfig) -> dict:
     figs, md = render(out_dir, _md(cfg, out_dir), run_info, write_run=True)
     log.info("records, figures and %s in %s", md, out_dir)
     if cfg.publish:
-        published = publish(out_dir, target, run_info, merge=bool(cfg.merge))
-        render(target, target_md, published, write_run=True, readme=readme)
+        for study, names in by_study(list(run_info["experiments"])).items():
+            publish(out_dir, target / study, {**run_info, "experiments": {n: run_info["experiments"][n] for n in names}},
+                    merge=bool(cfg.merge))
+        render(target / REPRODUCTION, target_md, committed_run(target / REPRODUCTION) or {}, write_run=True,
+               readme=readme, studies_root=target)
         log.info("published into %s, %s%s", target, target_md, " and README.md" if readme else "")
     log.info("done in %.0f s: %s", wall, {k: v["status"] for k, v in run_info["experiments"].items()})
     return run_info

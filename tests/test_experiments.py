@@ -204,8 +204,8 @@ def test_quick_run_leaves_results_and_docs_untouched(tmp_path: Path):
 def test_publish_refuses_a_quick_run_over_the_full_record(tmp_path: Path):
     """publish=true of another preset is refused before anything runs, and the committed record is untouched."""
     target = tmp_path / "results"
-    target.mkdir()
-    (target / "run.json").write_text(json.dumps({"name": "run", "preset": "full", "experiments": {"accuracy": {}}}))
+    (target / "reproduction").mkdir(parents=True)
+    (target / "reproduction" / "run.json").write_text(json.dumps({"name": "run", "preset": "full", "experiments": {"accuracy": {}}}))
     before = _tree_digest(target)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "ANM_TORCHRL_HOME": str(tmp_path / "home"), "HYDRA_FULL_ERROR": "1"}
     proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), "preset=quick",
@@ -241,12 +241,12 @@ def test_check_publish_and_merge(tmp_path: Path):
 # ------------------------------------------------------------------------------------------ README and records
 def test_readme_blocks_are_rendered_from_the_committed_records():
     """README's result blocks equal what the committed records under results/ render (no hand-typed numbers)."""
-    from anm_torchrl.experiments.io import load_results
     from anm_torchrl.experiments.readme_blocks import BLOCK, BLOCKS, render_readme
+    from anm_torchrl.experiments.records import load_published
 
     text = (REPO / "README.md").read_text()
     assert {m.group("name") for m in BLOCK.finditer(text)} == set(BLOCKS)
-    assert render_readme(text, load_results(REPO / "results")) == text
+    assert render_readme(text, load_published(REPO / "results")) == text
 
 
 def test_docs_hold_no_machine_local_paths():

@@ -8,9 +8,10 @@ from pathlib import Path
 import pytest
 
 from anm_torchrl.experiments import gap, gap_table
+from anm_torchrl.experiments.records import current_path
 
 REPO = Path(__file__).resolve().parents[1]
-TABLES = sorted((REPO / "results").glob("optimal_gap_table*.json"))
+TABLES = sorted((REPO / "results" / "gap").glob("optimal_gap_table*.json"))
 
 
 def test_table_compares_rows_on_the_states_they_cover():
@@ -82,7 +83,7 @@ def test_gap_blocks_are_rendered_from_the_records(path):
     """Each network's gap table in README / docs/OPTIMAL.md is its committed record's rendering, and the record's
     own rows are what its committed gap record gives."""
     rec = json.loads(path.read_text())
-    src = json.loads((REPO / rec["command"].split("--combine ")[1].split()[0]).read_text())
+    src = json.loads((REPO / current_path(rec["command"].split("--combine ")[1].split()[0])).read_text())
     mine = [r for r in rec["rows"] if r["source"] == "gap"]
     assert mine == [r for r in gap_table.combine(src, record=rec["record"])["rows"] if r["source"] == "gap"]
     body = gap_table.render_block(rec)
@@ -100,7 +101,7 @@ def test_results_page_holds_every_gap_table():
     from anm_torchrl.experiments.report import optimum_section
 
     tables = {p.stem: json.loads(p.read_text()) for p in TABLES}
-    assert tables, "no results/optimal_gap_table*.json"
+    assert tables, "no results/gap/optimal_gap_table*.json"
     assert optimum_section(tables) in (REPO / "docs" / "RESULTS.md").read_text()
 
 

@@ -119,11 +119,11 @@ def test_multirun_with_submitit_local(tmp_path):
 
 
 def test_results_page_holds_the_payoff_section():
-    """docs/RESULTS.md's payoff section is what the generator renders from the committed results/payoff.json (a
+    """docs/RESULTS.md's payoff section is what the generator renders from the committed results/payoff/payoff.json (a
     record merged by hand, --merge-cost / --merge-ppo, must be re-rendered into the page)."""
     from anm_torchrl.experiments.report import payoff_section
 
-    rec = json.loads((REPO / "results" / "payoff.json").read_text())
+    rec = json.loads((REPO / "results" / "payoff" / "payoff.json").read_text())
     assert payoff_section(rec) in (REPO / "docs" / "RESULTS.md").read_text()
 
 

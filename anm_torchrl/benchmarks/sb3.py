@@ -3,7 +3,7 @@
 Usage::
 
     python -m anm_torchrl.cli.bench_sb3 [--num-envs 64] [--n-steps 16] [--rollouts 16] [--gym-rollouts 1]
-                                        [--threads 1] [--out results/bench_sb3.json]
+                                        [--threads 1] [--out results/benchmarks/bench_sb3.json]
 
 Both sides run the same SB3 ``PPO("MlpPolicy")`` (``n_steps`` per env, batch 512, 10 epochs, CPU) over
 ``--num-envs`` envs: ours is :class:`~anm_torchrl.gym.sb3.SB3VecEnv` (one batched TorchRL env, numba physics);

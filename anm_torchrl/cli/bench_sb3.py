@@ -1,7 +1,7 @@
 """Command line of the SB3 benchmark (:mod:`anm_torchrl.benchmarks.sb3`): writes its JSON record, logs one table.
 
     python -m anm_torchrl.cli.bench_sb3 [--num-envs 64] [--n-steps 16] [--rollouts 16] [--gym-rollouts 1]
-                                        [--threads 1] [--out results/bench_sb3.json]
+                                        [--threads 1] [--out results/benchmarks/bench_sb3.json]
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--gym-rollouts", type=int, default=1, help="timed rollouts on gym-anm (slow)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="results/bench_sb3.json")
+    parser.add_argument("--out", default="results/benchmarks/bench_sb3.json")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     record = sb3.run(args.num_envs, args.n_steps, args.rollouts, args.gym_rollouts, args.threads, args.seed)

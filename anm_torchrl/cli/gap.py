@@ -5,8 +5,9 @@ perfect-foresight optimum, on the same test states.
     python -m anm_torchrl.cli.gap --episodes 8 --seed 0 --steps 3000 --rows acmpc_64 --only 0,1 \
         --out part.json                                            # a costly row on some of the states
     python -m anm_torchrl.cli.gap --episodes 8 --seed 0 --steps 3000 --merge part.json --out rec.json
-    python -m anm_torchrl.cli.gap --combine rec.json --test-returns results/test_returns.json \
-        --readme README.md docs/OPTIMAL.md --out results/optimal_gap_table.json   # the published table
+    python -m anm_torchrl.cli.gap --combine rec.json --test-returns results/reproduction/test_returns.json \
+        --readme README.md docs/OPTIMAL.md --out results/gap/optimal_gap_table.json   # the published table
+    python -m anm_torchrl.cli.gap --render results/gap/optimal_gap_table.json --readme README.md docs/OPTIMAL.md
 
 Rows, protocol and the loss column: :mod:`anm_torchrl.experiments.gap`.
 """
@@ -51,12 +52,24 @@ def main(argv: list[str] | None = None) -> dict:
                     help="build the published table from this gap record into --out (no evaluation)")
     ap.add_argument("--test-returns", default="", help="with --combine: the test_returns record (ANM6-Easy's PPO rows)")
     ap.add_argument("--ppo", default="",
-                    help="with --combine, another network: its payoff PPO record (results/inputs/ppo_<network>.json)")
+                    help="with --combine, another network: its payoff PPO record (results/payoff/inputs/ppo_<network>.json)")
     ap.add_argument("--readme", nargs="*", default=[],
                     help="with --combine: pages whose <!-- optimum:gap --> block is rewritten")
     ap.add_argument("--markdown", action="store_true", help="print the record's table as Markdown and exit")
-    ap.add_argument("--out", required=True, help="JSON record (rows of an existing record are kept)")
+    ap.add_argument("--render", default="",
+                    help="rewrite the gap block of the --readme pages from this published table record (no evaluation, "
+                         "no record written)")
+    ap.add_argument("--out", default="", help="JSON record (rows of an existing record are kept)")
     args = ap.parse_args(argv)
+    if args.render:
+        if not args.readme:
+            ap.error("--render needs --readme <pages>")
+        from anm_torchrl.experiments.gap_table import update_pages
+
+        update_pages(args.readme, json.loads(Path(args.render).read_text()))
+        return {}
+    if not args.out:
+        ap.error("--out is required (except with --render)")
     if args.markdown:
         sys.stdout.write(markdown(json.loads(Path(args.out).read_text())) + "\n")
         return {}

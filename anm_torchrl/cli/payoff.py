@@ -1,10 +1,10 @@
 """Command line of the payoff study's record (:mod:`anm_torchrl.experiments.payoff`): merge parts measured apart
 into it, then print its tables.
 
-    python -m anm_torchrl.cli.payoff results/payoff.json                      # print the tables
-    python -m anm_torchrl.cli.payoff results/payoff.json --merge-ppo SRC --note "<how SRC was made>"
-    python -m anm_torchrl.cli.payoff results/payoff.json --merge-cost SRC --networks case33bw --note "<how>"
-    python -m anm_torchrl.cli.payoff results/payoff.json --reread-accuracy
+    python -m anm_torchrl.cli.payoff results/payoff/payoff.json                      # print the tables
+    python -m anm_torchrl.cli.payoff results/payoff/payoff.json --merge-ppo SRC --note "<how SRC was made>"
+    python -m anm_torchrl.cli.payoff results/payoff/payoff.json --merge-cost SRC --networks case33bw --note "<how>"
+    python -m anm_torchrl.cli.payoff results/payoff/payoff.json --reread-accuracy
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from anm_torchrl.experiments.payoff_report import markdown
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.payoff",
                                      description="print the payoff study's tables from its record")
-    parser.add_argument("record", nargs="?", default="results/payoff.json")
+    parser.add_argument("record", nargs="?", default="results/payoff/payoff.json")
     parser.add_argument("--merge-ppo", metavar="SRC", help="first replace the record's ppo part by SRC's (merge_ppo)")
     parser.add_argument("--merge-cost", metavar="SRC", help="first replace the record's cost rows of --networks by "
                         "SRC's (merge_cost)")

@@ -15,7 +15,7 @@ Three parts, each optional (``cfg["parts"]``):
   times that booster as a *lower bound* of the uncapped one's cost (:func:`capped_bound`; rows carry
   ``lower_bound``): it settles the comparison where it already costs more than the exact backend.
 * ``accuracy`` — the PINN's accuracy and training time against bus count, read from the record of the generic
-  PINN (``accuracy_record``, default ``results/pinn_generic_accuracy.json``); never trained here.
+  PINN (``accuracy_record``, default ``results/pinn/pinn_generic_accuracy.json``); never trained here.
 * ``ppo`` — PPO (:func:`~anm_torchrl.training.ppo_loop.train_ppo`, the recipe's loop) on ``network`` with each
   training env (``none``: the true simulator; a surrogate spec), seeds ``seeds``, a wall-clock cap
   (``timeout_s``): the time (wall, training only, frames) to first reach a return ≥ ``threshold_fraction`` ×
@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 
 PARTS = ("cost", "accuracy", "ppo")
 EXACT = ("numba", "torch")
-ACCURACY_RECORD = Path(__file__).resolve().parents[2] / "results" / "pinn_generic_accuracy.json"
+ACCURACY_RECORD = Path(__file__).resolve().parents[2] / "results" / "pinn" / "pinn_generic_accuracy.json"
 
 
 def _load() -> float:

@@ -1,4 +1,4 @@
-"""README's result tables, rendered from the committed records (``results/*.json``), never typed by hand.
+"""README's result tables, rendered from the committed records (``results/<study>/*.json``), never typed by hand.
 
 README.md marks each generated block with a pair of HTML comments::
 
@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from anm_torchrl.experiments.payoff_report import readme_pinn_accuracy
+from anm_torchrl.experiments.registry import EXPERIMENTS
 from anm_torchrl.experiments.claims import CLAIMS
 from anm_torchrl.experiments.formatting import md_table, portable_command
 
@@ -35,7 +36,8 @@ def _source(rec: dict | None, run: dict | None) -> str:
         if rec["name"] in u.get("experiments", {}):
             preset, date = u.get("preset") or preset, u.get("date") or date
     when = f", run on {str(date)[:10]}" if date else ""
-    return f"_From `results/{rec['name']}.json` (preset `{preset}`, git commit `{commit[:7]}`{when})._"
+    study = EXPERIMENTS[rec["name"]].study if rec["name"] in EXPERIMENTS else "reproduction"
+    return f"_From `results/{study}/{rec['name']}.json` (preset `{preset}`, git commit `{commit[:7]}`{when})._"
 
 
 def block_claims(res: dict[str, Any]) -> str:

@@ -21,10 +21,12 @@ Experiment = Callable[[dict[str, Any], RunContext], dict]
 
 @dataclasses.dataclass(frozen=True)
 class Entry:
-    """One experiment: its ``run`` and what it measures (one line)."""
+    """One experiment: its ``run``, what it measures (one line) and its study (the folder ``results/<study>/``
+    its published record lives in)."""
 
     run: Experiment
     measures: str
+    study: str = "reproduction"
 
 
 # name (record file and preset key) -> entry; in the order of the paper's figures, then beyond it
@@ -40,7 +42,7 @@ EXPERIMENTS: dict[str, Entry] = {
     "test_returns": Entry(heldout_returns.run, "README's PPO table: returns on the held-out test states, PPO and "
                           "the baselines"),
     "payoff": Entry(payoff.run, "issue 13: when does a surrogate pay off (cost, accuracy and PPO time against bus "
-                    "count)"),
+                    "count)", study="payoff"),
 }
 
 
