@@ -16,7 +16,8 @@ from anm_torchrl.benchmarks.surrogates import DATASETS, KINDS, markdown_table, m
 
 
 def main(argv: list[str] | None = None) -> str:
-    parser = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.bench_surrogates", description="data-driven surrogate envs vs ANM6Env, transitions/s")
+    parser = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.bench_surrogates",
+                                     description="data-driven surrogate envs vs ANM6Env, transitions/s")
     parser.add_argument("--batch-sizes", default="1,4096", help="comma-separated batch sizes")
     parser.add_argument("--surrogates", default=",".join(KINDS), help="comma-separated surrogate names")
     parser.add_argument("--datasets", default=",".join(DATASETS), help="comma-separated training datasets")

@@ -52,7 +52,8 @@ def main(argv: list[str] | None = None) -> dict:
                     help="build the published table from this gap record into --out (no evaluation)")
     ap.add_argument("--test-returns", default="", help="with --combine: the test_returns record (ANM6-Easy's PPO rows)")
     ap.add_argument("--ppo", default="",
-                    help="with --combine, another network: its payoff PPO record (results/payoff/inputs/ppo_<network>.json)")
+                    help="with --combine, another network: its payoff PPO record "
+                         "(results/payoff/inputs/ppo_<network>.json)")
     ap.add_argument("--readme", nargs="*", default=[],
                     help="with --combine: pages whose <!-- optimum:gap --> block is rewritten")
     ap.add_argument("--markdown", action="store_true", help="print the record's table as Markdown and exit")

@@ -19,8 +19,9 @@ AC-MPC row its IPOPT statuses and CPU seconds per solve.
 **Loss, % of the optimum's** = 100 · (mean return of the row) / (mean return of the optimum on the same states):
 100 % is optimal, 200 % loses twice as much. It is a ratio of means over the states a row covers (a row measured
 on fewer states is compared with the optimum on those states only). ``--combine`` builds the published table
-(:mod:`anm_torchrl.experiments.gap_table`) from gap records and the PPO rows of ``results/reproduction/test_returns.json`` (same
-protocol, checked), and ``--readme`` rewrites the ``<!-- optimum:gap -->`` block of the named pages from it.
+(:mod:`anm_torchrl.experiments.gap_table`) from gap records and the PPO rows of
+``results/reproduction/test_returns.json`` (same protocol, checked), and ``--readme`` rewrites the
+``<!-- optimum:gap -->`` block of the named pages from it.
 """
 
 from __future__ import annotations

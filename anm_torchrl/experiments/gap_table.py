@@ -130,8 +130,8 @@ def _test_returns_rows(test_returns: dict, pr: dict, n: int, opt_mean: float, ga
 
 def _payoff_ppo_rows(ppo: dict, gap_rows: dict, pr: dict, n: int, opt_mean: float, gain) -> list[dict]:
     """Another network: the PPO rows of the payoff study's PPO part (``data.ppo`` of
-    ``results/payoff/inputs/ppo_<network>.json``), whose test states must be the gap record's: same network, seed, count, T and γ, and the same
-    do-nothing return on them (1e-9 relative; a different state draw would change it)."""
+    ``results/payoff/inputs/ppo_<network>.json``), whose test states must be the gap record's: same network, seed,
+    count, T and γ, and the same do-nothing return on them (1e-9 relative; a different state draw would change it)."""
     from anm_torchrl.experiments.ppo_runs import aggregate
 
     dn = ppo["test_baselines"].get("do_nothing") or {}
@@ -203,7 +203,8 @@ def combine(gap_rec: dict, test_returns: dict | None = None, ppo: dict | None = 
     if test_returns is not None:
         rows += _test_returns_rows(test_returns, pr, n, opt_mean, gain)
         meta = test_returns.get("meta", {})
-        src = {"file": "results/reproduction/test_returns.json", "git_commit": (meta.get("versions") or {}).get("git_commit"),
+        src = {"file": "results/reproduction/test_returns.json",
+               "git_commit": (meta.get("versions") or {}).get("git_commit"),
                "date": meta.get("date")}
     if ppo is not None:
         rows += _payoff_ppo_rows(ppo["data"]["ppo"], rows_in, pr, n, opt_mean, gain)

@@ -47,5 +47,6 @@ def load_published(root: str | Path = RESULTS) -> dict[str, dict]:
     out = load_results(study_dir(REPRODUCTION, root)) if study_dir(REPRODUCTION, root).is_dir() else {}
     if study_dir(PAYOFF, root).is_dir():
         out.update({k: v for k, v in load_results(study_dir(PAYOFF, root)).items() if k != "run"})
-    out["optimal_gap_tables"] = {f.stem: read_json(f) for f in sorted(study_dir(GAP, root).glob("optimal_gap_table*.json"))}
+    tables = sorted(study_dir(GAP, root).glob("optimal_gap_table*.json"))
+    out["optimal_gap_tables"] = {f.stem: read_json(f) for f in tables}
     return out

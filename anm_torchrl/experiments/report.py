@@ -13,8 +13,8 @@ from anm_torchrl.experiments.formatting import fmt, md_table, portable, portable
 
 TEMPLATE = """# Results: reproducing the paper's experiments on anm_torchrl
 
-_Generated from the records by `python recipes/reproduce.py` (`report_only=true` redraws it, running nothing); do
-not edit by hand. Which run made each record: the table below; every run with its command, date and git commit:
+_Generated from the records by `python recipes/reproduce.py`; do not edit by hand (`report_only=true` redraws it,
+running nothing). Which run made each record: the table below; every run with its command, date and git commit:
 `run.json` (`updates`) beside the records; the command and claim of every committed record: `results/INDEX.json`._
 _First run `{command}` on {date}{updates}._
 Preset **{preset}**, total wall time {wall:.0f} s, seeds {seeds}.
