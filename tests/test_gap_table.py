@@ -115,3 +115,23 @@ def test_a_page_without_the_block_refuses_the_table(tmp_path):
     assert "old" in good.read_text()  # nothing written when one page lacks the block
     gap_table.update_pages([good], rec)
     assert gap_table.render_block(rec) in good.read_text()
+
+
+def test_cli_render_rewrites_only_the_gap_block(tmp_path):
+    """``python -m anm_torchrl.cli.gap --render <table> --readme <pages>`` rewrites a page's block from the committed
+    table (no evaluation, no record written): a stale block is replaced, the rest of the page kept."""
+    from anm_torchrl.cli import gap as cli
+
+    rec_path = REPO / "results" / "gap" / "optimal_gap_table.json"
+    start, end = gap_table.block_markers(gap_table.ANM6)
+    page = tmp_path / "page.md"
+    page.write_text(f"before\n{start}\nstale\n{end}\nafter\n")
+    before = {p: p.read_bytes() for p in (REPO / "results" / "gap").glob("*.json")}
+    assert cli.main(["--render", str(rec_path), "--readme", str(page)]) == {}
+    body = gap_table.render_block(json.loads(rec_path.read_text()))
+    assert page.read_text() == f"before\n{start}\n{body}{end}\nafter\n"
+    assert before == {p: p.read_bytes() for p in (REPO / "results" / "gap").glob("*.json")}
+    with pytest.raises(SystemExit):
+        cli.main(["--render", str(rec_path)])  # no page to render into
+    with pytest.raises(SystemExit):
+        cli.main(["--rows", "do_nothing"])  # a measurement needs --out

@@ -135,3 +135,12 @@ def test_a_corrupted_record_is_named_before_anything_is_merged(tmp_path):
     with pytest.raises(ValueError, match=r"cost\.json is not valid JSON"):
         payoff.merge_cost(src, dst, ["c"])
     assert dst.read_text() == before
+
+
+def test_cli_prints_the_committed_record(capsys):
+    """``python -m anm_torchrl.cli.payoff <record>`` prints the record's tables (payoff_report.markdown)."""
+    from anm_torchrl.cli import payoff as cli
+
+    path = REPO / "results" / "payoff" / "payoff.json"
+    cli.main([str(path)])
+    assert capsys.readouterr().out == payoff_report.markdown(json.loads(path.read_text())) + "\n"
