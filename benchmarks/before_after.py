@@ -4,7 +4,7 @@ Usage (from the repository root)::
 
     python benchmarks/before_after.py [--rev bef482b] [--worktree /tmp/wt_before]
         [--batch-sizes 1,4096,16384] [--threads 2] [--rounds 7] [--min-time 1.0]
-        [--out results/bench_anm6_before_after]
+        [--out results/benchmarks/bench_anm6_before_after]
 
 The earlier commit is checked out as a detached git worktree (created if missing). Two worker processes, one
 importing each tree (``PYTHONPATH``), build ``ANM6Env(num_envs=B, backend="numba")`` once per batch size and

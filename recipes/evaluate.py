@@ -12,7 +12,7 @@ the other recipes' configs (an unknown key or a value out of range fails before 
 them; no run directory: ``output=`` and ``render_dir=`` say where files go). By default the episodes start from the **test** states
 (``seed=0``, the PPO recipe's ``eval.test_seed``), never from the validation states its model selection used. Both
 envs run the same episodes: ``episodes`` initial states drawn from gym-anm's reset distribution with ``seed``
-(:func:`anm_torchrl.training.evaluation.draw_initial_states`), set into ``ANM6Env`` with
+(:func:`anm_torchrl.evaluation.draw_initial_states`), set into ``ANM6Env`` with
 ``reset(..., set_state=True)`` and into gym-anm through its ``init_state`` hook. The policy acts
 deterministically; an episode ends at ``steps`` or at its first termination.
 
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     from anm_torchrl.baselines import make_baseline
     from anm_torchrl.training.checkpoint import load_checkpoint, load_actor
-    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy, evaluate_policy_gym_anm
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy, evaluate_policy_gym_anm
     from anm_torchrl.training.factory import make_true_env
 
     ckpt = None

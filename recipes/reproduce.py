@@ -6,12 +6,14 @@
     python recipes/reproduce.py preset=tiny out_dir=/tmp/r        # smoke test
     python recipes/reproduce.py report_only=true publish=true     # redraw results/ figures and pages, run nothing
 
-Every experiment is a module of :mod:`anm_torchrl.experiments`; each writes ``<out_dir>/<name>.json`` (status,
-data, machine, versions, seeds, wall time). A piece whose code or trained files are missing is recorded as
-"not available" and the run goes on. Then the figures (``<out_dir>/figures``) and ``<out_dir>/RESULTS.md`` are
-generated from those files only. A run never writes outside its run directory unless ``publish=true``: then its
-records are copied into ``publish_dir`` (``results/``; merged experiment by experiment with ``merge=true``) and
-the figures, ``docs/RESULTS.md`` and README's result blocks are rendered from the published records. Publishing
+Every experiment is an entry of :data:`anm_torchrl.experiments.registry.EXPERIMENTS` (one signature,
+``run(cfg, ctx)``); each writes ``<out_dir>/<name>.json`` (status, data, machine, versions, seeds, wall time). A
+piece whose code or trained files are missing is recorded as "not available" and the run goes on; any other
+error stops the run (the records already written stay). Then the figures (``<out_dir>/figures``) and
+``<out_dir>/RESULTS.md`` are generated from those files only. A run never writes outside its run directory unless ``publish=true``: then its
+records are copied into their study folders under ``publish_dir`` (``results/reproduction/``, ``results/payoff/``;
+merged experiment by experiment with ``merge=true``) and the figures, ``docs/RESULTS.md`` and README's result blocks
+are rendered from the published records (``results/INDEX.json`` lists every record). Publishing
 another preset over the committed record, or a subset of experiments without ``merge=true``, is refused before
 anything runs (``force=true`` overrides).
 """
@@ -24,7 +26,6 @@ import logging
 import os
 import sys
 import time
-import traceback
 from pathlib import Path
 
 import hydra
@@ -85,48 +86,15 @@ def prepare_pinn(pcfg: dict, out_dir: Path) -> tuple[dict, list[Path], dict | No
     return spec, logs, {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
 
 
-def run_experiment(name: str, cfg: DictConfig, out_dir: Path, surrogates: list[dict], pinn_logs: list[Path],
-                   train_s: dict[str, float]) -> dict:
-    """Run one experiment by name; any exception becomes an ``error`` record. ``train_s``: seconds this run spent
-    training each surrogate (label -> s), counted in claim 2's time to return."""
-    from anm_torchrl.experiments import (accuracy, adaptability, payoff, pinn_losses, ppo_curves, rollout_error,
-                                         speed, sweep, test_returns)
-    from anm_torchrl.experiments.io import result
+def run_experiment(name: str, cfg: DictConfig, ctx) -> dict:
+    """Run experiment ``name`` of the registry on its preset section with the run's context, timed. An experiment
+    records what it cannot measure ("not available"); any other error propagates: the records already written
+    stay in the run directory, and ``merge=true`` re-runs the rest."""
+    from anm_torchrl.experiments import registry
 
-    p = OmegaConf.to_container(cfg.preset, resolve=True)
-    sub = p.get(name, {}) or {}
-    seed = int(cfg.seed)
+    sub = OmegaConf.to_container(cfg.preset, resolve=True).get(name, {}) or {}
     t0 = time.perf_counter()
-    try:
-        if name == "pinn_losses":
-            rec = pinn_losses.run(sub, pinn_logs)
-        elif name == "speed":
-            rec = speed.run(sub, surrogates, seed)
-        elif name == "accuracy":
-            rec = accuracy.run(sub)
-        elif name == "rollout_error":
-            rec = rollout_error.run(sub, surrogates, seed)
-        elif name == "adaptability":
-            rec = adaptability.run(sub, surrogates, seed)
-        elif name == "sweep":
-            sub = {**sub, "base": {**sub.get("base", {}), "threads": int(cfg.threads)}}
-            if sub.get("surrogate", {}).get("name") == "pinn":
-                sub["surrogate"] = next((s for s in surrogates if s["name"] == "pinn"), sub["surrogate"])
-            rec = sweep.run(sub, out_dir, seed)
-        elif name == "ppo_curves":
-            sub = {**sub, "base": {**sub.get("base", {}), "threads": int(cfg.threads)}, "surrogate_train_s": train_s}
-            rec = ppo_curves.run(sub, surrogates, out_dir, [int(s) for s in p.get("seeds", [0])])
-        elif name == "test_returns":
-            ppo = sub.get("ppo", {})
-            sub = {**sub, "ppo": {**ppo, "base": {**ppo.get("base", {}), "threads": int(cfg.threads)}}}
-            rec = test_returns.run(sub, surrogates, out_dir)
-        elif name == "payoff":  # issue 13's study: python recipes/reproduce.py preset=payoff
-            rec = payoff.run(sub, surrogates, out_dir, seed)
-        else:
-            raise ValueError(f"unknown experiment {name!r}")
-    except Exception as err:  # noqa: BLE001 - one experiment never stops the others
-        log.exception("experiment %s failed", name)
-        rec = result(name, "error", reason=f"{type(err).__name__}: {err}", traceback=traceback.format_exc())
+    rec = registry.get(name)(sub, ctx)
     rec["meta"]["wall_s"] = time.perf_counter() - t0
     return rec
 
@@ -142,17 +110,21 @@ def write_tables(rec: dict, out_dir: Path) -> None:
 
 
 def render(out_dir: Path, results_md: Path | None, run_info: dict, write_run: bool = False,
-           readme: Path | None = None) -> tuple[dict, Path | None]:
+           readme: Path | None = None, studies_root: Path | None = None) -> tuple[dict, Path | None]:
     """Draw every figure from ``out_dir``'s records and write ``results_md`` (if set) and README's result blocks
-    (if ``readme``); with ``write_run``, also store ``run_info`` (with the figure paths) as ``run.json``.
-    Returns (figures, page path)."""
+    (if ``readme``); with ``write_run``, also store ``run_info`` (with the figure paths) as ``run.json``. With
+    ``studies_root`` (the published ``results/``), the page also reads the other studies' folders there: the payoff
+    record (``payoff/``) and the gap tables (``gap/``). Returns (figures, page path)."""
     from anm_torchrl.experiments import plots, readme_blocks, report
     from anm_torchrl.experiments.io import load_results, read_json, write_json
+    from anm_torchrl.experiments.records import load_published
 
-    results = load_results(out_dir)
+    if studies_root is not None:
+        results = load_published(studies_root)
+    else:  # a run directory: its own records (issue 15's gap tables are records of python -m anm_torchrl.cli.gap)
+        results = load_results(out_dir)
+        results["optimal_gap_tables"] = {f.stem: read_json(f) for f in sorted(out_dir.glob("optimal_gap_table*.json"))}
     figs = plots.make_all(results, out_dir / "figures")
-    # issue 15's gap tables (records of python -m anm_torchrl.baselines.optimal --combine, not experiments)
-    results["optimal_gap_tables"] = {f.stem: read_json(f) for f in sorted(out_dir.glob("optimal_gap_table*.json"))}
     if write_run:
         run_info["figures"] = {k: os.path.relpath(v, out_dir) if v else None for k, v in figs.items()}
         write_json(out_dir / "run.json", run_info)
@@ -163,6 +135,16 @@ def render(out_dir: Path, results_md: Path | None, run_info: dict, write_run: bo
     return figs, md
 
 
+def by_study(experiments: list[str]) -> dict[str, list[str]]:
+    """The experiments grouped by the study folder (``results/<study>/``) their records are published into."""
+    from anm_torchrl.experiments.registry import EXPERIMENTS
+
+    out: dict[str, list[str]] = {}
+    for name in experiments:
+        out.setdefault(EXPERIMENTS[name].study, []).append(name)
+    return out
+
+
 register_help()  # --help lists only this recipe's config groups (recipes/conf/hydra/help/recipe.yaml)
 
 
@@ -171,17 +153,20 @@ def main(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
     from hydra.core.hydra_config import HydraConfig
 
+    from anm_torchrl.experiments.common import RunContext
     from anm_torchrl.experiments.io import machine_info, versions, write_json
     from anm_torchrl.experiments.publish import check_publish, committed_run, publish
+    from anm_torchrl.experiments.records import REPRODUCTION
 
     t0 = time.perf_counter()
     target, target_md = _abs(cfg.publish_dir), _abs(cfg.publish_md)
     readme = REPO / "README.md" if cfg.publish_readme else None
     if cfg.report_only:  # run nothing: redraw figures and pages from records already written
         if cfg.publish:
-            render(target, target_md, committed_run(target), readme=readme)
+            render(target / REPRODUCTION, target_md, committed_run(target / REPRODUCTION), readme=readme,
+                   studies_root=target)
             log.info("report only: redrew %s, %s", target, target_md)
-            return committed_run(target)
+            return committed_run(target / REPRODUCTION)
         if cfg.out_dir is None:
             raise ValueError("report_only=true needs out_dir=<a run directory> (or publish=true for results/)")
         out_dir = _abs(cfg.out_dir)
@@ -191,8 +176,13 @@ def main(cfg: DictConfig) -> dict:
         return run_info
     p = OmegaConf.to_container(cfg.preset, resolve=True)
     experiments = list(p.get("experiments", []))
+    from anm_torchrl.experiments import registry
+
+    for name in experiments:  # an unknown name is refused before anything runs
+        registry.get(name)
     if cfg.publish:  # refuse before anything runs
-        check_publish(target, str(p.get("name")), experiments, bool(cfg.merge), bool(cfg.force))
+        for study, names in by_study(experiments).items():
+            check_publish(target / study, str(p.get("name")), names, bool(cfg.merge), bool(cfg.force))
     out_dir = _abs(cfg.out_dir) if cfg.out_dir is not None else Path(HydraConfig.get().runtime.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     surrogates = [dict(s) for s in p.get("surrogates", [])]
@@ -207,9 +197,12 @@ def main(cfg: DictConfig) -> dict:
         "seeds": {"seed": int(cfg.seed), "ppo_seeds": p.get("seeds")}, "machine": machine_info(),
         "versions": versions(), "surrogate_training": {} if pinn_train_s is None else {"pinn": pinn_train_s}, "config": OmegaConf.to_container(cfg, resolve=True),
         "experiments": {}}
+    ctx = RunContext(out_dir=out_dir, surrogates=tuple(surrogates), seed=int(cfg.seed),
+                     seeds=tuple(int(s) for s in p.get("seeds", [0])), threads=int(cfg.threads),
+                     pinn_logs=tuple(pinn_logs), surrogate_train_s=train_s)
     for name in experiments:
         log.info("experiment %s ...", name)
-        rec = run_experiment(name, cfg, out_dir, surrogates, pinn_logs, train_s)
+        rec = run_experiment(name, cfg, ctx)
         rec["meta"].update(machine=run_info["machine"], versions=run_info["versions"])
         write_json(out_dir / f"{name}.json", rec)
         write_tables(rec, out_dir)
@@ -225,8 +218,11 @@ def main(cfg: DictConfig) -> dict:
     figs, md = render(out_dir, _md(cfg, out_dir), run_info, write_run=True)
     log.info("records, figures and %s in %s", md, out_dir)
     if cfg.publish:
-        published = publish(out_dir, target, run_info, merge=bool(cfg.merge))
-        render(target, target_md, published, write_run=True, readme=readme)
+        for study, names in by_study(list(run_info["experiments"])).items():
+            publish(out_dir, target / study, {**run_info, "experiments": {n: run_info["experiments"][n] for n in names}},
+                    merge=bool(cfg.merge))
+        render(target / REPRODUCTION, target_md, committed_run(target / REPRODUCTION) or {}, write_run=True,
+               readme=readme, studies_root=target)
         log.info("published into %s, %s%s", target, target_md, " and README.md" if readme else "")
     log.info("done in %.0f s: %s", wall, {k: v["status"] for k, v in run_info["experiments"].items()})
     return run_info

@@ -8,6 +8,7 @@ import torch
 from tensordict import TensorDict
 
 from anm_torchrl.baselines import DoNothingPolicy, MPCPolicy, RandomPolicy, make_baseline
+from anm_torchrl.evaluation import EVAL_GAMMA
 from anm_torchrl.grid import anm6_easy_simulator
 from anm_torchrl.grid import devices as dv
 
@@ -15,7 +16,7 @@ torch.set_num_threads(1)
 
 A_LOW = np.array([0, 0, -30, -50, -50, -50], dtype=np.float64)
 A_HIGH = np.array([30, 50, 30, 50, 50, 50], dtype=np.float64)
-GAMMA = 0.995
+GAMMA = EVAL_GAMMA  # gym-anm-exp's MPC discount
 
 
 @pytest.fixture(scope="module")

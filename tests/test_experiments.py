@@ -94,6 +94,7 @@ def test_accuracy_records_what_shaped_each_model(tmp_path: Path):
     """The accuracy record names each model's dataset (checksum) and the training budget it reached, read from the
     surrogate.json beside its metrics (a DNN cut short by wall time was invisible in the metrics alone)."""
     from anm_torchrl.experiments import accuracy
+    from anm_torchrl.experiments.common import RunContext
 
     folder = tmp_path / "dnn_agent"
     folder.mkdir()
@@ -103,7 +104,7 @@ def test_accuracy_records_what_shaped_each_model(tmp_path: Path):
     (folder / "surrogate.json").write_text(json.dumps({
         "dataset_meta": ds, "simulator": {"network_key": "k1"}, "seed": 0, "params": {"max_epochs": 150},
         "train_info": {"epochs": 150, "stop": "max_epochs", "params": {"max_epochs": 150}}}))
-    rec = accuracy.run({"paths": [str(folder / "metrics.json")]})
+    rec = accuracy.run({"paths": [str(folder / "metrics.json")]}, RunContext(out_dir=tmp_path))
     m = rec["data"]["models"]["dnn_agent"]
     assert m["dataset_meta"] == ds and m["network_key"] == "k1"
     assert m["train_info"] == {"epochs": 150, "stop": "max_epochs"}  # hyper-parameters once, under "params"
@@ -161,7 +162,7 @@ def test_km_median_counts_censored_runs():
 
 def test_claim_two_reports_both_views_and_censoring():
     from anm_torchrl.experiments.ppo_curves import threshold_columns
-    from anm_torchrl.experiments.report import claim_training_time
+    from anm_torchrl.experiments.claims import claim_training_time
 
     def runs(times, length):
         return [{"time_to_threshold": {"wall_s": t, "frames": None if t is None else 1}, "curve": [
@@ -203,8 +204,8 @@ def test_quick_run_leaves_results_and_docs_untouched(tmp_path: Path):
 def test_publish_refuses_a_quick_run_over_the_full_record(tmp_path: Path):
     """publish=true of another preset is refused before anything runs, and the committed record is untouched."""
     target = tmp_path / "results"
-    target.mkdir()
-    (target / "run.json").write_text(json.dumps({"name": "run", "preset": "full", "experiments": {"accuracy": {}}}))
+    (target / "reproduction").mkdir(parents=True)
+    (target / "reproduction" / "run.json").write_text(json.dumps({"name": "run", "preset": "full", "experiments": {"accuracy": {}}}))
     before = _tree_digest(target)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "ANM_TORCHRL_HOME": str(tmp_path / "home"), "HYDRA_FULL_ERROR": "1"}
     proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), "preset=quick",
@@ -240,12 +241,12 @@ def test_check_publish_and_merge(tmp_path: Path):
 # ------------------------------------------------------------------------------------------ README and records
 def test_readme_blocks_are_rendered_from_the_committed_records():
     """README's result blocks equal what the committed records under results/ render (no hand-typed numbers)."""
-    from anm_torchrl.experiments.io import load_results
     from anm_torchrl.experiments.readme_blocks import BLOCK, BLOCKS, render_readme
+    from anm_torchrl.experiments.records import load_published
 
     text = (REPO / "README.md").read_text()
     assert {m.group("name") for m in BLOCK.finditer(text)} == set(BLOCKS)
-    assert render_readme(text, load_results(REPO / "results")) == text
+    assert render_readme(text, load_published(REPO / "results")) == text
 
 
 def test_docs_hold_no_machine_local_paths():
@@ -263,7 +264,7 @@ def test_scaled_simulator_drives_the_true_env():
     from anm_torchrl.envs import ANM6Env
     from anm_torchrl.experiments.common import set_state_and_step
     from anm_torchrl.experiments.rollout_error import _default_sim, scaled_simulator
-    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.evaluation import draw_initial_states
 
     s0, a = draw_initial_states(4, 0), torch.zeros(4, 6)
     base = set_state_and_step(ANM6Env(4, action_mode="clip"), s0, a)["state"]
@@ -280,7 +281,7 @@ def test_reused_measurements_must_share_states(tmp_path: Path):
     threshold / protocol), and are marked with that record's commit when accepted."""
     from anm_torchrl.experiments.io import write_json
     from anm_torchrl.experiments.ppo_curves import reused_runs
-    from anm_torchrl.experiments.test_returns import reused_rows
+    from anm_torchrl.experiments.heldout_returns import reused_rows
 
     meta = {"versions": {"git_commit": "abc1234"}}
     curves = write_json(tmp_path / "ppo_curves.json", {"name": "ppo_curves", "meta": meta, "data": {
@@ -314,9 +315,27 @@ def test_load_results_refuses_a_record_named_unlike_its_file(tmp_path):
 
 def test_portable_paths_drop_the_machines_top_level_folder():
     """A run directory directly under /tmp once rendered as '.../tmp/<run>' in docs/RESULTS.md."""
-    from anm_torchrl.experiments.report import _portable, _portable_command
+    from anm_torchrl.experiments.formatting import portable, portable_command
 
-    assert _portable("/tmp/repro10_run1") == ".../repro10_run1"
-    assert _portable("/tmp/repro/tr_full") == ".../repro/tr_full"
-    assert _portable("/tmp") == "..."
-    assert "/tmp" not in _portable_command("reproduce.py out_dir=/tmp/run1 publish=true")
+    assert portable("/tmp/repro10_run1") == ".../repro10_run1"
+    assert portable("/tmp/repro/tr_full") == ".../repro/tr_full"
+    assert portable("/tmp") == "..."
+    assert "/tmp" not in portable_command("reproduce.py out_dir=/tmp/run1 publish=true")
+
+
+def test_every_experiment_has_the_one_signature():
+    """The registry is what reproduce.py loops over: every entry is ``run(cfg, ctx)``, every preset names only
+    registered experiments, and an unknown name is refused with the list of known ones."""
+    import inspect
+
+    from omegaconf import OmegaConf
+
+    from anm_torchrl.experiments import registry
+
+    for name, entry in registry.EXPERIMENTS.items():
+        assert list(inspect.signature(entry.run).parameters) == ["cfg", "ctx"], name
+    for preset in sorted((REPO / "recipes" / "conf" / "preset").glob("*.yaml")):
+        names = OmegaConf.load(preset).get("experiments", [])
+        assert set(names) <= set(registry.EXPERIMENTS), (preset.name, names)
+    with pytest.raises(ValueError, match="unknown experiment 'nope'.*pinn_losses"):
+        registry.get("nope")

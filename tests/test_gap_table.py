@@ -7,10 +7,11 @@ from pathlib import Path
 
 import pytest
 
-from anm_torchrl.baselines import gap, gap_table
+from anm_torchrl.experiments import gap, gap_table
+from anm_torchrl.experiments.records import current_path
 
 REPO = Path(__file__).resolve().parents[1]
-TABLES = sorted((REPO / "results").glob("optimal_gap_table*.json"))
+TABLES = sorted((REPO / "results" / "gap").glob("optimal_gap_table*.json"))
 
 
 def test_table_compares_rows_on_the_states_they_cover():
@@ -82,7 +83,7 @@ def test_gap_blocks_are_rendered_from_the_records(path):
     """Each network's gap table in README / docs/OPTIMAL.md is its committed record's rendering, and the record's
     own rows are what its committed gap record gives."""
     rec = json.loads(path.read_text())
-    src = json.loads((REPO / rec["command"].split("--combine ")[1].split()[0]).read_text())
+    src = json.loads((REPO / current_path(rec["command"].split("--combine ")[1].split()[0])).read_text())
     mine = [r for r in rec["rows"] if r["source"] == "gap"]
     assert mine == [r for r in gap_table.combine(src, record=rec["record"])["rows"] if r["source"] == "gap"]
     body = gap_table.render_block(rec)
@@ -100,7 +101,7 @@ def test_results_page_holds_every_gap_table():
     from anm_torchrl.experiments.report import optimum_section
 
     tables = {p.stem: json.loads(p.read_text()) for p in TABLES}
-    assert tables, "no results/optimal_gap_table*.json"
+    assert tables, "no results/gap/optimal_gap_table*.json"
     assert optimum_section(tables) in (REPO / "docs" / "RESULTS.md").read_text()
 
 
@@ -114,3 +115,23 @@ def test_a_page_without_the_block_refuses_the_table(tmp_path):
     assert "old" in good.read_text()  # nothing written when one page lacks the block
     gap_table.update_pages([good], rec)
     assert gap_table.render_block(rec) in good.read_text()
+
+
+def test_cli_render_rewrites_only_the_gap_block(tmp_path):
+    """``python -m anm_torchrl.cli.gap --render <table> --readme <pages>`` rewrites a page's block from the committed
+    table (no evaluation, no record written): a stale block is replaced, the rest of the page kept."""
+    from anm_torchrl.cli import gap as cli
+
+    rec_path = REPO / "results" / "gap" / "optimal_gap_table.json"
+    start, end = gap_table.block_markers(gap_table.ANM6)
+    page = tmp_path / "page.md"
+    page.write_text(f"before\n{start}\nstale\n{end}\nafter\n")
+    before = {p: p.read_bytes() for p in (REPO / "results" / "gap").glob("*.json")}
+    assert cli.main(["--render", str(rec_path), "--readme", str(page)]) == {}
+    body = gap_table.render_block(json.loads(rec_path.read_text()))
+    assert page.read_text() == f"before\n{start}\n{body}{end}\nafter\n"
+    assert before == {p: p.read_bytes() for p in (REPO / "results" / "gap").glob("*.json")}
+    with pytest.raises(SystemExit):
+        cli.main(["--render", str(rec_path)])  # no page to render into
+    with pytest.raises(SystemExit):
+        cli.main(["--rows", "do_nothing"])  # a measurement needs --out

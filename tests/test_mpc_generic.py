@@ -27,6 +27,7 @@ import torch
 from anm_torchrl.baselines import make_baseline
 from anm_torchrl.baselines.mpc import MPCPolicy
 from anm_torchrl.envs.anm_env import ANMEnv
+from anm_torchrl.evaluation import EVAL_GAMMA
 
 torch.set_num_threads(1)
 
@@ -38,7 +39,7 @@ _spec.loader.exec_module(record_generic)
 ACTION_TOL_MW = 1e-6  # see the module docstring
 TIED_TOL_MW = 1e-3  # classical generators' P: tied with the slack (module docstring)
 OBJECTIVE_TOL = 1e-7
-GAMMA, BETA = 0.995, 0.96
+GAMMA, BETA = EVAL_GAMMA, 0.96
 
 
 def _case(name: str) -> dict:

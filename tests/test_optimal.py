@@ -9,19 +9,19 @@ import torch
 pytest.importorskip("casadi")
 
 from anm_torchrl.baselines import available_baselines, make_baseline  # noqa: E402
-from anm_torchrl.baselines import gap  # noqa: E402
+from anm_torchrl.experiments import gap  # noqa: E402
 from anm_torchrl.baselines.acmpc import ACMPCPolicy  # noqa: E402
 from anm_torchrl.baselines.mpc import MPCPolicy  # noqa: E402
 from anm_torchrl.baselines.nlp_model import ACHorizonNLP, rollout  # noqa: E402
 from anm_torchrl.baselines.optimal import (replay_in_env, solve_optimal,  # noqa: E402
                                            warm_start_actions)
+from anm_torchrl.evaluation import EVAL_GAMMA, draw_initial_states, evaluate_policy  # noqa: E402
 from anm_torchrl.grid.simulator import anm6_easy_simulator  # noqa: E402
-from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy  # noqa: E402
 
 torch.set_num_threads(1)
 
 REPO = Path(__file__).resolve().parents[1]
-GAMMA = 0.995
+GAMMA = EVAL_GAMMA
 T = 24  # short horizon: ~1 s per solve, still crossing penalties and storage use
 # Replay agreement target of issue 15: the NLP's return and the env's, relative.
 REPLAY_RTOL = 1e-6

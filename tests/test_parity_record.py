@@ -1,4 +1,4 @@
-"""The committed parity record ``results/parity.json`` (``python -m anm_torchrl.benchmarks.parity``).
+"""The committed parity record ``results/parity/parity.json`` (``python -m anm_torchrl.benchmarks.parity``).
 
 The README's "Correctness against gym-anm" figures come from it: every fixture must pass on every backend with
 the parity tests' tolerances (states 1e-6 MW / MVAr / MWh, rewards 1e-6 relative, identical terminations),
@@ -14,7 +14,7 @@ import pytest
 
 from anm_torchrl.benchmarks.parity import BACKENDS, REWARD_RTOL, STATE_TOL, fixture_names
 
-RECORD = Path(__file__).resolve().parents[1] / "results" / "parity.json"
+RECORD = Path(__file__).resolve().parents[1] / "results" / "parity" / "parity.json"
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from anm_torchrl.experiments import payoff, payoff_report
+from anm_torchrl.experiments.common import RunContext
 
 torch.set_num_threads(1)
 REPO = Path(__file__).resolve().parents[1]
@@ -72,7 +73,7 @@ def test_a_capped_booster_bounds_only_when_cut_while_improving():
 
 def test_unknown_part_is_refused(tmp_path):
     with pytest.raises(ValueError, match="payoff.parts"):
-        payoff.run({"parts": ["cost", "speed"]}, [], tmp_path)
+        payoff.run({"parts": ["cost", "speed"]}, RunContext(out_dir=tmp_path))
 
 
 def test_missing_accuracy_record_is_reported(tmp_path):
@@ -84,7 +85,8 @@ def test_tiny_cost_run(tmp_path, monkeypatch):
     """Exact rows measured with a rate and a load average; a surrogate without a model is a row with a reason."""
     monkeypatch.setenv("ANM_TORCHRL_HOME", str(tmp_path / "home"))  # an empty home: no trained surrogate
     rec = payoff.run({"parts": ["cost"], "networks": ["anm6_easy"], "batch_sizes": [1, 8], "min_time": 0.0,
-                      "min_steps": 2, "gym_steps": 2}, [{"name": "xgb", "dataset": "generative"}], tmp_path)
+                      "min_steps": 2, "gym_steps": 2},
+                     RunContext(out_dir=tmp_path, surrogates=({"name": "xgb", "dataset": "generative"},)))
     rows = rec["data"]["rows"]
     assert {(r["impl"], r["batch"]) for r in rows} == {("gym_anm", 1), ("anm_env_numba", 1), ("anm_env_torch", 1),
                                                         ("xgb_generative", 1), ("anm_env_numba", 8),
@@ -117,11 +119,11 @@ def test_multirun_with_submitit_local(tmp_path):
 
 
 def test_results_page_holds_the_payoff_section():
-    """docs/RESULTS.md's payoff section is what the generator renders from the committed results/payoff.json (a
+    """docs/RESULTS.md's payoff section is what the generator renders from the committed results/payoff/payoff.json (a
     record merged by hand, --merge-cost / --merge-ppo, must be re-rendered into the page)."""
     from anm_torchrl.experiments.report import payoff_section
 
-    rec = json.loads((REPO / "results" / "payoff.json").read_text())
+    rec = json.loads((REPO / "results" / "payoff" / "payoff.json").read_text())
     assert payoff_section(rec) in (REPO / "docs" / "RESULTS.md").read_text()
 
 
@@ -133,3 +135,12 @@ def test_a_corrupted_record_is_named_before_anything_is_merged(tmp_path):
     with pytest.raises(ValueError, match=r"cost\.json is not valid JSON"):
         payoff.merge_cost(src, dst, ["c"])
     assert dst.read_text() == before
+
+
+def test_cli_prints_the_committed_record(capsys):
+    """``python -m anm_torchrl.cli.payoff <record>`` prints the record's tables (payoff_report.markdown)."""
+    from anm_torchrl.cli import payoff as cli
+
+    path = REPO / "results" / "payoff" / "payoff.json"
+    cli.main([str(path)])
+    assert capsys.readouterr().out == payoff_report.markdown(json.loads(path.read_text())) + "\n"

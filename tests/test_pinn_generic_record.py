@@ -46,9 +46,9 @@ def test_verdict_and_table_follow_the_record():
 
 
 def test_committed_record_is_on_test_transitions():
-    """results/pinn_generic_accuracy.json: every network evaluated with the test seed 12345 (the feeder preset was
+    """results/pinn/pinn_generic_accuracy.json: every network evaluated with the test seed 12345 (the feeder preset was
     selected on seed 777 transitions and the training's held-out Sobol points), physics-only models."""
-    rec = json.loads((ROOT / "results" / "pinn_generic_accuracy.json").read_text())
+    rec = json.loads((ROOT / "results" / "pinn" / "pinn_generic_accuracy.json").read_text())
     assert "--seed 0" in rec["command"] and "777" not in rec["command"]
     from anm_torchrl.surrogates.pinn.generic_accuracy import measure_network
     import inspect

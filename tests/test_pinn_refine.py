@@ -2,7 +2,7 @@
 picks, the model file that says which k it runs with, and the format check at load.
 
 Untrained or smoke networks only (seconds); the rule's outcome on the trained feeders is in presets.py and
-``results/pinn_generic_accuracy.json``.
+``results/pinn/pinn_generic_accuracy.json``.
 """
 
 from __future__ import annotations

@@ -84,7 +84,7 @@ def test_initial_mean_bias_maps_back_and_rejects_bad_input():
 def test_auto_reward_scale_is_derived_from_do_nothing():
     """scale = auto_step_reward / |do-nothing's mean step reward|, on both networks; on ANM6-Easy the documented
     step reward 0.043 gives back the hand-tuned 0.01 (do-nothing's mean step is -4.29 there, almost all penalty)."""
-    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.evaluation import draw_initial_states
     from anm_torchrl.training.factory import make_true_env
     from anm_torchrl.training.reward_scale import do_nothing_reward_scale
 

@@ -98,7 +98,7 @@ def test_bad_options_and_files_fail_clearly(evaluate, tmp_path):
 def test_initial_states_follow_the_networks_reset_distribution():
     """ANM6-Easy: gym-anm's initial distribution (SoC < 1 MWh, its unit quirk); another network: the uniform
     distribution of its true env; both reproducible from the seed."""
-    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.evaluation import draw_initial_states
     from anm_torchrl.training.factory import make_true_env
 
     anm6 = draw_initial_states(8, seed=4)
@@ -130,7 +130,7 @@ def test_gym_anm_and_anm6_evaluations_agree():
     pytest.importorskip("gym_anm")
     torch.set_num_threads(1)
     from anm_torchrl.baselines import make_baseline
-    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy, evaluate_policy_gym_anm
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy, evaluate_policy_gym_anm
 
     states = draw_initial_states(2, seed=11)
     policy = make_baseline("do_nothing")
@@ -141,7 +141,7 @@ def test_gym_anm_and_anm6_evaluations_agree():
 
 
 def test_episode_metrics_stop_at_first_termination():
-    from anm_torchrl.training.evaluation import episode_metrics
+    from anm_torchrl.evaluation import episode_metrics
 
     reward = torch.tensor([[-1.0, -2.0, -20000.0, -5.0], [-1.0, -1.0, -1.0, -1.0]])
     terminated = torch.tensor([[False, False, True, False], [False, False, False, False]])

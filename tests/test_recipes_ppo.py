@@ -101,7 +101,7 @@ def test_summary_separates_validation_from_test_states(base_run):
     val, test = summary["validation"], summary["test"]
     assert (val["seed"], val["num_episodes"], test["seed"], test["num_episodes"]) == (1, 2, 0, 3)
 
-    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.evaluation import draw_initial_states
 
     s_val, s_test = draw_initial_states(2, val["seed"]), draw_initial_states(3, test["seed"])
     assert not (s_val[:, None, :] == s_test[None, :, :]).all(-1).any(), "a validation state is also a test state"

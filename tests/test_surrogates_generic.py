@@ -1,6 +1,6 @@
 """Surrogates on networks other than ANM6-Easy (issue 13 items 1, 2): the PINN chain, datasets, regressors and the
 terminal classifier on registered feeders, each tied to its network. Tiny models: this checks wiring and the
-network guards, not accuracy (that is ``results/pinn_generic_accuracy.json``)."""
+network guards, not accuracy (that is ``results/pinn/pinn_generic_accuracy.json``)."""
 
 from __future__ import annotations
 

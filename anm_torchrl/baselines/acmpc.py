@@ -34,7 +34,8 @@ from tensordict.nn import TensorDictModuleBase
 
 from anm_torchrl.baselines.nlp_model import (ACHorizonNLP, NLPResult, exogenous, rollout, storage_direction,
                                              time_indices)
-from anm_torchrl.baselines.optimal import EVAL_GAMMA, warm_start_actions
+from anm_torchrl.baselines.optimal import warm_start_actions
+from anm_torchrl.evaluation import EVAL_GAMMA
 from anm_torchrl.grid.simulator import GridSimulator
 
 log = logging.getLogger(__name__)

@@ -57,6 +57,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from anm_torchrl.evaluation import EVAL_GAMMA
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.network import CLASSICAL_GEN, SLACK
 from anm_torchrl.grid.simulator import GridSimulator
@@ -91,7 +92,7 @@ class MPCPolicy(TensorDictModuleBase):
         horizon: number N of planning stages.
         forecast: ``"perfect"`` or ``"constant"``.
         safety_margin: β, the fraction of each branch rating above which flows are penalised.
-        gamma: discount of the stage costs (gym-anm-exp uses 0.995).
+        gamma: discount of the stage costs (gym-anm-exp uses the evaluation discount, 0.995).
         solver: qpsolvers solver name; default :func:`default_solver` (``"clarabel"``).
         in_key: TensorDict key of the gym-anm state (..., state_dim) in MW/MVAr/MWh.
         **solver_settings: overrides of :data:`SOLVER_SETTINGS` passed to the solver.
@@ -102,7 +103,7 @@ class MPCPolicy(TensorDictModuleBase):
     """
 
     def __init__(self, sim: GridSimulator, horizon: int = DEFAULT_HORIZON, forecast: str = "perfect",
-                 safety_margin: float = DEFAULT_SAFETY_MARGIN, gamma: float = 0.995, solver: str | None = None,
+                 safety_margin: float = DEFAULT_SAFETY_MARGIN, gamma: float = EVAL_GAMMA, solver: str | None = None,
                  in_key: str = "state", **solver_settings):
         super().__init__()
         if forecast not in ("perfect", "constant"):

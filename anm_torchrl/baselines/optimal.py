@@ -13,10 +13,10 @@ CasADi + IPOPT). :func:`solve_optimal` solves it in rounds, each warm-started fr
    **env optimum**, the bound a policy evaluated on ``ANM6Env`` is measured against.
 
 :class:`OptimalPolicy` wraps it as a TorchRL policy usable by
-:func:`~anm_torchrl.training.evaluation.evaluate_policy`: it solves the horizon when it meets a state that is on
+:func:`~anm_torchrl.evaluation.evaluate_policy`: it solves the horizon when it meets a state that is on
 none of its plans (an episode's first state) and then replays the plan step by step.
 
-The gap table (``python -m anm_torchrl.baselines.optimal --help``) lives in :mod:`anm_torchrl.baselines.gap`.
+The gap study (``python -m anm_torchrl.cli.gap --help``) lives in :mod:`anm_torchrl.experiments.gap`.
 """
 
 from __future__ import annotations
@@ -32,13 +32,12 @@ from tensordict.nn import TensorDictModuleBase
 
 from anm_torchrl.baselines.nlp_model import (ACHorizonNLP, NLPResult, PowerFlowOffsets, exogenous, rollout,
                                              storage_direction, time_indices)
+from anm_torchrl.evaluation import EVAL_GAMMA, EVAL_MAX_STEPS
 from anm_torchrl.grid.simulator import GridSimulator
 
 log = logging.getLogger(__name__)
 
 WARM_STARTS = ("mpc", "do_nothing", "random")
-EVAL_GAMMA = 0.995  # the gym-anm paper's discount (training.evaluation.EVAL_GAMMA; not imported: layer order)
-EVAL_MAX_STEPS = 3000
 WARM_MPC_HORIZON = 16  # DC-OPF MPC warm start: perfect forecast, N = 16, β = 0.92 (cheap and close enough)
 WARM_MPC_MARGIN = 0.92
 
@@ -325,8 +324,3 @@ class OptimalPolicy(TensorDictModuleBase):
         tensordict.set(self.out_keys[0], self.act(tensordict.get(self.in_keys[0])))
         return tensordict
 
-
-if __name__ == "__main__":
-    from anm_torchrl.baselines.gap import main
-
-    main()

@@ -4,7 +4,7 @@ Usage::
 
     python -m anm_torchrl.benchmarks.env --network all [--batch-sizes 1,256,4096,16384] [--threads 2]
         [--backends numba,torch] [--gym-steps 30] [--pf-runs 20] [--min-time 1.0] [--max-step-s 20]
-        [--out results/bench_env_networks]
+        [--out results/benchmarks/bench_env_networks]
     python -m anm_torchrl.benchmarks.env --solver-sweep [--sweep-sizes 6,10,16,24,33,50,70,120] [--threads 1]
 
 Networks: every registered network (:func:`anm_torchrl.networks.list_networks`) plus synthetic radial feeders

@@ -2,7 +2,7 @@
 
 Usage::
 
-    OMP_NUM_THREADS=1 python -m anm_torchrl.benchmarks.parity --out results/parity [--backends numba,torch]
+    OMP_NUM_THREADS=1 python -m anm_torchrl.benchmarks.parity --out results/parity/parity [--backends numba,torch]
 
 Fixtures (``tests/fixtures``): ``gym_anm_transitions.npz`` (ANM6-Easy, recorded by
 ``tests/fixtures/record_gym_anm.py``, stepped through :class:`anm_torchrl.envs.ANM6Env`) and every
@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> dict:
     from anm_torchrl.experiments.io import machine_info
 
     p = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
-    p.add_argument("--out", default="results/parity", help="output stem: <out>.json and <out>.md")
+    p.add_argument("--out", default="results/parity/parity", help="output stem: <out>.json and <out>.md")
     p.add_argument("--fixtures", default=str(FIXTURES), help="folder of the .npz fixtures")
     p.add_argument("--backends", default=",".join(BACKENDS), help="comma-separated, of " + ", ".join(BACKENDS))
     args = p.parse_args(argv)

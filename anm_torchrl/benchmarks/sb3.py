@@ -2,8 +2,8 @@
 
 Usage::
 
-    python -m anm_torchrl.benchmarks.sb3 [--num-envs 64] [--n-steps 16] [--rollouts 16] [--gym-rollouts 1]
-                                         [--threads 1] [--out results/bench_sb3.json]
+    python -m anm_torchrl.cli.bench_sb3 [--num-envs 64] [--n-steps 16] [--rollouts 16] [--gym-rollouts 1]
+                                        [--threads 1] [--out results/benchmarks/bench_sb3.json]
 
 Both sides run the same SB3 ``PPO("MlpPolicy")`` (``n_steps`` per env, batch 512, 10 epochs, CPU) over
 ``--num-envs`` envs: ours is :class:`~anm_torchrl.gym.sb3.SB3VecEnv` (one batched TorchRL env, numba physics);
@@ -16,12 +16,9 @@ writes the JSON record (machine, versions, settings, rates, ratio).
 
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import time
 import warnings
-from pathlib import Path
 
 import torch
 
@@ -87,7 +84,7 @@ def run(num_envs: int = 64, n_steps: int = 16, rollouts: int = 16, gym_rollouts:
     ours = _bench(lambda: SB3VecEnv(num_envs=num_envs, seed=seed), "anm_torchrl SB3VecEnv", num_envs, n_steps,
                   rollouts, seed)
     theirs = _bench(gym_anm_env, "gym-anm 2.0.1 ANM6Easy in DummyVecEnv", num_envs, n_steps, gym_rollouts, seed)
-    return {"command": "python -m anm_torchrl.benchmarks.sb3", "settings": {
+    return {"command": "python -m anm_torchrl.cli.bench_sb3", "settings": {
                 "num_envs": num_envs, "n_steps": n_steps, "batch_size": 512, "n_epochs": 10, "rollouts": rollouts,
                 "gym_rollouts": gym_rollouts, "torch_threads": threads, "seed": seed},
             "rows": [ours, theirs], "ratio_frames_per_s": ours["frames_per_s"] / theirs["frames_per_s"],
@@ -105,25 +102,3 @@ def table(record: dict) -> str:
     lines.append(f"\nratio: {record['ratio_frames_per_s']:.1f}x (PPO), {record['ratio_collect_frames_per_s']:.1f}x "
                  "(collection)")
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--num-envs", type=int, default=64)
-    parser.add_argument("--n-steps", type=int, default=16, help="PPO rollout length per env")
-    parser.add_argument("--rollouts", type=int, default=16, help="timed rollouts on our env")
-    parser.add_argument("--gym-rollouts", type=int, default=1, help="timed rollouts on gym-anm (slow)")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="results/bench_sb3.json")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    record = run(args.num_envs, args.n_steps, args.rollouts, args.gym_rollouts, args.threads, args.seed)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=2) + "\n")
-    log.info("%s\n\nwritten to %s", table(record), out)
-
-
-if __name__ == "__main__":
-    main()

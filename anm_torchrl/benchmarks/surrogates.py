@@ -2,9 +2,9 @@
 
 Usage::
 
-    python -m anm_torchrl.benchmarks.surrogates [--batch-sizes 1,4096] [--surrogates lr,dt,rf,xgb,dnn]
-                                                [--datasets generative,agent] [--min-time 2.0] [--rounds 3]
-                                                [--threads 1] [--device cpu]
+    python -m anm_torchrl.cli.bench_surrogates [--batch-sizes 1,4096] [--surrogates lr,dt,rf,xgb,dnn]
+                                               [--datasets generative,agent] [--min-time 2.0] [--rounds 3]
+                                               [--threads 1] [--device cpu]
 
 Each row is ``make_env(<surrogate>, dataset=..., num_envs=batch)`` stepped with ``env.rand_action`` then
 ``env.step_and_maybe_reset`` (what a collector does: terminated envs are reset in place), after a warm-up
@@ -16,11 +16,7 @@ measured in the same run. Surrogates that are not trained are listed with the co
 
 from __future__ import annotations
 
-import argparse
 import statistics
-import time
-
-import torch
 
 from anm_torchrl.benchmarks.env import time_env_steps
 
@@ -71,41 +67,20 @@ def markdown_table(results: dict, batches: list[int]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> str:
-    parser = argparse.ArgumentParser(description="data-driven surrogate envs vs ANM6Env, transitions/s")
-    parser.add_argument("--batch-sizes", default="1,4096", help="comma-separated batch sizes")
-    parser.add_argument("--surrogates", default=",".join(KINDS), help="comma-separated surrogate names")
-    parser.add_argument("--datasets", default=",".join(DATASETS), help="comma-separated training datasets")
-    parser.add_argument("--min-time", type=float, default=2.0, help="seconds of steady state per measurement")
-    parser.add_argument("--min-steps", type=int, default=3, help="at least this many batched steps")
-    parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds (median reported)")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
-    args = parser.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    batches = [int(b) for b in args.batch_sizes.split(",") if b.strip()]
-    found, missing = available([k for k in args.surrogates.split(",") if k], [d for d in args.datasets.split(",") if d])
+def measure(batches: list[int], kinds, datasets, min_time: float, min_steps: int, rounds: int,
+            device: str = "cpu") -> tuple[dict, list[str]]:
+    """Interleaved rounds over ``ANM6Env`` and every trained ``(kind, dataset)``: per env and batch the median over
+    rounds of transitions/s (``"rate"``) and warm-up seconds (``"warm"``), and notes for the untrained ones."""
+    found, missing = available(list(kinds), list(datasets))
     envs = [("ANM6Env", "-", None, None)] + [(k, d, k, d) for k, d in found]
     samples: dict = {(name, ds): {b: [] for b in batches} for name, ds, _, _ in envs}
     warm: dict = {(name, ds): {b: [] for b in batches} for name, ds, _, _ in envs}
-    start = time.perf_counter()
-    for _ in range(args.rounds):
+    for _ in range(rounds):
         for b in batches:
             for name, ds, kind, dataset in envs:
-                r = bench(kind, dataset, b, args.min_time, args.min_steps, args.device)
+                r = bench(kind, dataset, b, min_time, min_steps, device)
                 samples[(name, ds)][b].append(r["rate"])
                 warm[(name, ds)][b].append(r["warm"])
     results = {key: {b: {"rate": statistics.median(samples[key][b]), "warm": statistics.median(warm[key][b])}
                      for b in batches} for key in samples}
-    table = markdown_table(results, batches)
-    print(table)
-    for note in missing:
-        print(f"- {note}")
-    print(f"\n<!-- torch {torch.__version__}, {torch.get_num_threads()} thread(s), device {args.device}, median of "
-          f"{args.rounds} interleaved rounds of >= {args.min_time} s, {time.perf_counter() - start:.0f} s in all; "
-          f"env step = rand_action + step_and_maybe_reset -->")
-    return table
-
-
-if __name__ == "__main__":
-    main()
+    return results, missing

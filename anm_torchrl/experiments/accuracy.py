@@ -16,6 +16,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from anm_torchrl.experiments.common import RunContext
 from anm_torchrl.experiments.io import result
 
 DATASETS = ("generative", "agent")
@@ -76,7 +77,7 @@ def provenance(metrics_path: str | Path) -> dict[str, Any]:
             "seed": meta.get("seed"), "params": meta.get("params"), "train_info": info}
 
 
-def run(cfg: dict[str, Any]) -> dict:
+def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
     """cfg keys: ``paths`` (globs of metrics JSON; default ``<artifact home>/surrogates/*/metrics.json``)."""
     from anm_torchrl.paths import artifact_home
 

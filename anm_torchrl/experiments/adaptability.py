@@ -13,13 +13,15 @@ from __future__ import annotations
 
 from typing import Any
 
+from anm_torchrl.experiments.common import RunContext
 from anm_torchrl.experiments import rollout_error
 from anm_torchrl.experiments.io import result
 
 
-def run(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0) -> dict:
+def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
     """cfg keys: ``scenarios`` (list of {name, load, gen, shift}: scale factors of the load and renewable-potential
-    series, and a shift of both series by ``shift`` time steps), plus :func:`rollout_error.run`'s keys."""
+    series, and a shift of both series by ``shift`` time steps), plus :func:`rollout_error.measure`'s keys."""
+    surrogates, seed = list(ctx.surrogates), ctx.seed
     scenarios = cfg.get("scenarios") or [{"name": "base", "load": 1.0, "gen": 1.0},
                                           {"name": "load_x1.2", "load": 1.2, "gen": 1.0},
                                           {"name": "gen_x0.8", "load": 1.0, "gen": 0.8}]
@@ -27,7 +29,7 @@ def run(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0) -> dict:
     rows, not_available = [], {}
     for sc in scenarios:
         sim = rollout_error.scaled_simulator(sc.get("load", 1.0), sc.get("gen", 1.0), shift=sc.get("shift", 0))
-        rec = rollout_error.run(sub, surrogates, seed=seed, sim=sim, name="adaptability", include_true=False)
+        rec = rollout_error.measure(sub, surrogates, seed=seed, sim=sim, name="adaptability", include_true=False)
         not_available.update(rec["data"].get("not_available", {}))
         for agent, a in rec["data"].get("agents", {}).items():
             for lab, r in a["surrogates"].items():

@@ -7,7 +7,9 @@ its label is ``name`` or ``name_dataset``. A surrogate whose code or trained art
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -16,6 +18,32 @@ from tensordict import TensorDict
 log = logging.getLogger(__name__)
 
 TRUE_ENV = "none"
+
+
+@dataclasses.dataclass(frozen=True)
+class RunContext:
+    """What a reproduction run gives every experiment, besides the experiment's own config section.
+
+    Every experiment is ``run(cfg: dict, ctx: RunContext) -> dict`` (a record of :func:`.io.result`), listed in
+    :data:`anm_torchrl.experiments.registry.EXPERIMENTS`.
+
+    Attributes:
+        out_dir: the run directory (PPO runs and other artifacts go under it).
+        surrogates: the preset's surrogate specs (the PINN's with the path this run resolved).
+        seed: the run's seed.
+        seeds: the PPO seeds of the experiments that train once per seed (``ppo_curves``).
+        threads: ``torch.set_num_threads`` of the PPO runs the experiments start.
+        pinn_logs: folders where the PINN's TensorBoard losses may be (``pinn_losses``), first match wins.
+        surrogate_train_s: label -> CPU seconds this run spent training that surrogate (claim 2's time to return).
+    """
+
+    out_dir: Path
+    surrogates: tuple[dict, ...] = ()
+    seed: int = 0
+    seeds: tuple[int, ...] = (0,)
+    threads: int = 1
+    pinn_logs: tuple[Path | None, ...] = ()
+    surrogate_train_s: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 def label(spec: dict[str, Any] | str) -> str:

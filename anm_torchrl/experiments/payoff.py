@@ -15,7 +15,7 @@ Three parts, each optional (``cfg["parts"]``):
   times that booster as a *lower bound* of the uncapped one's cost (:func:`capped_bound`; rows carry
   ``lower_bound``): it settles the comparison where it already costs more than the exact backend.
 * ``accuracy`` — the PINN's accuracy and training time against bus count, read from the record of the generic
-  PINN (``accuracy_record``, default ``results/pinn_generic_accuracy.json``); never trained here.
+  PINN (``accuracy_record``, default ``results/pinn/pinn_generic_accuracy.json``); never trained here.
 * ``ppo`` — PPO (:func:`~anm_torchrl.training.protocol.train`, the recipe's loop) on ``network`` with each
   training env (``none``: the true simulator; a surrogate spec), seeds ``seeds``, a wall-clock cap
   (``timeout_s``): the time (wall, training only, frames) to first reach a return ≥ ``threshold_fraction`` ×
@@ -33,14 +33,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.experiments.common import label, make_env_or_reason
+from anm_torchrl.experiments.common import RunContext, label, make_env_or_reason
 from anm_torchrl.experiments.io import read_json, result, write_json
 
 log = logging.getLogger(__name__)
 
 PARTS = ("cost", "accuracy", "ppo")
 EXACT = ("numba", "torch")
-ACCURACY_RECORD = Path(__file__).resolve().parents[2] / "results" / "pinn_generic_accuracy.json"
+ACCURACY_RECORD = Path(__file__).resolve().parents[2] / "results" / "pinn" / "pinn_generic_accuracy.json"
 
 
 def _load() -> float:
@@ -195,7 +195,7 @@ def do_nothing_return(network: str, base: dict[str, Any]) -> dict[str, Any]:
     """Do-nothing's metrics on the PPO runs' validation states (same seed, count, length, network)."""
     from anm_torchrl.baselines import make_baseline
     from anm_torchrl.experiments.ppo_runs import compose_ppo_config, ppo_overrides
-    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.factory import make_true_env
 
     cfg = compose_ppo_config(ppo_overrides({"name": "none"}, 0, {**base, "network": network}))
@@ -214,7 +214,7 @@ def test_baselines(network: str, base: dict[str, Any], specs: list) -> dict[str,
     ``eval.gamma``): label -> metrics, wall and CPU seconds."""
     from anm_torchrl.baselines import make_baseline
     from anm_torchrl.experiments.ppo_runs import compose_ppo_config, ppo_overrides
-    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.factory import make_true_env
 
     ev = compose_ppo_config(ppo_overrides({"name": "none"}, 0, {**base, "network": network})).eval
@@ -308,10 +308,11 @@ def ppo_part(cfg: dict[str, Any], out_dir: Path) -> dict[str, Any]:
             "runs": runs, "table": table}
 
 
-def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seed: int = 0) -> dict:
+def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
     """cfg keys: ``parts`` (subset of :data:`PARTS`), ``networks`` (default every registered one), ``batch_sizes``,
     ``min_time``, ``min_steps``, ``gym_steps``, ``backends``, ``accuracy_record``, ``ppo`` (see :func:`ppo_part`).
-    ``surrogates``: the specs timed in ``cost`` (those without a model on a network get a reason)."""
+    ``ctx.surrogates``: the specs timed in ``cost`` (those without a model on a network get a reason)."""
+    surrogates, out_dir, seed = list(ctx.surrogates), ctx.out_dir, ctx.seed
     from anm_torchrl.networks import list_networks
 
     parts = list(cfg.get("parts", PARTS))
@@ -413,30 +414,3 @@ def merge_cost(src: str | Path, dst: str | Path, networks: list[str], note: str 
     write_json(dst, rec)
     return rec
 
-
-if __name__ == "__main__":
-    import argparse
-    import sys
-
-    parser = argparse.ArgumentParser(description="print the payoff study's tables from its record")
-    parser.add_argument("record", nargs="?", default="results/payoff.json")
-    parser.add_argument("--merge-ppo", metavar="SRC", help="first replace the record's ppo part by SRC's (merge_ppo)")
-    parser.add_argument("--merge-cost", metavar="SRC", help="first replace the record's cost rows of --networks by "
-                        "SRC's (merge_cost)")
-    parser.add_argument("--networks", nargs="*", default=[], help="with --merge-cost: the networks to replace")
-    parser.add_argument("--note", help="with --merge-ppo / --merge-cost: how SRC was made (replaces the record's "
-                        "note about that part)")
-    parser.add_argument("--reread-accuracy", action="store_true", help="first replace the record's pinn_accuracy "
-                        "part by the generic PINN's record (accuracy_part)")
-    args = parser.parse_args()
-    if args.reread_accuracy:
-        reread_accuracy(args.record)
-    if args.merge_ppo:
-        merge_ppo(args.merge_ppo, args.record, args.note)
-    if args.merge_cost:
-        if not args.networks:
-            raise ValueError("--merge-cost needs --networks <names> (the networks whose rows it replaces)")
-        merge_cost(args.merge_cost, args.record, args.networks, args.note)
-    from anm_torchrl.experiments.payoff_report import markdown
-
-    sys.stdout.write(markdown(read_json(args.record)) + "\n")

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from anm_torchrl.experiments.payoff import ppo_parts
+from anm_torchrl.experiments.records import current_path
 
 
 def accuracy_table(acc: dict) -> str:
@@ -39,7 +40,7 @@ def accuracy_table(acc: dict) -> str:
 
 def readme_pinn_accuracy(res: dict[str, Any]) -> str:
     """README's PINN-accuracy block (``<!-- results:pinn_accuracy -->``, :mod:`.readme_blocks`): the accuracy
-    table of the payoff record's ``pinn_accuracy`` part (a copy of ``results/pinn_generic_accuracy.json``)."""
+    table of the payoff record's ``pinn_accuracy`` part (a copy of ``results/pinn/pinn_generic_accuracy.json``)."""
     rec = res.get("payoff")
     acc = ((rec or {}).get("data") or {}).get("pinn_accuracy") or {}
     if not acc.get("available"):
@@ -52,8 +53,13 @@ def readme_pinn_accuracy(res: dict[str, Any]) -> str:
             "network's default preset; chord steps: chosen per network by the rule of "
             "`anm_torchrl/surrogates/pinn/refine.py` (—: not recorded, an entry measured before the rule); terminal "
             "figures on the random set (—: no terminal transition to recall, or none flagged):")
-    return (f"{head}\n\n{accuracy_table(acc['data'])}\n\n_From `results/payoff.json` (its `pinn_accuracy` part, "
-            f"read from `results/{Path(acc['file']).name}`, whose `command` field reproduces each row)._")
+    return (f"{head}\n\n{accuracy_table(acc['data'])}\n\n_From `results/payoff/payoff.json` (its `pinn_accuracy` "
+            f"part, read from `{_accuracy_path(acc)}`, whose `command` field reproduces each row)._")
+
+
+def _accuracy_path(acc: dict) -> str:
+    """Where the PINN accuracy record a payoff record's ``pinn_accuracy`` part was read from lives now."""
+    return current_path(f"results/{Path(acc['file']).name}")
 
 
 def cost_verdict(rec: dict) -> str:
@@ -145,7 +151,7 @@ def markdown(rec: dict) -> str:
                        f" | {', '.join(map(str, c['measured_n_bus'])) or 'nowhere'} |")
     acc = d.get("pinn_accuracy")
     if acc is not None:
-        out += ["", "PINN accuracy vs bus count: " + (f"from `results/{Path(acc['file']).name}`." if acc["available"]
+        out += ["", "PINN accuracy vs bus count: " + (f"from `{_accuracy_path(acc)}`." if acc["available"]
                                                      else re.sub(r"\S*/(\S+)", r"\1", acc["reason"]))]
         if acc["available"]:
             out += ["", accuracy_table(acc["data"])]

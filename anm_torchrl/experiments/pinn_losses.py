@@ -11,6 +11,7 @@ import glob
 from pathlib import Path
 from typing import Any
 
+from anm_torchrl.experiments.common import RunContext
 from anm_torchrl.experiments.io import result
 
 
@@ -29,10 +30,10 @@ def read_scalars(log_dir: str | Path, prefix: str = "surrogate/") -> dict[str, l
     return {k: sorted(v) for k, v in out.items()}
 
 
-def run(cfg: dict[str, Any], log_dirs: list[str | Path]) -> dict:
-    """Read the first of ``log_dirs`` that holds ``surrogate/*`` scalars."""
+def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
+    """Read the first of ``ctx.pinn_logs`` that holds ``surrogate/*`` scalars."""
     tried = []
-    for d in log_dirs:
+    for d in ctx.pinn_logs:
         if d is None or not Path(d).exists():
             tried.append(f"{d}: missing")
             continue

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.experiments.common import label, make_env_or_reason
+from anm_torchrl.experiments.common import RunContext, label, make_env_or_reason
 from anm_torchrl.experiments.io import result
 from anm_torchrl.experiments.ppo_runs import (aggregate, compose_ppo_config, last_mean, ppo_overrides, run_ppo,
                                               time_to_reach)
@@ -30,7 +30,7 @@ def evaluate_baselines(names: list[str], num_episodes: int, max_steps: int, eval
     out: dict[str, Any] = {}
     try:
         from anm_torchrl.baselines import make_baseline
-        from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+        from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     except ImportError as err:
         return {n: {"available": False, "reason": str(err)} for n in names}
     states = draw_initial_states(num_episodes, eval_seed)
@@ -87,15 +87,19 @@ def reused_runs(reuse: dict[str, Any], threshold: float | None) -> dict[str, lis
     return {e: [{**r, "reused_from": origin} for r in rec["data"]["runs"][e]] for e in reuse["envs"]}
 
 
-def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path, seeds: list[int]) -> dict:
+def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
     """cfg keys: ``envs`` (extra env specs before the surrogates, default none + gym_anm), ``base`` (Hydra
     overrides for every run), ``per_env`` (label -> extra overrides, e.g. a smaller budget for gym_anm),
     ``baselines``, ``baseline_budget_s``, ``threshold`` (null = ``threshold_scale`` × the do-nothing return; scale 0.1
     = a tenth of do-nothing's loss), ``last_k``, ``timeout_s``, ``only`` (surrogate labels), ``reuse``
     (``{from: <earlier ppo_curves.json>, envs: [labels]}``: take those envs' runs from that record),
     ``per_env_seeds`` (label -> seeds, default ``seeds``), ``surrogate_train_s``
-    (label -> seconds the surrogate took to train, measured by the caller; unknown labels count as not measured)."""
-    out_dir = Path(out_dir)
+    (label -> seconds the surrogate took to train; ``ctx.surrogate_train_s``, measured by the caller; unknown labels
+    count as not measured). Every run uses ``ctx.threads``, the seeds ``ctx.seeds`` and the surrogates
+    ``ctx.surrogates``."""
+    cfg = {**cfg, "base": {**cfg.get("base", {}), "threads": int(ctx.threads)},
+           "surrogate_train_s": dict(ctx.surrogate_train_s)}
+    surrogates, out_dir, seeds = list(ctx.surrogates), Path(ctx.out_dir), [int(s) for s in ctx.seeds]
     base = dict(cfg.get("base", {}))
     ev = compose_ppo_config(ppo_overrides({"name": "none"}, 0, base)).eval  # the PPO runs' validation protocol
     baselines = evaluate_baselines(list(cfg.get("baselines", ["do_nothing", "random", "mpc_perfect"])),

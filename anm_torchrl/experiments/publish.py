@@ -1,4 +1,4 @@
-"""Publishing a reproduction: copy its records into the committed record folder (``results/``), explicitly.
+"""Publishing a reproduction: copy its records into a committed study folder (``results/<study>/``), explicitly.
 
 A reproduction writes only into its own run directory. :func:`publish` copies its records (``<name>.json``, the CSV
 tables) into the target folder and merges its ``run.json`` there; the caller then redraws the figures and pages
@@ -32,7 +32,7 @@ def check_publish(target: str | Path, preset: str, experiments: list[str], merge
     overwrite a committed record of another preset, or drop experiments from it, and ``force`` is not set.
 
     Args:
-        target: the committed record folder (``results/``).
+        target: the committed study folder (``results/reproduction/``, ``results/payoff/``).
         preset: the run's preset name.
         experiments: the experiments this run performs (fewer than the committed record's: a partial run).
         merge: the run is merged into the committed record experiment by experiment.

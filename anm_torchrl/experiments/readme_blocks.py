@@ -1,4 +1,4 @@
-"""README's result tables, rendered from the committed records (``results/*.json``), never typed by hand.
+"""README's result tables, rendered from the committed records (``results/<study>/*.json``), never typed by hand.
 
 README.md marks each generated block with a pair of HTML comments::
 
@@ -18,7 +18,9 @@ from pathlib import Path
 from typing import Any
 
 from anm_torchrl.experiments.payoff_report import readme_pinn_accuracy
-from anm_torchrl.experiments.report import CLAIMS, _portable_command, _table
+from anm_torchrl.experiments.registry import EXPERIMENTS
+from anm_torchrl.experiments.claims import CLAIMS
+from anm_torchrl.experiments.formatting import md_table, portable_command
 
 BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)", re.S)
 
@@ -34,7 +36,8 @@ def _source(rec: dict | None, run: dict | None) -> str:
         if rec["name"] in u.get("experiments", {}):
             preset, date = u.get("preset") or preset, u.get("date") or date
     when = f", run on {str(date)[:10]}" if date else ""
-    return f"_From `results/{rec['name']}.json` (preset `{preset}`, git commit `{commit[:7]}`{when})._"
+    study = EXPERIMENTS[rec["name"]].study if rec["name"] in EXPERIMENTS else "reproduction"
+    return f"_From `results/{study}/{rec['name']}.json` (preset `{preset}`, git commit `{commit[:7]}`{when})._"
 
 
 def block_claims(res: dict[str, Any]) -> str:
@@ -43,7 +46,7 @@ def block_claims(res: dict[str, Any]) -> str:
         what, verdict = fn(res)
         rows.append({"claim (paper)": text, "verdict here": f"**{verdict}**", "measured": what})
     sources = " ".join(_source(res.get(n), res.get("run")) for n in ("speed", "ppo_curves", "sweep") if res.get(n))
-    return _table(rows, ["claim (paper)", "verdict here", "measured"]) + "\n\n" + sources + _reused_curves(res)
+    return md_table(rows, ["claim (paper)", "verdict here", "measured"]) + "\n\n" + sources + _reused_curves(res)
 
 
 def _reused_curves(res: dict[str, Any]) -> str:
@@ -70,14 +73,14 @@ def block_test_returns(res: dict[str, Any]) -> str:
     pr = d["protocol"]
     head = (f"{pr['test_episodes']} test states (seed {pr['test_seed']}), T = {pr['max_steps']:,}, "
             f"γ = {pr['gamma']}; PPO `best` = the checkpoint chosen on the validation states, mean ± std over seeds:")
-    table = _table(rows, ["policy", "seeds", "discounted_return", "discounted_return_std", "return", "frames",
+    table = md_table(rows, ["policy", "seeds", "discounted_return", "discounted_return_std", "return", "frames",
                           "seconds"], {"discounted_return": ".2f", "discounted_return_std": ".2f", "return": ".1f",
                                        "frames": ",.0f", "seconds": ".0f"})
     reused = sorted({str(r["reused_from"].get("git_commit"))[:7] for r in d["rows"] if r.get("reused_from")})
     if reused:
         table += (f"\n\nRows measured by earlier runs of this experiment on the same states and protocol (git "
                   f"commit {', '.join(f'`{c}`' for c in reused)}) and merged into this record.")
-    na = "; ".join(f"`{k}`: {_portable_command(v)[:120]}" for k, v in d.get("not_available", {}).items())
+    na = "; ".join(f"`{k}`: {portable_command(v)[:120]}" for k, v in d.get("not_available", {}).items())
     return f"{head}\n\n{table}\n\n" + (f"Not available: {na}\n\n" if na else "") + _source(rec, res.get("run"))
 
 
@@ -98,7 +101,7 @@ def block_adaptability(res: dict[str, Any]) -> str:
     missing = (f"Not in this record (no trained model when it ran): {', '.join(f'`{k}`' for k in na)}.\n\n"
                if na else "")
     return ("One-step (teacher-forced) state MAE along the episodes of each scenario (MW, MVAr, MWh):\n\n"
-            + _table(table, ["agent", "surrogate", *scenarios]) + "\n\n" + missing + _source(rec, res.get("run")))
+            + md_table(table, ["agent", "surrogate", *scenarios]) + "\n\n" + missing + _source(rec, res.get("run")))
 
 
 BLOCKS = {"claims": block_claims, "test_returns": block_test_returns, "adaptability": block_adaptability,

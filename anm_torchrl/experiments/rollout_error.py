@@ -25,7 +25,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict
 
-from anm_torchrl.experiments.common import label, make_env_or_reason, set_state_and_step
+from anm_torchrl.experiments.common import RunContext, label, make_env_or_reason, set_state_and_step
 from anm_torchrl.experiments.io import result
 
 STATE_NAMES = ([f"P{i}" for i in range(7)] + [f"Q{i}" for i in range(7)] + ["SoC", "Ppot_PV", "Ppot_wind", "aux"])
@@ -119,11 +119,16 @@ def free_running_errors(env, ep: dict[str, torch.Tensor]) -> dict[str, Any]:
     return _mae_curves(torch.stack(preds), ep["states"][1:T + 1], ep["alive"])
 
 
-def run(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0, sim=None, name: str = "rollout_error",
-        include_true: bool = True) -> dict:
+def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
+    """The experiment: :func:`measure` on ANM6-Easy with the run's surrogates and seed."""
+    return measure(cfg, list(ctx.surrogates), ctx.seed)
+
+
+def measure(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0, sim=None, name: str = "rollout_error",
+            include_true: bool = True) -> dict:
     """cfg keys: ``episodes``, ``steps``, ``agents`` (``expert``/``random``), ``expert`` (baseline name),
     ``expert_budget_s``, ``mpc_horizon``, ``free_running`` (bool)."""
-    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.evaluation import draw_initial_states
 
     n, steps = int(cfg.get("episodes", 4)), int(cfg.get("steps", 288))
     init = draw_initial_states(n, seed)

@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from anm_torchrl.experiments.common import label, make_env_or_reason
+from anm_torchrl.experiments.common import RunContext, label, make_env_or_reason
 from anm_torchrl.experiments.io import result
 
 
@@ -92,12 +92,13 @@ def time_grid(batch: int, n_steps: int, seed: int = 0) -> list[float]:
     return times
 
 
-def run(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0) -> dict:
+def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
     """Run the speed experiment; ``cfg`` keys: ``n_transitions``, ``gym_steps``, ``repeats``, ``batch_sizes``.
 
     The record's ``load_avg_1min`` is the machine's 1-minute load average before and after the timings: other
     processes on a shared machine stretch every time here.
     """
+    surrogates, seed = list(ctx.surrogates), ctx.seed
     load_before = os.getloadavg()[0]
     n = int(cfg.get("n_transitions", 1000))
     repeats = int(cfg.get("repeats", 5))

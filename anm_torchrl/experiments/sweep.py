@@ -18,7 +18,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.experiments.common import label, make_env_or_reason
+from anm_torchrl.experiments.common import RunContext, label, make_env_or_reason
 from anm_torchrl.experiments.io import result
 from anm_torchrl.experiments.ppo_runs import aggregate, last_mean, ppo_overrides, run_ppo
 
@@ -38,11 +38,16 @@ def pearson(x: list[float], y: list[float]) -> float | None:
     return sxy / (sx * sy) if sx > 0 and sy > 0 else None
 
 
-def run(cfg: dict[str, Any], out_dir: str | Path, seed: int = 0) -> dict:
+def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
     """cfg keys: ``surrogate`` (spec), ``fallback`` (spec or null), ``n_envs`` (list), ``buffer`` (list),
     ``seeds`` (list; default ``[seed]``: every cell is trained once per seed and its numbers are seed means),
     ``base`` (overrides), ``last_k``, ``timeout_s``, ``eval_every_frames`` (optional: evaluate every this many
-    frames in every cell, so cells with small batches are not dominated by evaluation; default every update)."""
+    frames in every cell, so cells with small batches are not dominated by evaluation; default every update).
+    Every cell runs with ``ctx.threads``; a ``pinn`` surrogate is the run's PINN (``ctx.surrogates``)."""
+    out_dir, seed = ctx.out_dir, ctx.seed
+    cfg = {**cfg, "base": {**cfg.get("base", {}), "threads": int(ctx.threads)}}
+    if cfg.get("surrogate", {}).get("name") == "pinn":
+        cfg["surrogate"] = next((s for s in ctx.surrogates if s["name"] == "pinn"), cfg["surrogate"])
     spec = dict(cfg.get("surrogate", {"name": "pinn"}))
     note = None
     env, why = make_env_or_reason(spec, 1)

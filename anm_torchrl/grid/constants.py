@@ -91,8 +91,8 @@ def _npy(x: torch.Tensor) -> np.ndarray:
 
 
 # Buses from which the tree block LU (radial) or the band LU (meshed) replaces the dense LU. Measured on radial
-# feeders (results/bench_env_solver.md, ``python -m anm_torchrl.benchmarks.env --solver-sweep --out
-# results/bench_env_solver``): tree / dense 1.2x at 6 buses, 2.7x at 16, 5.6x at 33, 59x at 120; band / dense
+# feeders (results/benchmarks/bench_env_solver.md, ``python -m anm_torchrl.benchmarks.env --solver-sweep --out
+# results/benchmarks/bench_env_solver``): tree / dense 1.2x at 6 buses, 2.7x at 16, 5.6x at 33, 59x at 120; band / dense
 # 0.8-1.2x up to 10 buses, 1.6x at 16. Below 13 buses the dense LU is kept: ANM6-Easy's outputs stay
 # bit-identical to earlier releases for a gain of at most ~20 %.
 BANDED_MIN_BUS = 13

@@ -69,7 +69,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a train
     from tqdm import tqdm
 
     from anm_torchrl.training.checkpoint import check_resume_config, load_checkpoint, save_checkpoint
-    from anm_torchrl.training.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.factory import make_true_env
 
     t_start = time.perf_counter()

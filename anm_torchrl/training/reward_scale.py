@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from anm_torchrl.training.evaluation import evaluate_policy
+from anm_torchrl.evaluation import evaluate_policy
 
 
 def do_nothing_reward_scale(env, states: torch.Tensor, max_steps: int, step_reward: float) -> dict[str, float]:

@@ -1,4 +1,4 @@
-"""PINN accuracy against bus count on the registered feeders: the record ``results/pinn_generic_accuracy.json``.
+"""PINN accuracy against bus count on the registered feeders: the record ``results/pinn/pinn_generic_accuracy.json``.
 
 For each network (:func:`anm_torchrl.networks.list_networks`): train a preset from physics alone, its three
 modules in three processes (the weights of :func:`.loop.train_pinn`; timed: wall seconds and the CPU seconds of
@@ -17,20 +17,20 @@ Commands (each network in its own process, then one merge; ``--preset default`` 
     python -m anm_torchrl.surrogates.pinn.generic_accuracy --networks case33bw --preset default \
         --expert-envs 4 --expert-steps 50 --out /tmp/acc_case33bw.json
     python -m anm_torchrl.surrogates.pinn.generic_accuracy --merge /tmp/acc_*.json \
-        --out results/pinn_generic_accuracy.json
+        --out results/pinn/pinn_generic_accuracy.json
 
 One network re-measured into the record (``--replace``: its entry and command replaced)::
 
     python -m anm_torchrl.surrogates.pinn.generic_accuracy --networks simbench_mv_semiurb --preset default \
         --expert-envs 4 --expert-steps 50 --out /tmp/acc_simbench.json
-    python -m anm_torchrl.surrogates.pinn.generic_accuracy --merge results/pinn_generic_accuracy.json \
-        /tmp/acc_simbench.json --replace --out results/pinn_generic_accuracy.json
+    python -m anm_torchrl.surrogates.pinn.generic_accuracy --merge results/pinn/pinn_generic_accuracy.json \
+        /tmp/acc_simbench.json --replace --out results/pinn/pinn_generic_accuracy.json
 
 A saved model re-evaluated without training (``--model``, its training figures from the record entry whose
 training it holds, e.g. after :mod:`.refine` re-chose its chord steps)::
 
     python -m anm_torchrl.surrogates.pinn.generic_accuracy --networks cigre_mv --preset default \
-        --expert-envs 4 --expert-steps 50 --model <file> --training-from results/pinn_generic_accuracy.json \
+        --expert-envs 4 --expert-steps 50 --model <file> --training-from results/pinn/pinn_generic_accuracy.json \
         --out /tmp/acc_cigre.json
 """
 

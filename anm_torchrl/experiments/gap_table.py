@@ -1,8 +1,8 @@
-"""The published gap table: a gap record (:mod:`anm_torchrl.baselines.gap`) combined with the PPO rows measured on
+"""The published gap table: a gap record (:mod:`anm_torchrl.experiments.gap`) combined with the PPO rows measured on
 the same test states, rendered as a Markdown block per network into README and the docs.
 
-``python -m anm_torchrl.baselines.optimal --combine rec.json [--test-returns ...|--ppo ...] --readme <pages>
---out results/optimal_gap_table[_<network>].json`` calls :func:`combine` and :func:`update_pages`.
+``python -m anm_torchrl.cli.gap --combine rec.json [--test-returns ...|--ppo ...] --readme <pages>
+--out results/gap/optimal_gap_table[_<network>].json`` calls :func:`combine` and :func:`update_pages`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from anm_torchrl.baselines.gap import ANM6, MPC_MARGIN, MPC_ROW, MPC_VARIANT, covered, table
+from anm_torchrl.experiments.gap import ANM6, MPC_MARGIN, MPC_ROW, MPC_VARIANT, covered, table
+from anm_torchrl.experiments.records import current_path
 
 LABELS = {"optimal": "perfect-foresight AC optimum", "do_nothing": "do-nothing"}  # other rows: _label
 PPO_ROWS = {"none": "PPO trained on the true env", "pinn": "PPO trained on the PINN"}
@@ -128,9 +129,9 @@ def _test_returns_rows(test_returns: dict, pr: dict, n: int, opt_mean: float, ga
 
 
 def _payoff_ppo_rows(ppo: dict, gap_rows: dict, pr: dict, n: int, opt_mean: float, gain) -> list[dict]:
-    """Another network: the PPO rows of the payoff study's PPO part (``data.ppo`` of ``results/inputs/ppo_<network>
-    .json``), whose test states must be the gap record's: same network, seed, count, T and γ, and the same
-    do-nothing return on them (1e-9 relative; a different state draw would change it)."""
+    """Another network: the PPO rows of the payoff study's PPO part (``data.ppo`` of
+    ``results/payoff/inputs/ppo_<network>.json``), whose test states must be the gap record's: same network, seed,
+    count, T and γ, and the same do-nothing return on them (1e-9 relative; a different state draw would change it)."""
     from anm_torchrl.experiments.ppo_runs import aggregate
 
     dn = ppo["test_baselines"].get("do_nothing") or {}
@@ -162,7 +163,7 @@ def _payoff_ppo_rows(ppo: dict, gap_rows: dict, pr: dict, n: int, opt_mean: floa
 
 
 def combine(gap_rec: dict, test_returns: dict | None = None, ppo: dict | None = None,
-            record: str = "results/optimal_gap_table.json") -> dict:
+            record: str = "results/gap/optimal_gap_table.json") -> dict:
     """The published gap table from a gap record and (optionally) its PPO rows, measured on the same states
     (protocol checked): for ANM6-Easy a ``test_returns`` record (its PPO rows and β = 0.96 DC-MPC row), for
     another network the payoff study's PPO part ``ppo`` (:func:`_payoff_ppo_rows`). ``record``: where the table
@@ -202,11 +203,12 @@ def combine(gap_rec: dict, test_returns: dict | None = None, ppo: dict | None = 
     if test_returns is not None:
         rows += _test_returns_rows(test_returns, pr, n, opt_mean, gain)
         meta = test_returns.get("meta", {})
-        src = {"file": "results/test_returns.json", "git_commit": (meta.get("versions") or {}).get("git_commit"),
+        src = {"file": "results/reproduction/test_returns.json",
+               "git_commit": (meta.get("versions") or {}).get("git_commit"),
                "date": meta.get("date")}
     if ppo is not None:
         rows += _payoff_ppo_rows(ppo["data"]["ppo"], rows_in, pr, n, opt_mean, gain)
-        src = {"file": f"results/inputs/ppo_{pr['network']}.json",
+        src = {"file": f"results/payoff/inputs/ppo_{pr['network']}.json",
                "git_commit": (ppo.get("meta", {}).get("versions") or {}).get("git_commit")}
     rows.sort(key=lambda r: _order(r["row"]))
     return {"protocol": pr, "optimum_mean": opt_mean, "common_states": common, "rows": rows, "ppo_source": src,
@@ -257,11 +259,11 @@ def render_block(table_rec: dict) -> str:
         if partial and losses:
             last += " – |" if r["loss_pct_on_common"] is None else f" {_pct(r['loss_pct_on_common'])} |"
         lines.append(f"| {r['policy']}{seeds} | {states} | {ret} | {gain} |{last}")
-    src = f"_From `{table_rec.get('record', 'results/optimal_gap_table.json')}`"
+    src = f"_From `{current_path(table_rec.get('record', 'results/gap/optimal_gap_table.json'))}`"
     ps = table_rec.get("ppo_source")
     if ps:
         what = "PPO and β = 0.96 rows" if ps["file"].endswith("test_returns.json") else "PPO rows"
-        src += f" ({what}: `{ps['file']}`, git commit `{str(ps['git_commit'])[:7]}`)"
+        src += f" ({what}: `{current_path(ps['file'])}`, git commit `{str(ps['git_commit'])[:7]}`)"
     return "\n".join(lines) + "\n\n" + src + "._\n"
 
 

@@ -1,18 +1,13 @@
-"""The gap table: every controller against the perfect-foresight optimum, on the same test states.
+"""The gap study: every controller against the perfect-foresight optimum, on the same test states.
 
-    python -m anm_torchrl.baselines.optimal --episodes 8 --seed 0 --steps 3000 --rows optimal --out rec.json
-    python -m anm_torchrl.baselines.optimal --episodes 8 --seed 0 --steps 3000 --rows acmpc_64 --only 0,1 \
-        --out part.json                                            # a costly row on some of the states
-    python -m anm_torchrl.baselines.optimal --episodes 8 --seed 0 --steps 3000 --merge part.json --out rec.json
-    python -m anm_torchrl.baselines.optimal --combine rec.json --test-returns results/test_returns.json \
-        --readme README.md docs/OPTIMAL.md --out results/optimal_gap_table.json   # the published table
+Its command line is :mod:`anm_torchrl.cli.gap` (``python -m anm_torchrl.cli.gap --help``).
 
 Rows (``--rows``, comma-separated): ``optimal`` (:class:`~anm_torchrl.baselines.optimal.OptimalPolicy`),
 ``acmpc_<N>`` (AC-MPC, perfect forecast; ``acmpc_<N>_cold``: every solve from N simulated do-nothing steps instead
 of the previous solution shifted, to measure that warm start; ``acmpc_<N>_free``: the free storage split applied
 without the pinned re-solve, the controller before that fix), ``mpc_<N>`` (gym-anm's DC-OPF MPC, perfect forecast, β = 0.92),
 ``do_nothing``, ``optimal<K>_then_do_nothing`` (the K-step optimum, then do-nothing: a lower bound of the
-optimum when the full horizon is too costly). Every row is evaluated by :func:`~anm_torchrl.training.evaluation.evaluate_policy` on the
+optimum when the full horizon is too costly). Every row is evaluated by :func:`~anm_torchrl.evaluation.evaluate_policy` on the
 network's true env (``--network``; ``ANM6Env`` for ANM6-Easy, else ``ANMEnv`` of the registered network) from the
 states ``draw_initial_states(episodes, seed, sim, init)`` (the env's reset distribution; seed 0: the PPO recipe's
 test states), deterministic, T = ``steps``, γ = 0.995; ``--only`` restricts a row to some of those states (the row
@@ -24,29 +19,29 @@ AC-MPC row its IPOPT statuses and CPU seconds per solve.
 **Loss, % of the optimum's** = 100 · (mean return of the row) / (mean return of the optimum on the same states):
 100 % is optimal, 200 % loses twice as much. It is a ratio of means over the states a row covers (a row measured
 on fewer states is compared with the optimum on those states only). ``--combine`` builds the published table
-(:mod:`anm_torchrl.baselines.gap_table`) from gap records and the PPO rows of ``results/test_returns.json`` (same
-protocol, checked), and ``--readme`` rewrites the ``<!-- optimum:gap -->`` block of the named pages from it.
+(:mod:`anm_torchrl.experiments.gap_table`) from gap records and the PPO rows of
+``results/reproduction/test_returns.json`` (same protocol, checked), and ``--readme`` rewrites the
+``<!-- optimum:gap -->`` block of the named pages from it.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
 import platform
 import re
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from anm_torchrl.evaluation import EVAL_GAMMA
+
 log = logging.getLogger(__name__)
 
 DEFAULT_ROWS = ("optimal", "acmpc_16", "acmpc_64", "mpc_16", "mpc_64", "do_nothing")
-GAMMA = 0.995
 MPC_MARGIN = 0.92
 # an MPC row's name: controller, horizon N and AC-MPC variant (one home for the suffixes _policy, _label and
 # _order read)
@@ -70,10 +65,11 @@ def _policy(name: str, sim, steps: int):
     if m.group(1) == "acmpc":
         return make_baseline("acmpc", sim, horizon=int(m.group(2)), forecast="perfect",
                              warm_start=m.group(3) != "_cold", pin_direction=m.group(3) != "_free")
-    return make_baseline("mpc_perfect", sim, horizon=int(m.group(2)), safety_margin=MPC_MARGIN, gamma=GAMMA)
+    return make_baseline("mpc_perfect", sim, horizon=int(m.group(2)), safety_margin=MPC_MARGIN, gamma=EVAL_GAMMA)
 
 
-def _machine() -> dict:
+def machine() -> dict:
+    """The machine a row was measured on: platform, CPUs, load average, torch threads."""
     return {"platform": platform.platform(), "cpus": os.cpu_count(), "load_avg_1_5_15": list(os.getloadavg()),
             "torch_threads": torch.get_num_threads()}
 
@@ -125,9 +121,9 @@ def optimum_then_do_nothing(sim, states: torch.Tensor, steps: int, k: int, netwo
     t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
     rets, undiscounted, terms, plans = [], [], [], []
     for s in states.numpy():
-        opt = solve_optimal(sim, s, k, GAMMA)
+        opt = solve_optimal(sim, s, k, EVAL_GAMMA)
         acts = np.concatenate([opt.setpoints, warm_start_actions(sim, opt.states[-1], steps - k, "do_nothing")])
-        rep = replay_in_env(acts, s, GAMMA, env=true_env(network, 1))
+        rep = replay_in_env(acts, s, EVAL_GAMMA, env=true_env(network, 1))
         rets.append(rep["discounted_return"])
         undiscounted.append(float(rep["rewards"].sum()))
         terms.append(rep["terminated"])
@@ -143,14 +139,14 @@ def evaluate_row(name: str, sim, states: torch.Tensor, steps: int, network: str 
     """One row: per-episode discounted returns and timings of policy ``name`` on the network's true env
     (``optimal<K>_then_do_nothing``: :func:`optimum_then_do_nothing`)."""
     from anm_torchrl.baselines.optimal import replay_in_env
-    from anm_torchrl.training.evaluation import evaluate_policy
+    from anm_torchrl.evaluation import evaluate_policy
 
     m = re.fullmatch(r"optimal(\d+)_then_do_nothing", name)
     if m:
         return optimum_then_do_nothing(sim, states, steps, int(m.group(1)), network)
     pol = _policy(name, sim, steps)
     t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
-    res = evaluate_policy(pol, states, max_steps=steps, gamma=GAMMA, env=true_env(network, len(states)))
+    res = evaluate_policy(pol, states, max_steps=steps, gamma=EVAL_GAMMA, env=true_env(network, len(states)))
     row = {"discounted_return": res.discounted_returns.tolist(), "return": res.returns.tolist(),
            "terminated": res.terminated.tolist(), "mean_discounted_return": float(res.discounted_returns.mean()),
            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
@@ -160,7 +156,7 @@ def evaluate_row(name: str, sim, states: torch.Tensor, steps: int, network: str 
     if name == "optimal":
         plans = []
         for plan, s in zip(pol.plans, states):
-            env = replay_in_env(plan.setpoints, s.numpy(), GAMMA, env=true_env(network, 1))
+            env = replay_in_env(plan.setpoints, s.numpy(), EVAL_GAMMA, env=true_env(network, 1))
             plans.append({**plan.summary(), "env_replay_return": env["discounted_return"],
                           "env_replay_gap": abs(env["discounted_return"] - plan.discounted_return)
                           / abs(plan.discounted_return), "env_replay_terminated": env["terminated"]})
@@ -173,12 +169,12 @@ def stability(sim, states: torch.Tensor, steps: int, n: int, seed: int) -> list[
     from anm_torchrl.baselines.nlp_model import ACHorizonNLP
     from anm_torchrl.baselines.optimal import WARM_STARTS, solve_optimal
 
-    nlp = ACHorizonNLP(sim, steps, GAMMA)
+    nlp = ACHorizonNLP(sim, steps, EVAL_GAMMA)
     out = []
     for i in range(n):
         rec = {}
         for ws in WARM_STARTS:
-            r = solve_optimal(sim, states[i].numpy(), steps, GAMMA, warm_start=ws, seed=seed, nlp=nlp)
+            r = solve_optimal(sim, states[i].numpy(), steps, EVAL_GAMMA, warm_start=ws, seed=seed, nlp=nlp)
             rec[ws] = {"discounted_return": r.discounted_return, "exact_return": r.exact_return,
                        "warm_return": r.warm_return, "wall_time": r.wall_time,
                        "iterations": [x["iterations"] for x in r.rounds]}
@@ -195,9 +191,9 @@ def compare_formulations(sim, state: torch.Tensor, steps: int) -> dict:
     out = {"steps": steps}
     for form in ("polar", "rectangular"):
         c0, t0 = time.process_time(), time.perf_counter()
-        nlp = ACHorizonNLP(sim, steps, GAMMA, form)
+        nlp = ACHorizonNLP(sim, steps, EVAL_GAMMA, form)
         build = time.perf_counter() - t0
-        r = solve_optimal(sim, state.numpy(), steps, GAMMA, warm_start="do_nothing", nlp=nlp)
+        r = solve_optimal(sim, state.numpy(), steps, EVAL_GAMMA, warm_start="do_nothing", nlp=nlp)
         out[form] = {"discounted_return": r.discounted_return, "build_s": build,
                      "iterations": [x["iterations"] for x in r.rounds],
                      "solve_s": [x["solve_time_s"] for x in r.rounds], "cpu_s": time.process_time() - c0,
@@ -265,98 +261,8 @@ def markdown(rec: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(prog="python -m anm_torchrl.baselines.optimal", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--network", default=ANM6, help="registered network (default anm6_easy)")
-    ap.add_argument("--episodes", type=int, default=4, help="number of test states (default 4)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the test states (default 0, the test seed)")
-    ap.add_argument("--steps", type=int, default=3000, help="episode length T (default 3000)")
-    ap.add_argument("--rows", default=",".join(DEFAULT_ROWS), help="comma-separated rows (default: all)")
-    ap.add_argument("--only", default="", help="comma-separated state indices the rows run on (default: all)")
-    ap.add_argument("--stability", type=int, default=0,
-                    help="re-solve the optimum of this many first states from every warm start (default 0)")
-    ap.add_argument("--formulations", type=int, default=0,
-                    help="time polar vs rectangular voltages on the first state over this many steps (default 0: no)")
-    ap.add_argument("--merge", nargs="*", default=[],
-                    help="records of the same protocol (e.g. rows measured in parallel runs) whose rows are merged "
-                         "into --out")
-    ap.add_argument("--drop", default="",
-                    help="comma-separated rows removed from --out before --merge (to replace them by re-measured "
-                         "ones)")
-    ap.add_argument("--combine", default="",
-                    help="build the published table from this gap record into --out (no evaluation)")
-    ap.add_argument("--test-returns", default="", help="with --combine: the test_returns record (ANM6-Easy's PPO rows)")
-    ap.add_argument("--ppo", default="",
-                    help="with --combine, another network: its payoff PPO record (results/inputs/ppo_<network>.json)")
-    ap.add_argument("--readme", nargs="*", default=[],
-                    help="with --combine: pages whose <!-- optimum:gap --> block is rewritten")
-    ap.add_argument("--markdown", action="store_true", help="print the record's table as Markdown and exit")
-    ap.add_argument("--out", required=True, help="JSON record (rows of an existing record are kept)")
-    args = ap.parse_args(argv)
-    if args.markdown:
-        sys.stdout.write(markdown(json.loads(Path(args.out).read_text())) + "\n")
-        return {}
-    command = "python -m anm_torchrl.baselines.optimal " + " ".join(argv if argv is not None else sys.argv[1:])
-    if args.combine:
-        from anm_torchrl.baselines.gap_table import combine, update_pages
-
-        tr = json.loads(Path(args.test_returns).read_text()) if args.test_returns else None
-        ppo = json.loads(Path(args.ppo).read_text()) if args.ppo else None
-        rec = {**combine(json.loads(Path(args.combine).read_text()), tr, ppo, record=args.out), "command": command}
-        update_pages(args.readme, rec)  # first: a page without the block refuses the table before it is written
-        _write(Path(args.out), rec)
-        return rec
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    torch.set_num_threads(1)
-    from anm_torchrl.data.generic import simulator_for
-    from anm_torchrl.training.evaluation import draw_initial_states
-
-    sim, env = simulator_for(args.network), true_env(args.network, 1)
-    states = draw_initial_states(args.episodes, args.seed, sim, env.init)
-    protocol = {"network": args.network, "episodes": args.episodes, "seed": args.seed, "steps": args.steps,
-                "gamma": GAMMA, "states": "training.evaluation.draw_initial_states(episodes, seed)"}
-    if args.network != ANM6:  # ANM6-Easy's records predate this key (gym-anm's reset distribution)
-        protocol.update(init=env.init, states="training.evaluation.draw_initial_states(episodes, seed, sim, init)")
-    only = [int(i) for i in args.only.split(",") if i]
-    if any(not 0 <= i < args.episodes for i in only):
-        raise SystemExit(f"--only {only}: indices must lie in [0, {args.episodes})")
-    out = Path(args.out)
-    rec = json.loads(out.read_text()) if out.exists() else {}
-    if rec and rec.get("protocol") != protocol:
-        raise SystemExit(f"{out} holds protocol {rec.get('protocol')}, this run {protocol}: use another --out")
-    rec.setdefault("rows", {})
-    rec["protocol"] = protocol
-    for name in [r for r in args.drop.split(",") if r]:
-        if name not in rec["rows"]:
-            raise SystemExit(f"--drop {name}: {out} has no such row (rows: {sorted(rec['rows'])})")
-        del rec["rows"][name]
-    for path in args.merge:
-        other = json.loads(Path(path).read_text())
-        if other.get("protocol") != protocol:
-            raise SystemExit(f"--merge: {path} holds protocol {other.get('protocol')}, this run {protocol}")
-        for name, row in other["rows"].items():
-            rec["rows"][name] = merge_rows(rec["rows"][name], row, args.episodes) if name in rec["rows"] else row
-        rec.update({k: other[k] for k in ("stability", "formulations") if k in other})
-        rec.setdefault("commands", []).extend(other.get("commands", []))
-    for name in [r for r in args.rows.split(",") if r and not args.merge]:
-        log.info("row %s ...", name)
-        row = evaluate_row(name, sim, states[only] if only else states, args.steps, args.network)
-        rec["rows"][name] = {**row, **({"episode_index": only} if only else {}), "machine": _machine()}
-        log.info("row %s: %s", name, rec["rows"][name]["discounted_return"])
-        _write(out, rec)
-    if args.formulations:
-        rec["formulations"] = {**compare_formulations(sim, states[0], args.formulations), "machine": _machine()}
-    if args.stability:
-        rec["stability"] = {"episodes": stability(sim, states, args.steps, args.stability, args.seed),
-                            "machine": _machine()}
-    rec["table"] = table(rec["rows"], args.episodes)
-    rec.setdefault("commands", []).append(command)
-    _write(out, rec)
-    return rec
-
-
-def _write(path: Path, rec: dict) -> None:
+def write_record(path: Path, rec: dict) -> None:
+    """Write a gap record atomically (a temporary file, then a rename), creating its folder."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(rec, indent=1) + "\n")

@@ -1,9 +1,10 @@
-"""Returns on the held-out **test** states: PPO trained on each env, and the baselines, under one protocol.
+"""The experiment ``test_returns`` (record ``test_returns.json``): returns on the held-out **test** states, PPO
+trained on each env and the baselines, under one protocol.
 
 PPO runs train with the recipe's loop (:func:`~anm_torchrl.training.protocol.train`): validation states
 (``eval.seed``) choose ``best.pt`` and the early stop, and the loop evaluates ``best.pt`` and ``last.pt`` once on
 the test states (``eval.test_seed``, ``summary.json["test"]``). The baselines (do-nothing, random, MPC …) are
-evaluated here on the same test states (:func:`~anm_torchrl.training.evaluation.draw_initial_states` with the test
+evaluated here on the same test states (:func:`~anm_torchrl.evaluation.draw_initial_states` with the test
 seed and count), deterministic, T = ``max_steps``, discount ``gamma``. Every figure the README's PPO table shows
 comes from this record.
 """
@@ -14,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.experiments.common import label
+from anm_torchrl.experiments.common import RunContext, label
 from anm_torchrl.experiments.io import result
 from anm_torchrl.experiments.ppo_runs import aggregate, ppo_overrides, run_ppo
 
@@ -22,7 +23,7 @@ from anm_torchrl.experiments.ppo_runs import aggregate, ppo_overrides, run_ppo
 def evaluate_baseline(name: str, kwargs: dict[str, Any], states, max_steps: int, gamma: float) -> dict[str, Any]:
     """Metrics of baseline ``name`` (built with ``kwargs``) from the initial ``states`` (E, 18) on the true env."""
     from anm_torchrl.baselines import make_baseline
-    from anm_torchrl.training.evaluation import evaluate_policy
+    from anm_torchrl.evaluation import evaluate_policy
 
     t0 = time.perf_counter()
     res = evaluate_policy(make_baseline(name, **kwargs), states, max_steps=max_steps, gamma=gamma)
@@ -47,16 +48,19 @@ def reused_rows(paths: list[str], protocol: dict[str, Any]) -> tuple[list[dict],
     return rows, runs
 
 
-def run(cfg: dict[str, Any], surrogates: list[dict], out_dir: str | Path) -> dict:
+def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
     """cfg keys: ``test_episodes``, ``test_seed``, ``max_steps``, ``gamma`` (the protocol, shared by every row);
     ``baselines`` (list of ``{name, kwargs}``); ``reuse`` (earlier records of the same protocol whose rows are
     taken instead of measuring them again, e.g. the MPC's slow episodes); ``ppo`` (``envs``: env labels, ``seeds``, ``base``: Hydra overrides
     of every run, ``per_env``: label -> extra overrides, ``timeout_s``). Surrogate envs take their spec (e.g. a
-    PINN ``path``) from ``surrogates``; ``none`` is the true simulator."""
+    PINN ``path``) from ``ctx.surrogates``; ``none`` is the true simulator. PPO runs use ``ctx.threads``."""
+    ppo = cfg.get("ppo", {})
+    cfg = {**cfg, "ppo": {**ppo, "base": {**ppo.get("base", {}), "threads": int(ctx.threads)}}}
+    surrogates, out_dir = list(ctx.surrogates), ctx.out_dir
     n, seed = int(cfg["test_episodes"]), int(cfg["test_seed"])
     max_steps, gamma = int(cfg["max_steps"]), float(cfg["gamma"])
     protocol = {"eval.test_episodes": n, "eval.test_seed": seed, "eval.max_steps": max_steps, "eval.gamma": gamma}
-    from anm_torchrl.training.evaluation import draw_initial_states
+    from anm_torchrl.evaluation import draw_initial_states
 
     states = draw_initial_states(n, seed)
     protocol_rec = {"test_episodes": n, "test_seed": seed, "max_steps": max_steps, "gamma": gamma}

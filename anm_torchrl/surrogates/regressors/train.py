@@ -1,0 +1,193 @@
+"""Training pipeline of the data-driven surrogates behind ``recipes/train_surrogate.py`` (its steps and folders are
+described there): datasets, the terminal classifier (cached per dataset checksum, options and seed), the regressor,
+its evaluation in- and cross-dataset, one atomic save with a manifest.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+
+log = logging.getLogger("train_surrogate")
+
+
+def load_datasets(cfg: DictConfig, sim, make_cfg: DictConfig) -> dict:
+    """``{kind: (td, meta)}`` for both datasets (generated first when missing and allowed, with ``make_cfg``'s
+    per-kind options and split ``fractions``: the dataset recipe's config)."""
+    from anm_torchrl.data import available_datasets, ensure_dataset, load_dataset
+
+    out = {}
+    for kind in available_datasets():
+        options = dict(make_cfg[kind]) if kind in make_cfg else {}
+        start = time.perf_counter()
+        if cfg.data.get(kind):  # an explicit folder: used as it is (its own size and seed), never generated
+            out[kind] = load_dataset(cfg.data.get(kind), kind=kind, sim=sim, verify=bool(cfg.data.verify))
+        else:
+            out[kind] = ensure_dataset(kind, int(cfg.data.size), int(cfg.data.seed),
+                                       generate_missing=bool(cfg.data.generate_missing), sim=sim,
+                                       progress=bool(cfg.progress), verify=bool(cfg.data.verify),
+                                       fractions=tuple(make_cfg.fractions), **options)
+        log.info("%s dataset ready (%d rows, %d terminal) in %.1f s", kind, out[kind][0].shape[0],
+                 out[kind][1].get("n_terminal", -1), time.perf_counter() - start)
+    return out
+
+
+def fit_terminal(cfg: DictConfig, dataset: str, data: dict, sim):
+    """The terminal classifier for ``dataset``: the cached one for this dataset checksum, options and seed if
+    ``terminal.reuse``, else trained (and cached under that key)."""
+    from anm_torchrl.data import split
+    from anm_torchrl.paths import surrogate_dir
+    from anm_torchrl.artifacts import ArtifactError
+    from anm_torchrl.surrogates.terminal import TerminalClassifier
+
+    td, meta = data[dataset]
+    options = OmegaConf.to_container(cfg.terminal, resolve=True)
+    options.pop("reuse", None)
+    key = hashlib.sha256(json.dumps([meta["checksum"], options, bool(cfg.foresight), int(cfg.seed)],
+                                    sort_keys=True).encode()).hexdigest()[:16]
+    cache = surrogate_dir("terminal", dataset) / key  # one folder per (data, options): runs never evict each other
+    if cfg.terminal.reuse and (cache / "terminal.json").is_file():
+        try:
+            clf = TerminalClassifier.load(cache, sim=sim, n_jobs=int(cfg.n_jobs))
+            if clf.info.get("cache_key") == key:
+                log.info("terminal classifier for %s reused from %s", dataset, cache)
+                return clf
+        except ArtifactError as err:
+            log.warning("cached terminal classifier at %s is unusable (%s); retraining", cache, err)
+    tr, va = split(td, "train"), split(td, "val")
+    start = time.perf_counter()
+    clf = TerminalClassifier(sim=sim, foresight=bool(cfg.foresight), params=options["params"],
+                             num_boost_round=options["num_boost_round"],
+                             early_stopping_rounds=options["early_stopping_rounds"], threshold=options["threshold"],
+                             n_jobs=int(cfg.n_jobs), seed=int(cfg.seed))
+    clf.fit(tr.get("state"), tr.get("action"), tr.get("terminated"),
+            eval_set=(va.get("state"), va.get("action"), va.get("terminated")), progress=bool(cfg.progress))
+    clf.info.update(cache_key=key, train_seconds=time.perf_counter() - start, dataset=dataset)
+    log.info("terminal classifier for %s trained in %.1f s (threshold %.3f)", dataset, clf.info["train_seconds"],
+             clf.threshold)
+    if cfg.terminal.reuse:
+        clf.save(cache)
+    return clf
+
+
+def check_request(name: str, dataset: str | None) -> None:
+    """Raise ``ValueError`` unless ``name`` is a data-driven surrogate and ``dataset`` a dataset kind."""
+    from anm_torchrl.surrogates.regressors import DATASETS, KINDS
+
+    if name not in KINDS:
+        raise ValueError(f"train_surrogate.py trains the data-driven surrogates {list(KINDS)}, got surrogate={name!r}"
+                         + (" (the PINN has its own trainer: recipes/train_pinn.py)" if name == "pinn" else ""))
+    if dataset not in DATASETS:
+        raise ValueError(f"surrogate.dataset must be one of {list(DATASETS)}, got {dataset!r}")
+
+
+def check_default_slot(size: int, path: str | None, overwrite_cache: bool, default_size: int) -> None:
+    """Raise ``ValueError`` if a model trained on ``size`` rows, fewer than the default ``data.size``
+    (``default_size``), would land in its default folder (``path`` None) without ``overwrite_cache``."""
+    if not path and int(size) < default_size and not overwrite_cache:
+        raise ValueError(f"a dataset of {size} rows is below the default data.size={default_size}: a model trained on "
+                         f"it would replace the default one in its default folder; give surrogate.path=... or "
+                         f"overwrite_cache=true")
+
+
+def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: dict, sim, default_size: int) -> dict:
+    """Train, save and evaluate surrogate ``name`` on ``dataset``; returns its metrics."""
+    from anm_torchrl.data import for_network, split
+    from anm_torchrl.paths import surrogate_dir
+    from anm_torchrl.surrogates.regressors import DATASETS, evaluate_surrogate, fit_regressor
+
+    check_request(name, dataset)
+    out = Path(path) if path else for_network(surrogate_dir(name, dataset), sim)
+    total = time.perf_counter()
+    td, meta = data[dataset]
+    check_default_slot(meta["size"], path, bool(cfg.overwrite_cache), default_size)  # an explicit data folder may be small too
+    clf = fit_terminal(cfg, dataset, data, sim)
+    params = OmegaConf.to_container(cfg.models[name], resolve=True) if name in cfg.models else {}
+    log.info("training %s on the %s dataset -> %s", name, dataset, out)
+    tb = Path(tempfile.mkdtemp(prefix=f"{name}_tb_")) if name == "dnn" else None
+    sur = fit_regressor(name, split(td, "train"), split(td, "val"), sim=sim, params=params,
+                        foresight=bool(cfg.foresight), clip=bool(cfg.clip), n_jobs=int(cfg.n_jobs),
+                        seed=int(cfg.seed), progress=bool(cfg.progress), log_dir=None if tb is None else str(tb))
+    sur.classifier = clf
+    other = [d for d in DATASETS if d != dataset][0]
+    metrics = {"kind": name, "dataset": dataset,
+               "in_dataset": evaluate_surrogate(sur, split(td, "test")),
+               "cross_dataset": {"dataset": other, **evaluate_surrogate(sur, split(data[other][0], "test"))},
+               "val": evaluate_surrogate(sur, split(td, "val")),
+               "train_seconds": sur.meta["train_info"]["train_seconds"],
+               "terminal_train_seconds": clf.info.get("train_seconds")}
+    metrics["total_seconds"] = time.perf_counter() - total
+    job_cfg = OmegaConf.to_container(cfg, resolve=True)
+    job_cfg["surrogate"] = {"name": name, "dataset": dataset, "path": path}
+    files = {"metrics.json": json.dumps(metrics, indent=2), "config.yaml": OmegaConf.to_yaml(OmegaConf.create(job_cfg)),
+             **({"tb": tb} if tb is not None else {})}
+    try:
+        sur.save(out, extra={"dataset": dataset,
+                             "dataset_meta": {k: meta[k] for k in ("kind", "size", "seed", "checksum")},
+                             "metrics": {"in_dataset_r2": metrics["in_dataset"]["r2"],
+                                         "cross_dataset_r2": metrics["cross_dataset"]["r2"]}}, files=files)
+    finally:
+        if tb is not None:
+            shutil.rmtree(tb, ignore_errors=True)
+    m, c = metrics["in_dataset"], metrics["cross_dataset"]
+    log.info("%s/%s: R² %.4f MAE %.4f (test, same dataset) | R² %.4f MAE %.4f (test, %s) | terminal acc %.4f "
+             "recall %.3f | %.1f s", name, dataset, m["r2"], m["mae"], c["r2"], c["mae"], other,
+             m["terminal"]["accuracy"], m["terminal"]["recall"], metrics["total_seconds"])
+    return metrics
+
+
+def summary_table(results: list[dict]) -> str:
+    """A Markdown table of R²/MAE in- and cross-dataset and the classifier's accuracy/recall."""
+    lines = ["| model | trained on | R² (same) | MAE (same) | R² (other) | MAE (other) | terminal acc. "
+             "| terminal recall | train s |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        m, c = r["in_dataset"], r["cross_dataset"]
+        lines.append(f"| {r['kind']} | {r['dataset']} | {m['r2']:.4f} | {m['mae']:.3f} | {c['r2']:.4f} "
+                     f"| {c['mae']:.3f} | {m['terminal']['accuracy']:.4f} | {m['terminal']['recall']:.3f} "
+                     f"| {r['train_seconds']:.1f} |")
+    return "\n".join(lines)
+
+
+def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int) -> list[dict]:
+    """Train what ``cfg`` (``recipes/conf/train_surrogate.yaml``) asks for: one surrogate, or all ten with
+    ``all=true``; returns the metrics. ``make_cfg``: the dataset recipe's config (options of missing datasets);
+    ``default_size``: the default ``data.size``, below which a model never replaces the default one unless
+    ``overwrite_cache``."""
+    from anm_torchrl.artifacts import atomic_write
+    from anm_torchrl.data import for_network, simulator_for
+    from anm_torchrl.paths import artifact_home
+    from anm_torchrl.surrogates.regressors import DATASETS, KINDS
+
+    torch.set_num_threads(int(cfg.threads))
+    if not cfg.all:  # fail before loading or generating data
+        check_request(cfg.surrogate.name, cfg.surrogate.get("dataset"))
+    if not any(cfg.data.get(k) for k in DATASETS):  # before generating or loading anything
+        check_default_slot(int(cfg.data.size), None if cfg.all else cfg.surrogate.get("path"),
+                           bool(cfg.overwrite_cache), default_size)
+    start = time.perf_counter()
+    sim = simulator_for(cfg.network)
+    data = load_datasets(cfg, sim, make_cfg)
+    if cfg.all:
+        if cfg.surrogate.get("path"):
+            raise ValueError("all=true writes every model to its default folder; leave surrogate.path null")
+        jobs = [(k, d) for d in DATASETS for k in KINDS]
+        results = [train_one(cfg, k, d, None, data, sim, default_size)
+                   for k, d in tqdm(jobs, desc="surrogates", unit="model", disable=not cfg.progress)]
+        table = summary_table(results)
+        out = for_network(artifact_home() / "surrogates", sim)
+        atomic_write(out / "summary.json", json.dumps(results, indent=2).encode())
+        atomic_write(out / "summary.md", (table + "\n").encode())
+        log.info("all surrogates trained in %.1f s; summary in %s\n%s", time.perf_counter() - start,
+                 out / "summary.md", table)
+        return results
+    dataset = cfg.surrogate.get("dataset")
+    return [train_one(cfg, cfg.surrogate.name, dataset, cfg.surrogate.get("path"), data, sim, default_size)]
