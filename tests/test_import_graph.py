@@ -25,6 +25,7 @@ LAYERS = [
     ("baselines",),
     ("render",),
     ("training",),
+    ("policies",),
     ("gym",),
     ("benchmarks",),
     ("experiments",),

@@ -1,0 +1,35 @@
+"""Command line of the training-loop benchmark (:mod:`anm_torchrl.benchmarks.training`): where an iteration's time
+goes (env alone, collection, update, loop) per algorithm and batch size, measured in one run.
+
+    python -m anm_torchrl.cli.bench_training [--network anm6_easy] [--envs 256 1024 4096] [--algorithms ppo sac]
+                                             [--iterations 3] [--out results/benchmarks/bench_training]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+from anm_torchrl.benchmarks import training
+
+log = logging.getLogger(__name__)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.bench_training",
+                                     description=training.__doc__.splitlines()[0])
+    parser.add_argument("--network", default="anm6_easy")
+    parser.add_argument("--envs", type=int, nargs="+", default=[256, 1024, 4096])
+    parser.add_argument("--algorithms", nargs="+", default=["ppo", "sac"])
+    parser.add_argument("--iterations", type=int, default=3, help="timed iterations per row (after one warm-up)")
+    parser.add_argument("--out", default=None, help="write <out>.json and <out>.md (default: print only)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    record = training.measure(args.network, tuple(args.envs), tuple(args.algorithms), args.iterations)
+    if args.out:
+        training.write(record, args.out)
+    log.info("%s", training.markdown(record))
+
+
+if __name__ == "__main__":
+    main()
