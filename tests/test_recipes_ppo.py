@@ -66,10 +66,12 @@ def test_ppo_writes_logs_checkpoints_and_summary(base_run):
     assert f"run directory: {base_run}" in proc.stdout
     tags = scalars(base_run)
     for tag in [f"eval/{k}" for k in ("return", "discounted_return", "e_loss", "penalty")] + [
-            "train/loss_objective", "train/loss_critic", "train/loss_entropy", "train/entropy", "train/reward",
+            "train/loss_objective", "train/loss_critic", "train/explained_variance", "train/clip_fraction",
+            "train/kl_approx", "train/grad_norm", "train/reward",
             "train/lr", "time/collect", "time/update", "time/eval", "time/fps"] + [
             f"test/{c}/{k}" for c in ("best", "last") for k in EVAL_KEYS]:
         assert tag in tags, f"missing TensorBoard tag {tag}; have {sorted(tags)}"
+    assert "train/loss_entropy" not in tags  # loss.entropy_coeff = 0: no (sampled) entropy estimate is computed
     assert [s for s, _ in tags["eval/discounted_return"]] == [32, 64, 80]  # after every update; exact budget
     for tag in ("train/loss_objective", "train/loss_critic", "eval/discounted_return"):
         assert all(math.isfinite(v) for _, v in tags[tag]), (tag, tags[tag])

@@ -1,0 +1,45 @@
+"""Command line of the leaderboard (:mod:`anm_torchrl.experiments.leaderboard`): trained runs next to the optimum,
+MPC and do-nothing on the network's gap-table states; writes ``<out>.json`` and ``<out>.md``.
+
+    python -m anm_torchrl.cli.leaderboard --network anm6_easy --runs outputs/ppo/<run> outputs/sac/<run> ...
+                                          [--out results/leaderboard/anm6_easy]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+from anm_torchrl.experiments import leaderboard
+
+log = logging.getLogger(__name__)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.leaderboard",
+                                     description=leaderboard.__doc__.splitlines()[0])
+    parser.add_argument("--network", default="anm6_easy")
+    parser.add_argument("--runs", nargs="*", default=[], help="training run directories (summary.json, best.pt)")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", default=None, help="write <out>.json and <out>.md")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    import torch
+
+    torch.set_num_threads(args.threads)
+    record = leaderboard.build(args.network, args.runs)
+    record["command"] = "python -m anm_torchrl.cli.leaderboard " + " ".join(argv if argv is not None else [])
+    text = leaderboard.markdown(record)
+    if args.out:
+        from anm_torchrl.artifacts import atomic_write
+
+        out = Path(args.out)
+        atomic_write(out.with_suffix(".json"), json.dumps(record, indent=2).encode())
+        atomic_write(out.with_suffix(".md"), text.encode())
+    log.info("%s", text)
+
+
+if __name__ == "__main__":
+    main()

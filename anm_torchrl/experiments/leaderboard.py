@@ -1,0 +1,118 @@
+"""The leaderboard of a network: trained controllers (any algorithm, any training env) next to the optimum, the MPC
+baselines and do-nothing, every row on the **same** test states as the network's gap table.
+
+The baseline rows come from the committed gap table (``results/gap/optimal_gap_table[_<network>].json``: the
+perfect-foresight AC optimum, AC-MPC, DC-MPC, do-nothing on ``protocol.episodes`` states of seed
+``protocol.seed``, T = ``protocol.steps``, γ = ``protocol.gamma``). A trained row is a training run directory
+(``summary.json`` + ``checkpoints/best.pt``, chosen on that run's validation states): its ``best.pt`` is evaluated
+here on the gap table's states with the same protocol, so every number of a row is measured on identical
+episodes. Runs of one (algorithm, training env) are one row: mean and spread over seeds, true-env training frames
+(a surrogate-trained run used 0), wall time (surrogate training included when it happened in the run).
+
+Columns: discounted return; loss ratio to the optimum (returns < 0: R / R_opt, 1 is optimal); share of the
+optimum's gain over do-nothing, 100 (R − R_dn) / (R_opt − R_dn).
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+
+from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+from anm_torchrl.experiments.records import RESULTS
+
+ANM6 = "anm6_easy"
+
+
+def gap_table_path(network: str) -> Path:
+    """The committed gap table of ``network``."""
+    name = "optimal_gap_table.json" if network == ANM6 else f"optimal_gap_table_{network}.json"
+    return RESULTS / "gap" / name
+
+
+def baseline_rows(gap_table: dict) -> list[dict]:
+    """The gap table's rows measured on all of its states (partial rows, e.g. AC-MPC on state #0 only, are left
+    out: they do not compare)."""
+    n = int(gap_table["protocol"]["episodes"])
+    return [{"policy": r["policy"], "row": r["row"], "discounted_return": r["discounted_return"], "seeds": None,
+             "frames": None, "wall_s": None, "source": "gap table"}
+            for r in gap_table["rows"] if r.get("states") == n and r.get("source") == "gap"]
+
+
+def evaluate_run(run_dir: str | Path, protocol: dict) -> dict:
+    """``best.pt`` of a training run evaluated on the gap table's states; with the run's frames and wall time."""
+    from anm_torchrl.training.checkpoint import load_actor, load_checkpoint
+    from anm_torchrl.training.factory import make_true_env
+
+    run_dir = Path(run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    ckpt = load_checkpoint(run_dir / "checkpoints" / "best.pt")
+    network = ckpt["config"].get("network", ANM6)
+    if network != protocol.get("network", ANM6):
+        raise ValueError(f"{run_dir} was trained on {network!r}, the table is of {protocol.get('network', ANM6)!r}")
+    n, seed = int(protocol["episodes"]), int(protocol["seed"])
+    env = make_true_env(n, network=network, seed=seed)
+    states = draw_initial_states(n, seed, env.sim, env.init)
+    actor = load_actor(ckpt, env=make_true_env(1, network=network))
+    result = evaluate_policy(actor, states, max_steps=int(protocol["steps"]), gamma=float(protocol["gamma"]), env=env)
+    surrogate = ckpt["config"]["surrogate"]["name"]
+    return {"run_dir": str(run_dir), "algorithm": ckpt["algorithm"], "surrogate": surrogate,
+            "seed": int(ckpt["config"]["seed"]), "discounted_return": float(result.discounted_returns.mean()),
+            "per_episode": result.discounted_returns.tolist(), "best_frames": int(ckpt["frames"]),
+            "frames": int(summary["frames"]), "true_env_frames": int(summary["frames"]) if surrogate == "none" else 0,
+            "wall_s": float(summary["wall_time"]), "stopped_early": bool(summary["stopped_early"])}
+
+
+def trained_rows(runs: list[dict]) -> list[dict]:
+    """One row per (algorithm, training env): mean over its seeds, with the spread."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in runs:
+        groups.setdefault((r["algorithm"], r["surrogate"]), []).append(r)
+    rows = []
+    for (algorithm, surrogate), rs in sorted(groups.items()):
+        values = [r["discounted_return"] for r in rs]
+        where = "the true env" if surrogate == "none" else f"the {surrogate} surrogate"
+        rows.append({"policy": f"{algorithm.upper()} trained on {where}", "row": f"{algorithm}_{surrogate}",
+                     "discounted_return": statistics.fmean(values),
+                     "std_over_seeds": statistics.stdev(values) if len(values) > 1 else None,
+                     "seeds": sorted(r["seed"] for r in rs), "per_seed": values,
+                     "frames": statistics.fmean(r["true_env_frames"] for r in rs),
+                     "wall_s": statistics.fmean(r["wall_s"] for r in rs), "source": "runs"})
+    return rows
+
+
+def build(network: str, run_dirs: list[str | Path], gap_table: dict | None = None) -> dict:
+    """The leaderboard record of ``network``: baseline rows, trained rows, ratios."""
+    gap_table = gap_table if gap_table is not None else json.loads(gap_table_path(network).read_text())
+    protocol = gap_table["protocol"]
+    runs = [evaluate_run(d, protocol) for d in run_dirs]
+    rows = baseline_rows(gap_table) + trained_rows(runs)
+    by = {r["row"]: r["discounted_return"] for r in rows}
+    if "optimal" not in by or "do_nothing" not in by:
+        raise ValueError(f"the gap table of {network!r} has no optimum or do-nothing row on all its states")
+    opt, dn = by["optimal"], by["do_nothing"]
+    for r in rows:
+        r["loss_ratio"] = r["discounted_return"] / opt if opt < 0 else None
+        r["gain_pct"] = 100 * (r["discounted_return"] - dn) / (opt - dn)
+    rows.sort(key=lambda r: -r["discounted_return"])
+    return {"network": network, "protocol": protocol, "rows": rows, "runs": runs,
+            "gap_table": str(gap_table_path(network).relative_to(RESULTS.parent))}
+
+
+def markdown(record: dict) -> str:
+    """The leaderboard as a Markdown table."""
+    p = record["protocol"]
+    lines = [f"{record['network']}: {p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, "
+             f"γ = {p['gamma']}; trained rows: `best.pt` (chosen on validation states) evaluated on these states",
+             "", "| policy | discounted return | loss / optimum | gain share | true-env frames | wall time | seeds |",
+             "|---|---:|---:|---:|---:|---:|---|"]
+    for r in record["rows"]:
+        spread = f" ± {r['std_over_seeds']:.2f}" if r.get("std_over_seeds") is not None else ""
+        ratio = f"{r['loss_ratio']:.3f}×" if r["loss_ratio"] is not None else "–"
+        frames = f"{r['frames']:,.0f}" if r["frames"] is not None else "–"
+        wall = f"{r['wall_s']:,.0f} s" if r["wall_s"] is not None else "–"
+        seeds = ", ".join(map(str, r["seeds"])) if r["seeds"] else "–"
+        lines.append(f"| {r['policy']} | {r['discounted_return']:.2f}{spread} | {ratio} | {r['gain_pct']:.1f} % | "
+                     f"{frames} | {wall} | {seeds} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,49 @@
+"""The leaderboard puts trained runs on the gap table's own states: same states, same T and γ, ratios to the
+optimum and gain share computed from the table's rows, runs of one (algorithm, training env) merged over seeds."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import pytest
+
+from anm_torchrl.experiments import leaderboard
+
+
+def _run_dir(tmp_path, ckpt, name, frames=32):
+    d = tmp_path / name
+    (d / "checkpoints").mkdir(parents=True)
+    shutil.copy(ckpt, d / "checkpoints" / "best.pt")
+    (d / "summary.json").write_text(json.dumps({"frames": frames, "wall_time": 12.5, "stopped_early": False}))
+    return d
+
+
+def test_trained_runs_are_scored_on_the_tables_states(ppo_checkpoint, tmp_path):
+    protocol = {"network": "anm6_easy", "episodes": 2, "seed": 0, "steps": 5, "gamma": 0.995}
+    table = {"protocol": protocol, "rows": [
+        {"policy": "optimum", "row": "optimal", "discounted_return": -1.0, "states": 2, "source": "gap"},
+        {"policy": "do-nothing", "row": "do_nothing", "discounted_return": -9.0, "states": 2, "source": "gap"},
+        {"policy": "AC-MPC on #0", "row": "acmpc_16", "discounted_return": -2.0, "states": 1, "source": "gap"}]}
+    runs = [_run_dir(tmp_path, ppo_checkpoint, "a"), _run_dir(tmp_path, ppo_checkpoint, "b", frames=64)]
+    rec = leaderboard.build("anm6_easy", runs, gap_table=table)
+    rows = {r["row"]: r for r in rec["rows"]}
+    assert set(rows) == {"optimal", "do_nothing", "ppo_none"}  # a row on 1 of 2 states does not compare
+    ppo = rows["ppo_none"]
+    assert ppo["seeds"] == [0, 0] and ppo["frames"] == 48 and ppo["std_over_seeds"] == 0.0  # same checkpoint twice
+
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.training.checkpoint import load_actor
+
+    direct = evaluate_policy(load_actor(ppo_checkpoint), draw_initial_states(2, 0), max_steps=5, gamma=0.995)
+    assert math.isclose(ppo["discounted_return"], float(direct.discounted_returns.mean()), rel_tol=1e-9)
+    assert math.isclose(ppo["loss_ratio"], ppo["discounted_return"] / -1.0)
+    assert math.isclose(ppo["gain_pct"], 100 * (ppo["discounted_return"] + 9.0) / 8.0)
+    assert "| PPO trained on the true env |" in leaderboard.markdown(rec)
+
+
+def test_a_run_of_another_network_is_refused(ppo_checkpoint, tmp_path):
+    table = {"protocol": {"network": "case33bw", "episodes": 1, "seed": 0, "steps": 3, "gamma": 0.995}, "rows": []}
+    with pytest.raises(ValueError, match="trained on 'anm6_easy', the table is of 'case33bw'"):
+        leaderboard.build("case33bw", [_run_dir(tmp_path, ppo_checkpoint, "a")], gap_table=table)
