@@ -55,7 +55,8 @@ def test_default_configs_pass():
     ("collector.max_minutes=0", "collector.max_minutes must be in (0, inf) or null, got 0"),
     ("model.activation=gelu", "model.activation must be one of elu, leaky_relu, relu, silu, tanh; got 'gelu'"),
     ("model.actor_cells=[64,0]", "model.actor_cells must be a list of positive layer widths"),
-    ("logger.backend=foo", "logger.backend must be one of tensorboard, csv, null; got 'foo'"),
+    ("logger.backend=foo", "logger.backend must be one of tensorboard, csv, wandb, mlflow, null; got 'foo'"),
+    ("loss.gae_every_epoch=1", "loss.gae_every_epoch must be true or false, got 1"),
     ("eval.test_seed=1", "eval.seed (validation states) and eval.test_seed (test states) must differ"),
     ("eval.render_interval=-1", "eval.render_interval must be an integer >= 0, got -1"),
     ("collector.frames_per_batch=16383", "must be a positive multiple of env.num_envs (256)"),
@@ -186,3 +187,14 @@ def test_make_env_network_by_name_or_dict():
         make_env("none", network="nowhere")
     with pytest.raises(ValueError, match="surrogate='gym_anm' runs gym-anm's ANM6Easy only"):
         make_env("gym_anm", network="case33bw")
+
+
+@pytest.mark.parametrize("backend", ["wandb", "mlflow"])
+def test_a_logger_without_its_package_fails_before_anything_runs(backend, monkeypatch):
+    """TorchRL's wandb / mlflow loggers pass through; without the package the check names what to install."""
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == backend else real(name, *a))
+    with pytest.raises(ValueError, match=f"logger.backend={backend} needs the {backend} package \\(pip install {backend}\\)"):
+        check_ppo_config(ppo_config(f"logger.backend={backend}"))

@@ -11,7 +11,9 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-LOGGER_BACKENDS = ("tensorboard", "csv", None)
+LOGGER_BACKENDS = ("tensorboard", "csv", "wandb", "mlflow", None)
+# loggers TorchRL supports that need a package of their own (not in any extra: pass-through only)
+LOGGER_PACKAGES = {"wandb": "wandb", "mlflow": "mlflow"}
 ACTION_MODES = ("raise", "clip")
 ENV_INITS = (None, "gym_anm", "intended", "uniform")
 EVALUATE_ENVS = ("anm6", "gym_anm")
@@ -99,7 +101,13 @@ def check_protocol_config(cfg: Mapping) -> None:
         _in_range(cfg, "loss.reward_scale", 0, math.inf, True, True)
     _in_range(cfg, "loss.auto_step_reward", 0, math.inf, True, True)
     # logger
-    _choice(cfg, "logger.backend", LOGGER_BACKENDS)
+    backend = _choice(cfg, "logger.backend", LOGGER_BACKENDS)
+    if backend in LOGGER_PACKAGES:
+        import importlib.util
+
+        if importlib.util.find_spec(LOGGER_PACKAGES[backend]) is None:
+            raise ValueError(f"logger.backend={backend} needs the {LOGGER_PACKAGES[backend]} package "
+                             f"(pip install {LOGGER_PACKAGES[backend]}); or use tensorboard or csv")
     _int(cfg, "logger.interval")
     # eval: validation states (model selection) and test states (reported figures) must differ
     _int(cfg, "eval.interval", optional=True)
