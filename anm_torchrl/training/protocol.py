@@ -120,7 +120,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a train
     if cfg.logger.backend:
         exp_name = generate_exp_name(algorithm_cls.name.upper(), f"{cfg.logger.exp_name}_{cfg.surrogate.name}")
         logger = get_logger(cfg.logger.backend, logger_name=str(run_dir / "logs"), experiment_name=exp_name,
-                            **OmegaConf.to_container(cfg.logger.get("kwargs") or {}, resolve=True))
+                            **OmegaConf.to_container(cfg.logger.kwargs, resolve=True))
         if hasattr(logger.experiment, "add_text"):
             logger.experiment.add_text("config", "```yaml\n" + OmegaConf.to_yaml(cfg, resolve=True) + "```", frames)
 
