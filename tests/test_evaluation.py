@@ -19,7 +19,7 @@ CONF = Path(__file__).resolve().parents[1] / "recipes" / "conf"
 
 @pytest.mark.parametrize("file, gamma_key, steps_key", [
     ("eval/default.yaml", "gamma", "max_steps"),
-    ("evaluate.yaml", "gamma", "steps"),
+    ("../conf_evaluate/evaluate.yaml", "gamma", "steps"),
     ("preset/full.yaml", "test_returns.gamma", "test_returns.max_steps"),
     ("preset/quick.yaml", "test_returns.gamma", None),
     ("preset/tiny.yaml", "test_returns.gamma", None),
