@@ -37,7 +37,7 @@ def test_every_record_is_indexed_once_under_its_study():
 
 
 def test_old_paths_map_to_their_records():
-    entries = _entries()
+    entries = [e for e in _entries() if "was" in e]  # records made after the move have no old path
     was = [e["was"] for e in entries]
     assert len(was) == len(set(was))
     for e in entries:
