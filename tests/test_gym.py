@@ -12,7 +12,7 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 from tensordict import TensorDict
 
-import anm_torchrl  # noqa: F401  registers the gymnasium ids
+import anm_torchrl.gym  # noqa: F401  registers the gymnasium ids
 from anm_torchrl.envs import ANM6Env, ANMEnv
 from anm_torchrl.gym import GYM_IDS
 from anm_torchrl.gym.env import ANMGymEnv
