@@ -110,3 +110,13 @@ def test_every_extra_named_exists_in_pyproject():
     assert "anm_torchrl[all]" in extras["test"]  # CI's `pip install -e '.[test]'` pulls every extra
     named = {e for spec in extras["all"] for e in spec.split("[")[1].rstrip("]").split(",")}
     assert named == set(extras) - {"all", "test"}
+
+
+def test_torchrl_log_lines_carry_no_ansi_codes_when_redirected():
+    # TorchRL's console handler colours every line; a redirected run (``> ppo.log``) must get plain text
+    out = run_python("""
+        import logging
+        import anm_torchrl.training.factory  # noqa: F401  (what every recipe imports)
+        logging.getLogger("torchrl").info("hello")
+    """)
+    assert "[torchrl][INFO] hello" in out.stdout and "\\x1b" not in out.stdout

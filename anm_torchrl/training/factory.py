@@ -7,10 +7,13 @@ from pathlib import Path
 from torchrl.envs import DoubleToFloat, EnvBase, SerialEnv, StepCounter, TransformedEnv
 
 from anm_torchrl._extras import require
+from anm_torchrl.console import plain_torchrl_console
 from anm_torchrl.envs import ANM6Env, ANMEnv, SurrogateEnv
 from anm_torchrl.envs.anm_env import build_simulator
 from anm_torchrl.paths import artifact_home
 from anm_torchrl.surrogates.registry import load_surrogate
+
+plain_torchrl_console()  # torchrl is imported above: no ANSI colours in a redirected run's output
 
 GYM_ANM_ID = "gym_anm:ANM6Easy-v0"
 
