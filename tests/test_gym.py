@@ -252,3 +252,21 @@ def test_record_video_films_an_episode(tmp_path):
     env.close()
     videos = list((tmp_path / "videos").glob("*.mp4"))
     assert len(videos) == 1 and videos[0].stat().st_size > 0
+
+
+def test_normalised_spaces_through_gymnasium_wrappers():
+    # grid2op-style scaling without code of ours: gymnasium's RescaleAction / RescaleObservation map gym-anm's
+    # MW / MVAr boxes (finite, every low < high) onto [-1, 1]
+    from gymnasium.wrappers import RescaleAction, RescaleObservation
+
+    env = gymnasium.make(ID)
+    box = env.action_space
+    scaled = RescaleObservation(RescaleAction(env, -1.0, 1.0), -1.0, 1.0)
+    assert (scaled.action_space.low == -1).all() and (scaled.observation_space.high == 1).all()
+    obs, _ = scaled.reset(seed=0)
+    assert np.all(np.abs(obs) <= 1 + 1e-12)
+    to_mw = scaled.env.action  # RescaleAction's map from [-1, 1] to MW / MVAr
+    np.testing.assert_allclose(to_mw(-np.ones(6)), box.low)
+    np.testing.assert_allclose(to_mw(np.ones(6)), box.high)
+    obs, *_ = scaled.step(np.zeros(6))  # the box's centre, a valid set-point
+    assert np.all(np.abs(obs) <= 1 + 1e-12)
