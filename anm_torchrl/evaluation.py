@@ -40,6 +40,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from anm_torchrl._extras import require
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 
 EVAL_GAMMA = 0.995
@@ -187,10 +188,7 @@ def evaluate_policy_gym_anm(policy: TensorDictModuleBase, initial_states: torch.
     is injected by replacing the env's ``init_state`` before ``reset``; terms are gym-anm's clipped
     ``env.e_loss`` / ``env.penalty``.
     """
-    try:
-        from gym_anm.envs import ANM6Easy
-    except ImportError as err:  # pragma: no cover - depends on the install
-        raise ImportError("evaluation on gym-anm needs the gym-anm package: pip install gym-anm==2.0.1") from err
+    ANM6Easy = require("gym_anm.envs", what="evaluation on gym-anm").ANM6Easy
 
     n = int(initial_states.shape[0])
     envs, obs = [], []

@@ -22,9 +22,10 @@ EXPERIMENTS = ["pinn_losses", "speed", "accuracy", "rollout_error", "adaptabilit
 def results(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("reproduce")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "ANM_TORCHRL_HOME": str(out / "home")}
+    hydra_dir = tmp_path_factory.mktemp("hydra")  # Hydra's own run dir (its log), else outputs/ of the checkout
     proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), "preset=tiny", f"out_dir={out}",
-                           f"results_md={out / 'RESULTS.md'}"], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=900)
+                           f"results_md={out / 'RESULTS.md'}", f"hydra.run.dir={hydra_dir}"], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-4000:]
     return out
 
@@ -56,8 +57,8 @@ def test_report_only_rewrites_the_page_from_the_records(results: Path):
     records = {p.name: p.read_bytes() for p in results.glob("*.json")}
     env = {**os.environ, "ANM_TORCHRL_HOME": str(results / "home")}  # the home of the run: paths shown relative to it
     proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), f"out_dir={results}",
-                           f"results_md={md}", "report_only=true"], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=300)
+                           f"results_md={md}", "report_only=true", f"hydra.run.dir={results / 'hydra_again'}"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert records == {p.name: p.read_bytes() for p in results.glob("*.json")}
     assert md.read_text().split("\n", 3)[3] == (results / "RESULTS.md").read_text().split("\n", 3)[3]

@@ -209,18 +209,20 @@ def test_anm6_y_bus_and_slopes():
 
 # ----------------------------------------------------------------------------------------------- projections
 def _osqp(target: np.ndarray, g: np.ndarray, h: np.ndarray) -> np.ndarray:
-    import qpsolvers
+    """argmin ||x - target||² s.t. g x <= h (finite rows), by OSQP called directly: current setting names
+    (``polishing``) and an explicit ``raise_error``, so the 360 calls of this test raise no deprecation warning."""
+    import osqp
     import scipy.sparse as sp
 
     keep = np.isfinite(h)
-    x = qpsolvers.solve_qp(sp.csc_matrix(np.eye(2)), -target, sp.csc_matrix(g[keep]), h[keep], solver="osqp",
-                           eps_abs=1e-12, eps_rel=1e-12, polish=True, max_iter=200000, verbose=False)
-    assert x is not None
-    return x
+    solver = osqp.OSQP()
+    solver.setup(P=sp.csc_matrix(np.eye(2)), q=-target, A=sp.csc_matrix(g[keep]), l=np.full(keep.sum(), -np.inf),
+                 u=h[keep], eps_abs=1e-12, eps_rel=1e-12, polishing=True, max_iter=200000, verbose=False)
+    return solver.solve(raise_error=True).x  # raises unless solved
 
 
 def test_projection_against_osqp():
-    pytest.importorskip("qpsolvers")
+    pytest.importorskip("osqp")
     rng = np.random.default_rng(0)
     sim = anm6_easy_simulator()
     pmax = np.array([0.3, 0.5])

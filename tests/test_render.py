@@ -16,6 +16,7 @@ from anm_torchrl.envs import ANM6Env  # noqa: E402
 from anm_torchrl.grid.network import make_network  # noqa: E402
 from anm_torchrl.render import Episode, episode_figure, episode_from_rollout, network_tables, render_episode, \
     write_episode  # noqa: E402
+from anm_torchrl.render.figure import choose_window, day_of_step, default_times  # noqa: E402
 from anm_torchrl.render.layout import is_radial, network_layout, tree_layout  # noqa: E402
 from anm_torchrl.render.network_plot import NetworkArtist, branch_loading  # noqa: E402
 
@@ -145,3 +146,69 @@ def test_render_episode_on_case33bw(tmp_path):
 
     paths = render_episode(idle, env, env.reset()["state"][0], 6, tmp_path, gif=False)  # GIFs: tested above
     assert Image.open(paths["png"]).size[0] > 1000
+
+
+def _long_episode(tb, steps: int, start_index: int) -> Episode:
+    """A synthetic ANM6 episode of ``steps`` 15-min steps from time index ``start_index``: one costly step (300),
+    a load peak (310), curtailment (320) and a penalty (305), all else quiet."""
+    T = steps
+    state = np.zeros((T + 1, 18))
+    state[:, -1] = start_index + np.arange(T + 1)
+    state[1:, tb.load_ids] = -1.0
+    state[311, tb.load_ids] = -20.0  # s_311 is after step index 310
+    ep = Episode(state=state, action=np.zeros((T, 6)), reward=-np.full(T, 0.1), terminated=np.zeros(T, bool),
+                 v_magn=np.ones((T, 6)), branch_s=np.ones((T, 5)), e_loss=np.full(T, 0.01), penalty=np.zeros(T),
+                 curtailment=np.zeros(T))
+    ep.reward[300] = -9.0
+    ep.curtailment[320] = 5.0
+    ep.penalty[305] = 2.0
+    return ep
+
+
+def test_long_episode_shows_a_day_around_its_costliest_step_and_daily_bars(anm6):
+    env, _ = anm6
+    tb = network_tables(env.sim.net)
+    ep = _long_episode(tb, 3000, start_index=44)  # from 11:00, as the figure of a 3000-step evaluation
+    start, stop, why = choose_window(ep, tb)
+    assert (start, stop) == (300 - 48, 300 + 48) and "costliest step (step 301" in why  # 24 h = 96 steps
+    picks = default_times(ep, tb, start, stop)
+    assert picks == [(305, "largest penalty"), (310, "peak load"), (320, "most curtailment")]
+    fig = episode_figure(ep, tb, title="long")
+    assert "time series: 24 h around the costliest step" in fig._suptitle.get_text()
+    assert [ax.get_title().split("\n")[0] for ax in fig.axes[:3]] == [
+        "A: largest penalty", "B: peak load", "C: most curtailment"]
+    loss = [ax for ax in fig.axes if ax.get_title().startswith("energy loss ΔE per day")]
+    days = day_of_step(ep, tb)
+    n_days = days[-1] - days[0] + 1
+    heights = [p.get_height() for p in loss[0].patches[:n_days]]  # the day bars (then the partial-day overlays)
+    # 0.01 MWh per step: day 1 runs 11:00-24:00 (52 steps), full days 96 steps, the last the remainder
+    assert len(loss) == 1 and n_days == 32 and heights[:3] == pytest.approx([0.52, 0.96, 0.96])
+    assert sum(heights) == pytest.approx(30.0)
+    gen = next(ax for ax in fig.axes if ax.get_title().startswith("generator active power"))
+    assert gen.get_xlim() == (start + 0.5, stop + 0.5)  # the time series: the window only
+    # a short episode is shown whole, without daily bars
+    short = episode_figure(ep.window(0, 96), tb)
+    assert not [ax for ax in short.axes if "per day" in ax.get_title()]
+
+
+def test_window_centres_on_the_first_diverged_step_and_days_follow_the_clock(anm6):
+    env, _ = anm6
+    tb = network_tables(env.sim.net)
+    ep = _long_episode(tb, 400, start_index=92)  # from 23:00
+    ep.terminated[200] = True
+    start, stop, why = choose_window(ep, tb, hours=12)
+    assert (start, stop) == (200 - 24, 200 + 24) and "first diverged power flow (step 201)" in why
+    days = day_of_step(ep, tb)
+    assert days[:5].tolist() == [1, 1, 1, 1, 2]  # steps start at 23:00, 23:15, 23:30, 23:45, then 00:00
+    with pytest.raises(ValueError, match="window_hours must be > 0"):
+        episode_figure(ep, tb, window_hours=0)
+
+
+def test_gif_animates_the_window_of_a_long_episode(anm6, tmp_path):
+    from anm_torchrl.render.episode import write_animation
+
+    env, _ = anm6
+    tb = network_tables(env.sim.net)
+    ep = _long_episode(tb, 1000, start_index=0)
+    write_animation(ep, tb, tmp_path / "a.gif", title="t", max_frames=200, window_hours=6)
+    assert Image.open(tmp_path / "a.gif").n_frames == 24  # the 6 h window's 24 steps, not 200 of 1000

@@ -57,6 +57,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from anm_torchrl._extras import require
 from anm_torchrl.evaluation import EVAL_GAMMA
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.network import CLASSICAL_GEN, SLACK
@@ -76,7 +77,7 @@ SOLVER_SETTINGS = {
 
 def default_solver() -> str:
     """``"clarabel"`` (gym-anm's cvxpy default for this LP) if qpsolvers has it, else ``"highs"``, else ``"osqp"``."""
-    import qpsolvers
+    qpsolvers = require("qpsolvers")
 
     for name in ("clarabel", "highs", "osqp"):
         if name in qpsolvers.available_solvers:
@@ -259,7 +260,7 @@ class MPCPolicy(TensorDictModuleBase):
 
     # ------------------------------------------------------------------------------------------ solving
     def _solve_x(self, state: np.ndarray) -> tuple[np.ndarray | None, dict]:
-        import qpsolvers
+        qpsolvers = require("qpsolvers")
 
         b_eq, h = self._rhs(state)
         prob = qpsolvers.Problem(self._p_zero, self._c, self._g, h, self._a_eq, b_eq)

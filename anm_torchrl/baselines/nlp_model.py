@@ -39,6 +39,7 @@ import time
 import numpy as np
 import torch
 
+from anm_torchrl._extras import require
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STORAGE, branch_flows
 from anm_torchrl.grid.residuals import power_injection
@@ -296,7 +297,7 @@ class ACHorizonNLP:
 
     def _voltages(self, xk):
         """(e, f) real and imaginary parts of all bus voltages (slack 1∠0) and |V| of the non-slack buses."""
-        import casadi as ca
+        ca = require("casadi")
 
         v1, v2 = xk[self.lay["v1"]], xk[self.lay["v2"]]
         if self.formulation == "polar":
@@ -311,7 +312,7 @@ class ACHorizonNLP:
 
         ``exo_k`` = [load P (n_load), |V| offsets (n_bus − 1), |S_from|, |S_to| offsets (n_rated each)].
         """
-        import casadi as ca
+        ca = require("casadi")
 
         lay, sim = self.lay, self.sim
         nx = lay["ob"].stop
@@ -373,7 +374,7 @@ class ACHorizonNLP:
         return ca.Function("stage", [xk, soc_prev, exo], [g_k, cost])
 
     def _build(self) -> None:
-        import casadi as ca
+        ca = require("casadi")
 
         self.lay = self._layout()
         self.nx = self.lay["ob"].stop
@@ -395,7 +396,7 @@ class ACHorizonNLP:
         self.n_var, self.n_con = self.nx * n, self.ncon * n
 
     def _solver(self, warm: bool):
-        import casadi as ca
+        ca = require("casadi")
 
         if warm not in self._solvers:
             opts = {**self.ipopt, **(WARM_OPTIONS if warm else {})}

@@ -1,6 +1,7 @@
 """gymnasium and Stable-Baselines3 interfaces to the envs of this package.
 
-Importing :mod:`anm_torchrl` registers one gymnasium id per registered network (:data:`GYM_IDS`):
+Importing this subpackage (``import anm_torchrl.gym``; not ``import anm_torchrl``, which stays light)
+registers one gymnasium id per registered network (:data:`GYM_IDS`):
 ``anm_torchrl/ANM6Easy-v0`` (gym-anm's name), ``anm_torchrl/Case33bw-v0``, ``anm_torchrl/CigreMv-v0``, …
 
 - ``gymnasium.make(id)``: :class:`anm_torchrl.gym.env.ANMGymEnv`, one grid with gym-anm's interface;

@@ -13,6 +13,8 @@ from gymnasium import error, spaces
 from tensordict import TensorDict
 from torchrl.envs import EnvBase
 
+RENDER_KEYS = ("v_magn", "branch_s")  # the ("grid", ...) entries a rendered frame shows
+
 
 def make_torchrl_env(network: str, num_envs: int, seed: int | None = None, **kwargs) -> EnvBase:
     """The true-simulator TorchRL env of a registered network, batched over ``num_envs``.
@@ -72,12 +74,31 @@ class NumpyBatch:
         self.observation_space = spaces.Box(s_low, s_high, dtype=np.float64)
         self.action_space = spaces.Box(a_low, a_high, dtype=np.float64)
         self._state: torch.Tensor | None = None  # (N, D) float64, the TorchRL env's "state"
+        self._grid: dict[str, torch.Tensor] = {}  # ("grid", k) (N, ...) of the last reset / step, for rendering
 
     @property
     def state(self) -> np.ndarray:
         """gym-anm state (N, D) float64 (MW, MVAr, MWh, time index); zeros on terminated rows."""
         self._require_reset()
         return self._state.cpu().numpy().copy()
+
+    def grid(self, key: str) -> np.ndarray | None:
+        """The env's ``("grid", key)`` (N, ...) float64 after the last reset or step (e.g. ``"v_magn"`` p.u.,
+        ``"branch_s"`` MVA); None if the env does not report it."""
+        self._require_reset()
+        value = self._grid.get(key)
+        return None if value is None else value.to(torch.float64).cpu().numpy()
+
+    def _keep_grid(self, td, mask: torch.Tensor | None = None) -> None:
+        grid = td.get("grid", None)
+        for key in RENDER_KEYS:
+            value = None if grid is None else grid.get(key, None)
+            if value is None:
+                self._grid.pop(key, None)
+            elif mask is None or key not in self._grid:
+                self._grid[key] = value.clone()
+            else:
+                self._grid[key] = torch.where(mask.unsqueeze(-1), value, self._grid[key])
 
     def observe(self, state: torch.Tensor) -> np.ndarray:
         """Observations (N, D) float64 of states (N, D): clipped to the observation bounds."""
@@ -91,13 +112,16 @@ class NumpyBatch:
         if seed is not None:
             self.env.set_seed(int(seed))
         if mask is None:
-            self._state = self.env.reset().get("state").clone()
+            td = self.env.reset()
+            self._state = td.get("state").clone()
+            self._keep_grid(td)
         else:
             self._require_reset()
             mask_t = torch.as_tensor(self._check_mask(mask), device=self.env.device)
             td = self.env.reset(TensorDict({"_reset": mask_t.unsqueeze(-1)}, self.env.batch_size,
                                            device=self.env.device))
             self._state = torch.where(mask_t.unsqueeze(-1), td.get("state"), self._state)
+            self._keep_grid(td, mask_t)
         return self.observe(self._state)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -118,6 +142,7 @@ class NumpyBatch:
                         self.env.batch_size, device=self.env.device)
         nxt = self.env.step(td).get("next")
         self._state = nxt.get("state")
+        self._keep_grid(nxt)
         reward = nxt.get("reward").squeeze(-1).to(torch.float64).cpu().numpy()
         terminated = nxt.get("terminated").squeeze(-1).cpu().numpy()
         return self.observe(self._state), reward, terminated

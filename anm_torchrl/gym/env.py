@@ -19,21 +19,33 @@ class ANMGymEnv(gymnasium.Env):
     that returns a zero observation, reward 0 and ``terminated=True``. No time limit (``gymnasium.make(...,
     max_episode_steps=T)`` adds one).
 
+    ``render_mode="rgb_array"``: :meth:`render` returns the network after the last reset or step as a
+    (480, 640, 3) uint8 image (bus |V| and branch loading against their limits, the step, time of day and
+    reward in the title), so ``gymnasium.wrappers.RecordVideo`` films episodes.
+
     Args:
         network: registered network name (ignored when ``env`` is given).
         env: an existing TorchRL env of this package with batch size (1,).
+        render_mode: None or ``"rgb_array"``.
         **env_kwargs: passed to the true-simulator env (``action_mode``, ``init``, ``backend``).
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
-    def __init__(self, network: str = "anm6_easy", env: EnvBase | None = None, **env_kwargs: Any):
+    def __init__(self, network: str = "anm6_easy", env: EnvBase | None = None, render_mode: str | None = None,
+                 **env_kwargs: Any):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got "
+                             f"{render_mode!r}")
         if env is not None and tuple(env.batch_size) != (1,):
             raise ValueError(f"env must have batch size (1,), got {tuple(env.batch_size)}")
         self._batch = NumpyBatch(env if env is not None else make_torchrl_env(network, 1, **env_kwargs))
         self.observation_space = self._batch.observation_space
         self.action_space = self._batch.action_space
+        self.render_mode = render_mode
         self._terminated = False
+        self._steps, self._reward = 0, None
+        self._frame = None  # anm_torchrl.render.frame.NetworkFrame, built on the first render()
 
     @property
     def state(self) -> np.ndarray:
@@ -47,6 +59,7 @@ class ANMGymEnv(gymnasium.Env):
         super().reset(seed=seed)
         obs = self._batch.reset(seed=seed)[0]
         self._terminated = False
+        self._steps, self._reward = 0, None
         return obs, {}
 
     def step(self, action: np.ndarray):
@@ -55,4 +68,27 @@ class ANMGymEnv(gymnasium.Env):
             return np.zeros(self.observation_space.shape), 0.0, True, False, {}
         obs, reward, terminated = self._batch.step(np.asarray(action, dtype=np.float64)[None])
         self._terminated = bool(terminated[0])
-        return obs[0], float(reward[0]), self._terminated, False, {}
+        self._steps, self._reward = self._steps + 1, float(reward[0])
+        return obs[0], self._reward, self._terminated, False, {}
+
+    def render(self) -> np.ndarray | None:
+        """The network after the last reset or step as an (H, W, 3) uint8 image (``render_mode="rgb_array"``);
+        None when ``render_mode`` is None (gymnasium's convention)."""
+        if self.render_mode is None:
+            return None
+        from anm_torchrl.render.frame import NetworkFrame  # matplotlib only when rendering
+        from anm_torchrl.render.tables import network_tables
+
+        v_magn, branch_s = self._batch.grid("v_magn"), self._batch.grid("branch_s")
+        if v_magn is None or branch_s is None:
+            raise ValueError(f"{type(self._batch.env).__name__} reports no ('grid', 'v_magn' / 'branch_s'), "
+                             "so there is nothing to draw")
+        sim = self._batch.env.sim
+        if self._frame is None:
+            self._frame = NetworkFrame(network_tables(sim.net))
+        minutes = int(round(float(self.state[sim.state_slices()["aux"]][0]) * float(sim.net.delta_t) * 60))
+        when = f"step {self._steps} ({minutes // 60 % 24:02d}:{minutes % 60:02d})"
+        what = ("power flow did not converge (terminal)" if self._terminated
+                else "after reset" if self._reward is None else f"reward {self._reward:.3f}")
+        return self._frame.draw(v_magn[0], branch_s[0], f"{self.spec.id if self.spec else 'ANMGymEnv'}\n"
+                                                        f"{when}: {what}")

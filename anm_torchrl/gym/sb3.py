@@ -6,9 +6,13 @@ from typing import Any
 
 import numpy as np
 from gymnasium.vector import AutoresetMode
-from stable_baselines3.common.vec_env import VecEnv
 
-from anm_torchrl.gym.vector import ANMVectorEnv
+from anm_torchrl._extras import require
+
+# checked before the torch / TorchRL imports below, so a missing extra fails at once, naming [sb3]
+VecEnv = require("stable_baselines3.common.vec_env").VecEnv
+
+from anm_torchrl.gym.vector import ANMVectorEnv  # noqa: E402
 
 
 class SB3VecEnv(VecEnv):

@@ -43,10 +43,12 @@ import logging
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
+from anm_torchrl._extras import require
 from anm_torchrl.networks import pandapower_import as ppi
 from anm_torchrl.networks.case_file import save_case
+
+pd = require("pandas")  # pandapower's dependency: the [feeders] extra
 
 logger = logging.getLogger(__name__)
 
@@ -66,7 +68,7 @@ def _rows() -> slice:
 
 
 def _simbench_net():
-    import simbench as sb
+    sb = require("simbench")
 
     return sb.get_simbench_net(SIMBENCH_CODE)
 
@@ -92,8 +94,8 @@ def _by_class(table: pd.DataFrame, profile_of: dict, library: pd.DataFrame, peak
 
 
 def _case33bw_net():
-    import pandapower as pp
-    import pandapower.networks as pn
+    pp = require("pandapower")
+    pn = require("pandapower.networks")
 
     net = pn.case33bw()
     for bus, p, kind, _ in CASE33_DG:
@@ -113,7 +115,7 @@ def _case33bw_profiles(net):
 
 
 def _cigre_net():
-    import pandapower.networks as pn
+    pn = require("pandapower.networks")
 
     return pn.create_cigre_network_mv(with_der="all")
 
@@ -128,7 +130,7 @@ def _cigre_profiles(net):
 
 
 def _simbench_profiles(net):
-    import simbench as sb
+    sb = require("simbench")
 
     absolute = sb.get_absolute_values(net, profiles_instead_of_study_cases=True)
     load_mw = absolute[("load", "p_mw")].iloc[_rows()].reset_index(drop=True)

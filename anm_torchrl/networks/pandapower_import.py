@@ -45,7 +45,10 @@ import re
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import pandas as pd
+
+from anm_torchrl._extras import require
+
+pd = require("pandas")  # pandapower's dependency: the [feeders] extra
 
 logger = logging.getLogger(__name__)
 
@@ -139,6 +142,7 @@ def _merge_parallel(rows: list[np.ndarray]) -> np.ndarray:
 
 
 def _branches(ppc, keep_bus, new_id, rate, vm, va_deg) -> np.ndarray:
+    require("pandapower")
     from pandapower.pypower.idx_brch import BR_B, BR_R, BR_STATUS, BR_X, F_BUS, SHIFT, T_BUS, TAP
 
     br = ppc["branch"]
@@ -219,6 +223,7 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
             (sets the load's PMIN = -max(peak, nominal P)).
         defaults: values used where pandapower has none.
     """
+    require("pandapower")
     from pandapower.converter.pypower.to_ppc import to_ppc
     from pandapower.pypower.idx_bus import BASE_KV, BUS_TYPE, NONE, REF, VA, VM
 

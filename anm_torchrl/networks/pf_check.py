@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from anm_torchrl._extras import require
 from anm_torchrl.networks.case_file import to_gym_anm
 
 
@@ -55,7 +56,7 @@ def run_pandapower(net) -> None:
     1e-9 MVA (1e-11 stalls on round-off on the SimBench feeder); DC initial angles (a flat start fails behind
     its 150° transformers); no numba (its JIT compile costs more than these small nets' solves).
     """
-    import pandapower as pp
+    pp = require("pandapower")
 
     pp.runpp(net, calculate_voltage_angles=True, init="dc", trafo_model="pi", tolerance_mva=1e-9,
              max_iteration=50, numba=False)
@@ -72,6 +73,7 @@ def gym_anm_vm(network: dict, p: np.ndarray, q: np.ndarray, xtol: float = 1e-11)
     Returns:
         ``(|V|, converged)`` with gym-anm's convergence rule (finite and mismatch <= xtol).
     """
+    require("gym_anm")
     from gym_anm.simulator.simulator import Simulator
     from gym_anm.simulator.solve_load_flow import _construct_v_from_guess, _newton_raphson_sparse
 

@@ -1,7 +1,7 @@
 """Render one ANM6-Easy episode of a baseline policy: ``python -m anm_torchrl.render --policy mpc_perfect``.
 
 Writes ``episode_<policy>.png`` and ``.gif`` into ``--out`` (the committed example figure
-``docs/figures/episode_mpc_perfect.png`` is ``--policy mpc_perfect --seed 0 --steps 96 --out docs/figures
+``docs/figures/episode_mpc_perfect.png`` is ``--policy mpc_perfect --seed 0 --steps 672 --out docs/figures
 --no-gif``).
 The initial state is the first of gym-anm's reset distribution drawn by ``ANM6Env(1, seed=--seed)``.
 """
@@ -22,7 +22,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--policy", default="mpc_perfect", help="do_nothing, random, mpc_perfect, mpc_constant")
     parser.add_argument("--seed", type=int, default=0, help="seed of the initial state")
-    parser.add_argument("--steps", type=int, default=96, help="episode length (96 = one day)")
+    parser.add_argument("--steps", type=int, default=96, help="episode length (96 = one day, 672 = one week)")
     parser.add_argument("--out", default="outputs/render", help="output directory")
     parser.add_argument("--gif", action=argparse.BooleanOptionalAction, default=True, help="write the GIF too")
     args = parser.parse_args(argv)

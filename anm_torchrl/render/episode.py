@@ -17,28 +17,29 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from anm_torchrl.grid.network import Network
-from anm_torchrl.render.figure import Episode, episode_figure, episode_from_rollout, snapshot_title
+from anm_torchrl.render.figure import WINDOW_HOURS, Episode, choose_window, episode_figure, episode_from_rollout, \
+    snapshot_title
 from anm_torchrl.render.layout import network_layout
 from anm_torchrl.render.network_plot import LOAD_CMAP, V_CMAP, NetworkArtist, loading_norm, marker_legend, \
     voltage_norm
 from anm_torchrl.render.tables import NetworkTables, network_tables
 
 log = logging.getLogger(__name__)
-FIGURE_DPI, ANIMATION_DPI = 90, 72  # 1620 x 1530 px page; 540 x 396 px animation frames
+FIGURE_DPI, ANIMATION_DPI = 90, 72  # 1620 x 1530 px page (1845 with the daily bars); 540 x 396 px GIF frames
 
 
 def write_episode(rollout: TensorDictBase, net: Network, out_dir: str | Path, stem: str = "episode",
                   times: list[int] | None = None, title: str = "", gif: bool = True, max_frames: int = 48,
-                  fps: int = 6) -> dict[str, Path]:
+                  fps: int = 6, window_hours: float = WINDOW_HOURS) -> dict[str, Path]:
     """Write ``<stem>.png`` (:func:`~anm_torchrl.render.figure.episode_figure`) and ``<stem>.gif`` (the
-    network over the episode, at most ``max_frames`` evenly spaced steps) into ``out_dir``.
+    network over the figure's time-series window, at most ``max_frames`` evenly spaced steps) into ``out_dir``.
 
     Args:
         rollout: ``env.rollout(...)`` of one env, (T,) or (1, T), with its ``("next", "grid", ...)`` entries.
         net: the env's network (``env.sim.net``).
         out_dir: created if missing.
         stem: file name without extension.
-        times, title: passed to ``episode_figure``.
+        times, title, window_hours: passed to ``episode_figure`` (``window_hours`` to the animation too).
         gif: also write the animation.
         max_frames, fps: animation length and speed.
 
@@ -50,22 +51,25 @@ def write_episode(rollout: TensorDictBase, net: Network, out_dir: str | Path, st
     tables = network_tables(net)
     ep = episode_from_rollout(rollout, net.base_mva)
     paths = {"png": out / f"{stem}.png"}
-    fig = episode_figure(ep, tables, times=times, title=title)
+    fig = episode_figure(ep, tables, times=times, title=title, window_hours=window_hours)
     FigureCanvasAgg(fig)
     fig.savefig(paths["png"], dpi=FIGURE_DPI)
     if gif:
         paths["gif"] = out / f"{stem}.gif"
-        write_animation(ep, tables, paths["gif"], title=title, max_frames=max_frames, fps=fps)
+        write_animation(ep, tables, paths["gif"], title=title, max_frames=max_frames, fps=fps,
+                        window_hours=window_hours)
     log.info("episode figure written to %s", ", ".join(map(str, paths.values())))
     return paths
 
 
 def write_animation(ep: Episode, tables: NetworkTables, path: str | Path, title: str = "", max_frames: int = 48,
-                    fps: int = 6) -> None:
-    """An animated GIF of the network over the episode (converged steps only), at most ``max_frames`` frames."""
+                    fps: int = 6, window_hours: float = WINDOW_HOURS) -> None:
+    """An animated GIF of the network over the figure's time-series window (:func:`choose_window`: the whole
+    episode if it fits in ``window_hours``), converged steps only, at most ``max_frames`` evenly spaced frames."""
     if max_frames < 1 or fps < 1:
         raise ValueError(f"max_frames and fps must be >= 1, got {max_frames}, {fps}")
-    steps = np.flatnonzero(~ep.terminated)
+    start, stop, _ = choose_window(ep, tables, window_hours)
+    steps = np.flatnonzero(~ep.terminated[start:stop]) + start
     if steps.size == 0:
         raise ValueError("the episode has no converged step to animate")
     frames = steps[np.unique(np.linspace(0, steps.size - 1, min(max_frames, steps.size)).round().astype(int))]
@@ -79,14 +83,14 @@ def write_animation(ep: Episode, tables: NetworkTables, path: str | Path, title:
                  extend="both")
     fig.colorbar(ScalarMappable(loading_norm(), LOAD_CMAP), ax=ax, label="branch loading (%)", shrink=0.8,
                  extend="max")
-    art.update(ep.v_magn[frames[0]], ep.branch_s[frames[0]], f"{title} {snapshot_title(ep, tables, frames[0])}")
+    art.update(ep.v_magn[frames[0]], ep.branch_s[frames[0]], f"{title}\n{snapshot_title(ep, tables, frames[0])}")
     fig.canvas.draw()
     fig.set_layout_engine("none")  # freeze the layout: every frame only recolours the artists
 
     writer = PillowWriter(fps=fps)
     with writer.saving(fig, str(path), dpi=ANIMATION_DPI):
         for t in frames.tolist():  # one draw per frame (FuncAnimation draws each frame twice)
-            art.update(ep.v_magn[t], ep.branch_s[t], f"{title} {snapshot_title(ep, tables, t)}".strip())
+            art.update(ep.v_magn[t], ep.branch_s[t], f"{title}\n{snapshot_title(ep, tables, t)}".strip())
             writer.grab_frame()
 
 
@@ -105,7 +109,8 @@ def render_episode(policy: Callable[[TensorDictBase], TensorDictBase], env: EnvB
         out_dir: where the files go.
         title: figure title.
         deterministic: act with the policy's deterministic action (``ExplorationType.DETERMINISTIC``).
-        **write_kwargs: passed to :func:`write_episode` (``stem``, ``times``, ``gif``, ``max_frames``, ``fps``).
+        **write_kwargs: passed to :func:`write_episode` (``stem``, ``times``, ``gif``, ``max_frames``, ``fps``,
+            ``window_hours``).
 
     Returns:
         The written paths, as :func:`write_episode`.

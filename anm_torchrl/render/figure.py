@@ -15,6 +15,8 @@ from anm_torchrl.render.network_plot import NetworkArtist, branch_loading, marke
 from anm_torchrl.render.tables import NetworkTables
 
 MAX_LINES = 8  # above this many devices / buses / branches a panel shows totals or envelopes instead
+LETTERS = "ABCD"  # snapshot labels, on the network panels and on every time series
+WINDOW_HOURS = 24.0  # the time series of a longer episode show this much of it (96 steps of 15 min: readable)
 REQUIRED = ("state", "action", ("next", "state"), ("next", "reward"), ("next", "terminated"),
             *(("next", "grid", k) for k in ("v_magn", "branch_s", "e_loss", "penalty", "curtailment")))
 
@@ -44,6 +46,13 @@ class Episode:
     def steps(self) -> int:
         return int(self.action.shape[0])
 
+    def window(self, start: int, stop: int) -> "Episode":
+        """Steps ``start`` … ``stop - 1`` as an episode of their own (states s_start … s_stop)."""
+        if not 0 <= start < stop <= self.steps:
+            raise ValueError(f"window must satisfy 0 <= start < stop <= {self.steps}, got [{start}, {stop})")
+        cut = {f.name: getattr(self, f.name)[start:stop] for f in dataclasses.fields(self) if f.name != "state"}
+        return Episode(state=self.state[start:stop + 1], **cut)
+
 
 def episode_from_rollout(rollout: TensorDictBase, base_mva: float) -> Episode:
     """An :class:`Episode` from ``env.rollout(...)`` of one env (batch (T,) or (1, T)).
@@ -70,22 +79,16 @@ def episode_from_rollout(rollout: TensorDictBase, base_mva: float) -> Episode:
         curtailment=get("next", "grid", "curtailment")[:, 0])
 
 
-def default_times(ep: Episode, tables: NetworkTables) -> list[int]:
-    """First and last converged steps and, between them, the most stressed one: the largest penalty, else the
-    highest branch loading, else the largest curtailment, else the middle step."""
-    ok = np.flatnonzero(~ep.terminated)
-    if ok.size == 0:
-        return [0]
-    first, last = int(ok[0]), int(ok[-1])
-    inner = ok[(ok != first) & (ok != last)]
-    if inner.size == 0:
-        return sorted({first, last})
-    with np.errstate(all="ignore"):
-        loading = np.nan_to_num(branch_loading(tables, ep.branch_s[inner])).max(1)
-    for score in (ep.penalty[inner], loading, ep.curtailment[inner]):
-        if score.max() > 0:
-            return [first, int(inner[np.argmax(score)]), last]
-    return [first, int(inner[inner.size // 2]), last]
+def minutes_from_midnight(ep: Episode, tables: NetworkTables) -> np.ndarray:
+    """(T + 1,) minutes since the first midnight before s_0, at states s_0 … s_T (the time index advances one
+    step per step; only its value in s_0 is read)."""
+    start = ep.state[0, tables.state_slices()["aux"]][0] * tables.delta_t * 60
+    return start % 1440 + np.arange(ep.steps + 1) * tables.delta_t * 60
+
+
+def day_of_step(ep: Episode, tables: NetworkTables) -> np.ndarray:
+    """(T,) calendar day of each step, 1-based (day 1 runs from the episode's start to its first midnight)."""
+    return (minutes_from_midnight(ep, tables)[:-1] // 1440).astype(int) + 1
 
 
 def clock(ep: Episode, tables: NetworkTables, step: int) -> str:
@@ -95,35 +98,103 @@ def clock(ep: Episode, tables: NetworkTables, step: int) -> str:
 
 
 def snapshot_title(ep: Episode, tables: NetworkTables, t: int) -> str:
-    """``step k (hh:mm): reward r, curtailment c MW`` for step index ``t``."""
-    return (f"step {t + 1} ({clock(ep, tables, t)}): reward {ep.reward[t]:.2f}, "
+    """``step k (day d, hh:mm): reward r, curtailment c MW`` for step index ``t``."""
+    return (f"step {t + 1} (day {day_of_step(ep, tables)[t]}, {clock(ep, tables, t)}): reward {ep.reward[t]:.2f}, "
             f"curtailment {ep.curtailment[t]:.1f} MW")
 
 
-def episode_figure(ep: Episode, tables: NetworkTables, times: list[int] | None = None,
-                   title: str = "") -> Figure:
-    """The network at ``times`` (step indices, default :func:`default_times`) over the episode's time series.
+def choose_window(ep: Episode, tables: NetworkTables, hours: float = WINDOW_HOURS) -> tuple[int, int, str]:
+    """The steps ``[start, stop)`` the time series show, and why: the whole episode if it fits in ``hours``,
+    else ``hours`` centred on the first diverged power flow, or else on the costliest step (lowest reward)."""
+    width = max(1, int(round(hours / tables.delta_t)))
+    if ep.steps <= width:
+        return 0, ep.steps, "the whole episode"
+    diverged = np.flatnonzero(ep.terminated)
+    if diverged.size:
+        centre, why = int(diverged[0]), f"the first diverged power flow (step {diverged[0] + 1})"
+    else:
+        centre = int(np.argmin(ep.reward))
+        why = f"the costliest step (step {centre + 1}, reward {ep.reward[centre]:.2f})"
+    start = min(max(0, centre - width // 2), ep.steps - width)
+    return start, start + width, f"{hours:g} h around {why}"
+
+
+def default_times(ep: Episode, tables: NetworkTables, start: int = 0, stop: int | None = None
+                  ) -> list[tuple[int, str]]:
+    """Up to three converged steps of ``[start, stop)`` worth a look, each with its reason: the largest penalty
+    (else the highest branch loading), the peak load and the most curtailment (else the peak renewable
+    potential). A step chosen for several reasons is drawn once with all of them; with no converged step, the
+    first step ("diverged")."""
+    stop = ep.steps if stop is None else stop
+    ok = np.flatnonzero(~ep.terminated[start:stop]) + start
+    if ok.size == 0:
+        return [(start, "diverged")]
+    sl = tables.state_slices()
+    p_next = ep.state[1:, sl["dev_p"]]
+    with np.errstate(all="ignore"):
+        loading = np.nan_to_num(branch_loading(tables, ep.branch_s)).max(1)
+    load = -p_next[:, tables.load_ids].sum(1)
+    potential = ep.state[1:, sl["gen_p_max"]].sum(1)
+    picks: dict[int, list[str]] = {}
+    for scores in (((ep.penalty, "largest penalty"), (loading, "highest branch loading")),
+                   ((load, "peak load"),),
+                   ((ep.curtailment, "most curtailment"), (potential, "peak renewable potential"))):
+        for score, why in scores:
+            if score[ok].max() > 0:
+                picks.setdefault(int(ok[np.argmax(score[ok])]), []).append(why)
+                break
+    if not picks:
+        picks[int(ok[0])] = ["first converged step"]
+    return [(t, " & ".join(whys)) for t, whys in sorted(picks.items())]
+
+
+def episode_figure(ep: Episode, tables: NetworkTables, times: list[int] | None = None, title: str = "",
+                   window_hours: float = WINDOW_HOURS) -> Figure:
+    """One page: the network at a few labelled steps, a readable window of the time series, and — for an
+    episode longer than a day — the whole episode as per-day bars.
+
+    The window is :func:`choose_window` (the whole episode if it fits in ``window_hours``); the snapshot steps
+    are ``times`` or :func:`default_times` inside the window, each titled with why it was chosen and marked by
+    its letter on every time series. The figure says both choices.
 
     Args:
         ep: the episode (:func:`episode_from_rollout`).
         tables: its network (:func:`~anm_torchrl.render.tables.network_tables`).
-        times: steps whose post-step grid is drawn (at most 4).
+        times: steps whose post-step grid is drawn (at most 4; the window is then the one holding them all, if
+            ``window_hours`` allows, else the whole episode).
         title: figure title.
+        window_hours: length of the time-series window, hours.
 
     Raises:
-        ValueError: a time outside [0, T) or more than 4 times.
+        ValueError: a time outside [0, T), more than 4 times, or ``window_hours`` <= 0.
     """
-    times = default_times(ep, tables) if times is None else sorted(set(int(t) for t in times))
-    if not times or len(times) > 4 or min(times) < 0 or max(times) >= ep.steps:
-        raise ValueError(f"times must be 1 to 4 step indices in [0, {ep.steps}), got {times}")
-    fig = Figure(figsize=(18, 17), layout="constrained")
-    outer = fig.add_gridspec(2, 1, height_ratios=[1.05, 2.6])
-    top = outer[0].subgridspec(1, len(times))
+    if window_hours <= 0:
+        raise ValueError(f"window_hours must be > 0, got {window_hours}")
+    if times is None:
+        start, stop, why_window = choose_window(ep, tables, window_hours)
+        picks = default_times(ep, tables, start, stop)
+    else:
+        chosen = sorted(set(int(t) for t in times))
+        if not chosen or len(chosen) > 4 or min(chosen) < 0 or max(chosen) >= ep.steps:
+            raise ValueError(f"times must be 1 to 4 step indices in [0, {ep.steps}), got {times}")
+        picks = [(t, "chosen") for t in chosen]
+        start, stop, why_window = choose_window(ep, tables, window_hours)
+        width = stop - start
+        if chosen[-1] - chosen[0] >= width:
+            start, stop, why_window = 0, ep.steps, "the whole episode (the chosen steps span more than the window)"
+        elif chosen[0] < start or chosen[-1] >= stop:  # the window must show the chosen steps
+            start = min(chosen[0], ep.steps - width)
+            stop, why_window = start + width, f"{window_hours:g} h from the first chosen step"
+    days = day_of_step(ep, tables)
+    summary = stop - start < ep.steps  # the window shows part of the episode: per-day bars of all of it
+    fig = Figure(figsize=(18, 20.5 if summary else 17), layout="constrained")
+    outer = fig.add_gridspec(3 if summary else 2, 1, height_ratios=[1.05, 2.6, 0.62][:3 if summary else 2])
+    top = outer[0].subgridspec(1, len(picks))
     pos = network_layout(tables.n_bus, tables.f_bus, tables.t_bus)
-    net_axes = [fig.add_subplot(top[i]) for i in range(len(times))]
-    for ax, t in zip(net_axes, times):
+    net_axes = [fig.add_subplot(top[i]) for i in range(len(picks))]
+    for k, (ax, (t, why)) in enumerate(zip(net_axes, picks)):
         art = NetworkArtist(ax, tables, pos)
-        art.update(ep.v_magn[t], ep.branch_s[t], snapshot_title(ep, tables, t))
+        art.update(ep.v_magn[t], ep.branch_s[t], f"{LETTERS[k]}: {why}\n{snapshot_title(ep, tables, t)}")
     marker_legend(net_axes[0], tables)
     v_lo, v_hi = voltage_limits(tables)
     fig.colorbar(art.buses[0], ax=net_axes, label=f"bus |V| (p.u.), limits [{v_lo:.2f}, {v_hi:.2f}]", shrink=0.9,
@@ -133,18 +204,81 @@ def episode_figure(ep: Episode, tables: NetworkTables, times: list[int] | None =
     axes = [fig.add_subplot(grid[i, j]) for i in range(4) for j in range(2)]
     for ax in axes[1:]:
         ax.sharex(axes[0])
-    _time_series(axes, ep, tables)
+    _time_series(axes, ep.window(start, stop), tables, offset=start)
+    ticks, labels = _clock_ticks(ep, tables, start, stop)
     for ax in axes:
-        for t in times:
-            ax.axvline(t + 1, color="0.6", lw=0.8, ls=":")
-        for t in np.flatnonzero(ep.terminated):
+        ax.set_xlim(start + 0.5, stop + 0.5)
+        for k, (t, _) in enumerate(picks):
+            if start <= t < stop:
+                ax.axvline(t + 1, color="0.45", lw=0.9, ls=":")
+                ax.annotate(LETTERS[k], (t + 1, 1.0), xycoords=("data", "axes fraction"), xytext=(0, -2),
+                            textcoords="offset points", ha="center", va="top", fontsize=9, fontweight="bold",
+                            color="0.25", bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="0.6", lw=0.6),
+                            zorder=10)  # above the legends
+        for t in np.flatnonzero(ep.terminated[start:stop]) + start:
             ax.axvline(t + 1, color="red", lw=1.5)
+        ax.set_xticks(ticks, labels)
     for ax in axes[-2:]:
-        ax.set_xlabel(f"step (Δt = {tables.delta_t * 60:.0f} min; dotted: the network snapshots"
-                      + ("; red: power flow diverged" if ep.terminated.any() else "") + ")")
-    start = clock(ep, tables, -1)
-    fig.suptitle(f"{title}  ({ep.steps} steps from {start}, return {ep.reward.sum():.2f})".strip(), fontsize=13)
+        ax.set_xlabel(f"time of day (steps {start + 1}–{stop} of {ep.steps}, Δt = {tables.delta_t * 60:.0f} min; "
+                      "dotted, lettered: the network snapshots"
+                      + ("; red: power flow diverged" if ep.terminated[start:stop].any() else "") + ")")
+    if summary:
+        _daily_summary(outer[2].subgridspec(1, 4), fig, ep, tables, days, (days[start], days[stop - 1]))
+    head = f"{title}  ({ep.steps} steps from {clock(ep, tables, -1)}, return {ep.reward.sum():.2f})".strip()
+    fig.suptitle(f"{head}\ntime series: {why_window}; snapshots: " + ", ".join(
+        f"{LETTERS[k]} {why}" for k, (_, why) in enumerate(picks)), fontsize=13)
     return fig
+
+
+def _clock_ticks(ep: Episode, tables: NetworkTables, start: int, stop: int) -> tuple[list[float], list[str]]:
+    """x ticks (step numbers) every few hours of ``[start, stop)``, labelled ``hh:mm`` and the day at midnight."""
+    minutes = minutes_from_midnight(ep, tables)[start + 1:stop + 1]  # after each step of the window
+    span_h = (stop - start) * tables.delta_t
+    every = next(h for h in (1, 2, 3, 4, 6, 12, 24, 48, 96, 168, 10 ** 9) if span_h / h <= 12) * 60
+    ticks, labels = [], []
+    for i, m in enumerate(minutes):
+        if abs(m / every - round(m / every)) * every < tables.delta_t * 30:  # the step ending nearest the hour
+            if ticks and start + i + 1 - ticks[-1] < every / (tables.delta_t * 60) / 2:
+                continue
+            hh = int(round(m)) // 60 % 24
+            day = int(round(m)) // 1440 + 1
+            ticks.append(start + i + 1)
+            labels.append(f"{hh:02d}:00" + (f"\nday {day}" if hh == 0 or not labels else ""))
+    return ticks, labels
+
+
+def _daily_summary(grid, fig: Figure, ep: Episode, tb: NetworkTables, days: np.ndarray,
+                   shown: tuple[int, int]) -> None:
+    """Per calendar day of the whole episode: energy loss, curtailed energy, penalty and return, as bars."""
+    ok = ~ep.terminated
+    day_ids = np.arange(days[0], days[-1] + 1)
+    steps_per_day = 24 / tb.delta_t
+    count = np.array([(days == d).sum() for d in day_ids])
+    per_day = lambda v: np.array([v[(days == d) & ok].sum() for d in day_ids])  # noqa: E731
+    panels = [(per_day(ep.e_loss), "C0", "energy loss ΔE per day (MWh, incl. curtailment)"),
+              (per_day(ep.curtailment * tb.delta_t), "C1", "curtailed energy per day (MWh)"),
+              (per_day(ep.penalty), "C3", "penalty per day (Σ λΦ)"),
+              (np.array([ep.reward[days == d].sum() for d in day_ids]), "0.3", "return per day (Σ reward)")]
+    partial = count < steps_per_day - 1e-9
+    diverged = [d for d in day_ids if ep.terminated[days == d].any()]
+    axes = [fig.add_subplot(grid[0, i]) for i in range(4)]
+    for ax, (values, colour, what) in zip(axes, panels):
+        ax.bar(day_ids, values, color=colour, alpha=0.85, width=0.8)
+        ax.bar(day_ids[partial], values[partial], color="white", alpha=0.55, width=0.8, hatch="//",
+               edgecolor=colour, lw=0)
+        ax.axvspan(shown[0] - 0.5, shown[1] + 0.5, color="0.85", zorder=0)
+        for d in diverged:
+            ax.axvline(d, color="red", lw=1.5)
+        ax.set_title(what, fontsize=10)
+        ax.set_xlabel("day")
+        ax.set_xlim(day_ids[0] - 0.6, day_ids[-1] + 0.6)
+        ax.set_xticks(day_ids[::max(1, int(np.ceil(day_ids.size / 16)))])
+        if values.min() >= 0:
+            ax.set_ylim(bottom=0, top=max(ax.get_ylim()[1], 1e-3))
+        ax.grid(alpha=0.3, axis="y")
+    axes[0].annotate("grey band: the days of the time series above; hatched: partial day"
+                     + ("; red: power flow diverged" if diverged else ""), (0, 1.18),
+                     xycoords="axes fraction", fontsize=8, color="0.3")
 
 
 def _series(ax: Axes, x: np.ndarray, ys: np.ndarray, names: list[str], total: str, **kw) -> list:
@@ -154,11 +288,12 @@ def _series(ax: Axes, x: np.ndarray, ys: np.ndarray, names: list[str], total: st
     return [ax.plot(x, ys[:, i], label=n, color=f"C{i}", **kw)[0] for i, n in enumerate(names)]
 
 
-def _time_series(axes: list[Axes], ep: Episode, tb: NetworkTables) -> None:
+def _time_series(axes: list[Axes], ep: Episode, tb: NetworkTables, offset: int = 0) -> None:
+    """The eight time-series panels of ``ep``, steps numbered from ``offset + 1`` (a window of a longer one)."""
     sl = tb.state_slices()
     nxt = ep.state[1:].copy()
     nxt[ep.terminated] = np.nan  # gym-anm zeroes the state after a diverged power flow: not a real value
-    x = np.arange(1, ep.steps + 1)
+    x = np.arange(1, ep.steps + 1) + offset
     ng, nd = len(tb.gen_ids), len(tb.des_ids)
     p, q = nxt[:, sl["dev_p"]], nxt[:, sl["dev_q"]]
     gen_names = [f"gen {d} (bus {tb.dev_bus[d]})" for d in tb.gen_ids]
@@ -241,8 +376,9 @@ def _time_series(axes: list[Axes], ep: Episode, tb: NetworkTables) -> None:
     if ep.reward.min() < -100:  # a terminal reward (−100 / (1 − γ)) would flatten everything else
         ax.set_yscale("symlog", linthresh=10)
     twin = ax.twinx()
-    twin.plot(x, np.cumsum(ep.reward), color="C2", lw=1.2, label="return so far")
-    twin.set_ylabel("return so far", color="C2")
+    so_far = "return so far" if offset == 0 else f"return from step {offset + 1}"
+    twin.plot(x, np.cumsum(ep.reward), color="C2", lw=1.2, label=so_far)
+    twin.set_ylabel(so_far, color="C2")
     if ax.get_yscale() == "linear":
         _align_zero(ax, twin)
     ax.set_title("reward")

@@ -10,6 +10,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from anm_torchrl._extras import require
+
 
 @contextmanager
 def openmp_threads(n: int) -> Iterator[None]:
@@ -50,7 +52,7 @@ def train_booster(params: dict, x: np.ndarray, y: np.ndarray, x_val: np.ndarray 
     Returns:
         ``(booster, info)`` with ``info = {"best_iteration", "rounds", "best_score", "metric"}``.
     """
-    import xgboost as xgb
+    xgb = require("xgboost")
 
     if "nthread" not in params:
         raise ValueError("train_booster needs params['nthread'], the thread count to train on")

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 import anm_torchrl
+from anm_torchrl._extras import require
 from anm_torchrl.artifacts import ArtifactError, atomic_folder, verify_manifest, write_manifest
 from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
 from anm_torchrl.surrogates._xgb import predict as xgb_predict, train_booster
@@ -236,7 +237,7 @@ def check_layout(have: dict | None, want: dict, where) -> None:
 
 def load_booster(f: Path, what: str):
     """An ``xgboost.Booster`` from ``f``; :class:`ModelFileError` if the file is missing or not an xgboost model."""
-    import xgboost as xgb
+    xgb = require("xgboost")
 
     if not f.is_file():
         raise ModelFileError(f"{what} {f} is missing")

@@ -6,10 +6,14 @@ from pathlib import Path
 
 from torchrl.envs import DoubleToFloat, EnvBase, SerialEnv, StepCounter, TransformedEnv
 
+from anm_torchrl._extras import require
+from anm_torchrl.console import plain_torchrl_console
 from anm_torchrl.envs import ANM6Env, ANMEnv, SurrogateEnv
 from anm_torchrl.envs.anm_env import build_simulator
 from anm_torchrl.paths import artifact_home
 from anm_torchrl.surrogates.registry import load_surrogate
+
+plain_torchrl_console()  # torchrl is imported above: no ANSI colours in a redirected run's output
 
 GYM_ANM_ID = "gym_anm:ANM6Easy-v0"
 
@@ -21,10 +25,7 @@ def make_gym_anm_env(num_envs: int = 1, device="cpu", seed: int | None = None) -
     """
     from torchrl.envs import GymEnv
 
-    try:
-        import gym_anm  # noqa: F401
-    except ImportError as err:  # pragma: no cover - depends on the install
-        raise ImportError("surrogate='gym_anm' needs the gym-anm package: pip install gym-anm==2.0.1") from err
+    require("gym_anm", what="surrogate=gym_anm")
     make = lambda: GymEnv(GYM_ANM_ID, device=device)  # noqa: E731
     env = make() if num_envs == 1 else SerialEnv(num_envs, make)
     env = TransformedEnv(env, DoubleToFloat())

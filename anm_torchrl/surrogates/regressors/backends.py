@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from anm_torchrl._extras import require
 from anm_torchrl.artifacts import ArtifactError, load_tensors, save_tensors
 from anm_torchrl.surrogates.regressors.defaults import MODEL_FILES
 from anm_torchrl.surrogates.terminal import ModelFileError, load_booster
@@ -28,7 +29,7 @@ SKOPS_TRUSTED = ("sklearn.tree._tree.Tree",)
 
 def clone_fit(estimator, x: np.ndarray, y: np.ndarray):
     """A fitted clone of a scikit-learn ``estimator``."""
-    from sklearn.base import clone
+    clone = require("sklearn.base").clone
 
     return clone(estimator).fit(x, y)
 
@@ -56,6 +57,7 @@ class SklearnBackend(Backend):
     @classmethod
     def fit(cls, kind: str, x: np.ndarray, y: np.ndarray, params: dict, n_jobs: int, seed: int,
             progress: bool) -> tuple["SklearnBackend", dict]:
+        require("sklearn")
         import joblib
         from sklearn.ensemble import RandomForestRegressor
         from sklearn.linear_model import LinearRegression
@@ -95,13 +97,13 @@ class SklearnBackend(Backend):
         return torch.as_tensor(np.asarray(y, dtype=np.float64).reshape(x.shape[0], -1), device=x.device)
 
     def save(self, folder: Path) -> None:
-        import skops.io as sio
+        sio = require("skops.io")
 
         sio.dump(self.estimator, folder / MODEL_FILES[self.kind])
 
     @classmethod
     def load(cls, kind: str, folder: Path, n_features: int, n_targets: int) -> "SklearnBackend":
-        import skops.io as sio
+        sio = require("skops.io")
 
         f = folder / MODEL_FILES[kind]
         if not f.is_file():
