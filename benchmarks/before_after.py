@@ -33,7 +33,7 @@ import sys
 import time
 from pathlib import Path
 
-from anm_torchrl.experiments.io import machine_info
+from anm_torchrl.provenance import machine_info
 
 log = logging.getLogger(__name__)
 

@@ -154,7 +154,8 @@ def main(cfg: DictConfig) -> dict:
     from hydra.core.hydra_config import HydraConfig
 
     from anm_torchrl.experiments.common import RunContext
-    from anm_torchrl.experiments.io import machine_info, versions, write_json
+    from anm_torchrl.experiments.io import write_json
+    from anm_torchrl.provenance import machine_info, versions
     from anm_torchrl.experiments.publish import check_publish, committed_run, publish
     from anm_torchrl.experiments.records import REPRODUCTION
 

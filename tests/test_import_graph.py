@@ -15,7 +15,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "anm_torchrl"
 
 # floors, bottom first: a module may import its own floor's and lower floors' modules only
 LAYERS = [
-    ("artifacts", "paths", "_extras"),
+    ("artifacts", "paths", "_extras", "console", "provenance"),
     ("grid",),
     ("networks",),
     ("envs",),

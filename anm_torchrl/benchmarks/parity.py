@@ -174,7 +174,7 @@ def run_fixture(name: str, d: dict[str, np.ndarray], backend: str) -> dict:
 
 def _versions() -> dict[str, Any]:
     """Git commit (and whether the tree was dirty) and the versions the record depends on."""
-    from anm_torchrl.experiments.io import versions
+    from anm_torchrl.provenance import versions
 
     v = versions()
     return {"git_commit": v["git_commit"], "git_dirty": v.get("git_dirty"), "torch": v["torch"],
@@ -202,7 +202,7 @@ def render_markdown(record: dict) -> str:
 def main(argv: list[str] | None = None) -> dict:
     """CLI: write ``<out>.json`` and ``<out>.md``; returns the record."""
     from anm_torchrl.artifacts import atomic_write
-    from anm_torchrl.experiments.io import machine_info
+    from anm_torchrl.provenance import machine_info
 
     p = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     p.add_argument("--out", default="results/parity/parity", help="output stem: <out>.json and <out>.md")

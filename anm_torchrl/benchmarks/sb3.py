@@ -70,7 +70,7 @@ def run(num_envs: int = 64, n_steps: int = 16, rollouts: int = 16, gym_rollouts:
     """Measure both sides in this process; returns the record written by :func:`main`."""
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from anm_torchrl.experiments.io import machine_info, versions
+    from anm_torchrl.provenance import machine_info, versions
     from anm_torchrl.gym.sb3 import SB3VecEnv
 
     torch.set_num_threads(threads)

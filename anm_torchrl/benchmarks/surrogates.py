@@ -25,7 +25,7 @@ DATASETS = ("generative", "agent")
 
 
 def _make(kind: str | None, dataset: str | None, batch: int, device: str, seed: int):
-    from anm_torchrl import make_env
+    from anm_torchrl.training.factory import make_env
 
     if kind is None:
         return make_env("none", num_envs=batch, device=device, seed=seed)

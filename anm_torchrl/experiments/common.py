@@ -70,7 +70,7 @@ def make_env_or_reason(spec: dict[str, Any] | str, num_envs: int, seed: int = 0,
     name = spec if isinstance(spec, str) else spec["name"]
     try:
         if sim is None:
-            from anm_torchrl import make_env
+            from anm_torchrl.training.factory import make_env
 
             return make_env(name, num_envs=num_envs, seed=seed, action_mode="clip", **options(spec), **kw), None
         from anm_torchrl.envs import ANM6Env, SurrogateEnv

@@ -248,7 +248,7 @@ true env. How the optimum is solved, replayed and timed, and the commands that m
 
 
 def _machine(m: dict) -> str:
-    """One line naming a record's ``machine`` (:func:`anm_torchrl.experiments.io.machine_info`)."""
+    """One line naming a record's ``machine`` (:func:`anm_torchrl.provenance.machine_info`)."""
     return (f"{m.get('cpu')}, {m.get('usable_cores')} usable cores, {m.get('memory_gb')} GB, torch threads "
             f"{m.get('torch_threads')}, {m.get('platform')}")
 
