@@ -2,7 +2,7 @@
 MPC and do-nothing on the network's gap-table states; writes ``<out>.json`` and ``<out>.md``.
 
     python -m anm_torchrl.cli.leaderboard --network anm6_easy --runs outputs/ppo/<run> outputs/sac/<run> ...
-                                          [--out results/leaderboard/anm6_easy]
+                                          [--out results/leaderboard/anm6_easy] [--readme README.md]
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--runs", nargs="*", default=[], help="training run directories (summary.json, best.pt)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", default=None, help="write <out>.json and <out>.md")
+    parser.add_argument("--readme", nargs="*", default=[], help="pages whose leaderboard block is re-rendered")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     import torch
@@ -38,6 +39,8 @@ def main(argv: list[str] | None = None) -> None:
         out = Path(args.out)
         atomic_write(out.with_suffix(".json"), json.dumps(record, indent=2).encode())
         atomic_write(out.with_suffix(".md"), text.encode())
+    if args.readme:
+        leaderboard.update_pages(args.readme, record)
     log.info("%s", text)
 
 

@@ -16,6 +16,7 @@ optimum's gain over do-nothing, 100 (R − R_dn) / (R_opt − R_dn).
 from __future__ import annotations
 
 import json
+import re
 import statistics
 from pathlib import Path
 
@@ -116,3 +117,28 @@ def markdown(record: dict) -> str:
         lines.append(f"| {r['policy']} | {r['discounted_return']:.2f}{spread} | {ratio} | {r['gain_pct']:.1f} % | "
                      f"{frames} | {wall} | {seeds} |")
     return "\n".join(lines) + "\n"
+
+
+def block_markers(network: str) -> tuple[str, str]:
+    """The markers of a network's leaderboard block in README and the docs."""
+    return f"<!-- leaderboard:{network} -->", f"<!-- /leaderboard:{network} -->"
+
+
+def update_pages(pages: list[str | Path], record: dict) -> None:
+    """Replace the network's leaderboard block of every page with :func:`markdown` of ``record``; every page is
+    checked for the block before any is written.
+
+    Raises:
+        ValueError: a page without the block (nothing is written then).
+    """
+    from anm_torchrl.artifacts import atomic_write
+
+    start, end = block_markers(record["network"])
+    pattern = re.compile(f"({re.escape(start)}\n)(.*?)({re.escape(end)})", re.S)
+    texts = {Path(p): Path(p).read_text() for p in pages}
+    missing = [str(p) for p, t in texts.items() if not pattern.search(t)]
+    if missing:
+        raise ValueError(f"no {start} ... {end} block in {', '.join(missing)}")
+    body = markdown(record) + f"\n_From `results/leaderboard/{record['network']}.json`._\n"
+    for path, text in texts.items():
+        atomic_write(path, pattern.sub(lambda m: m.group(1) + body + m.group(3), text).encode())
