@@ -33,6 +33,23 @@ LAYERS = [
 ]
 # (importer, imported) arrows that run up on purpose, each with its reason
 ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
+# debts on main that the grid and surrogates branches remove (they are not merged yet); the test fails on any
+# circle or upward arrow not listed here, and on a listed one that is gone (so the list only shrinks)
+KNOWN_CIRCLES = [
+    ["anm_torchrl.grid.simulator", "anm_torchrl.networks.anm6_easy"],
+    ["anm_torchrl.benchmarks.env", "anm_torchrl.benchmarks.env_networks"],
+    ["anm_torchrl.surrogates.regressors.io", "anm_torchrl.surrogates.regressors.module"],
+    ["anm_torchrl.surrogates.pinn.cache", "anm_torchrl.surrogates.pinn.chain", "anm_torchrl.surrogates.pinn.io",
+     "anm_torchrl.surrogates.pinn.loop", "anm_torchrl.surrogates.pinn.refine", "anm_torchrl.surrogates.pinn.train"],
+    ["anm_torchrl.networks.feeders", "anm_torchrl.networks.pandapower_import"],
+]
+KNOWN_UPWARD = [
+    ("anm_torchrl.data.storage", "anm_torchrl"),
+    ("anm_torchrl.grid.simulator", "anm_torchrl.networks.anm6_easy"),
+    ("anm_torchrl.surrogates.pinn.evaluate", "anm_torchrl.baselines.simple"),
+    ("anm_torchrl.surrogates.regressors.io", "anm_torchrl"),
+    ("anm_torchrl.surrogates.terminal", "anm_torchrl"),
+]
 
 
 def module_name(path: Path) -> str:
@@ -124,11 +141,17 @@ def test_the_graph_is_read():
 
 def test_no_import_circles():
     found = cycles(graph())
-    assert not found, "import circles:\n" + "\n".join(" <-> ".join(c) for c in found)
+    new = [c for c in found if c not in KNOWN_CIRCLES]
+    assert not new, "import circles:\n" + "\n".join(" <-> ".join(c) for c in new)
+    gone = [c for c in KNOWN_CIRCLES if c not in found]
+    assert not gone, f"fixed circles still listed in KNOWN_CIRCLES (remove them): {gone}"
 
 
 def test_imports_point_down_the_layers():
     g = graph()
     up = sorted((a, b) for a, deps in g.items() for b in deps
                 if floor(b) > floor(a) and (a, b) not in ALLOWED_UPWARD)
-    assert not up, "imports that run up the layers:\n" + "\n".join(f"{a} -> {b}" for a, b in up)
+    new = [e for e in up if e not in KNOWN_UPWARD]
+    assert not new, "imports that run up the layers:\n" + "\n".join(f"{a} -> {b}" for a, b in new)
+    gone = [e for e in KNOWN_UPWARD if e not in up]
+    assert not gone, f"fixed upward imports still listed in KNOWN_UPWARD (remove them): {gone}"
