@@ -61,13 +61,14 @@ import anm_torchrl
 from anm_torchrl import make_env
 import anm_torchrl.baselines, anm_torchrl.envs, anm_torchrl.gym.env, anm_torchrl.gym.vector
 import anm_torchrl.networks, anm_torchrl.render, anm_torchrl.surrogates.pinn, anm_torchrl.surrogates.registry
-import anm_torchrl.training.evaluation, anm_torchrl.training.factory, anm_torchrl.training.ppo_loop
+import anm_torchrl.evaluation, anm_torchrl.training.factory, anm_torchrl.training.protocol
+import anm_torchrl.training.algorithms.ppo
 print("optional imported:", sorted({{m.split(".")[0] for m in sys.modules}} & set({OPTIONAL!r})))
 """ + block(OPTIONAL) + f"""
 import torch
 from anm_torchrl.grid.simulator import anm6_easy_simulator
 from anm_torchrl.surrogates.pinn import cache, presets
-from anm_torchrl.training.ppo_loop import train_ppo
+from anm_torchrl.training.protocol import train as train_ppo
 from tests.recipe_utils import compose
 torch.set_num_threads(1)
 pinn = cache.train_and_save(presets.preset("smoke"), anm6_easy_simulator(), path={str(tmp_path / "pinn")!r})[0]
