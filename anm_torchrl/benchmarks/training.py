@@ -32,10 +32,9 @@ def _config(algorithm: str, network: str, n_envs: int, overrides: list[str]):
     conf = Path(__file__).resolve().parents[2] / "recipes" / "conf"
     name = {"ppo": "config", "sac": "sac"}[algorithm]
     over = [f"network={network}", f"env.num_envs={n_envs}", f"collector.frames_per_batch={n_envs * STEPS}",
-            "collector.init_random_frames=0", *overrides]
+            *(["collector.init_random_frames=0"] if algorithm == "sac" else []), *overrides]  # time the actor's frames
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        return compose(config_name=name, overrides=over if algorithm == "sac" else
-                       [o for o in over if not o.startswith("collector.init_random")])
+        return compose(config_name=name, overrides=over)
 
 
 def _clock():

@@ -26,6 +26,16 @@ from anm_torchrl.training.algorithms.base import Algorithm
 LOSS_KEYS = ("observation", "action", "action_log_prob", "advantage", "value_target", "state_value")
 
 
+def model_options(config) -> dict:
+    """The ``model`` group of a config (a composed ``DictConfig`` or a checkpoint's plain dict) as the keyword
+    arguments of :func:`~anm_torchrl.training.models.make_ppo_models` / ``make_sac_models`` (the keys are named
+    alike)."""
+    from omegaconf import OmegaConf
+
+    model = config.get("model", {})
+    return dict(OmegaConf.to_container(model, resolve=True) if OmegaConf.is_config(model) else model)
+
+
 def budget_mask(batch_size, remaining: int):
     """Frames of a collected batch ``[..., T]`` that fit in the remaining budget of ``remaining`` frames.
 
@@ -96,10 +106,7 @@ class PPO(Algorithm):
         # one env to build the models from; with one worker it is also the collector's
         spec_env = make_train_env(seed=seed, **train_env_kwargs(cfg, str(device), int(cfg.collector.num_workers)))
         self.actor, self.critic, self.normalizer = make_ppo_models(
-            spec_env, actor_cells=cfg.model.actor_cells, critic_cells=cfg.model.critic_cells,
-            activation=cfg.model.activation, max_obs_scale=cfg.model.max_obs_scale, obs_clip=cfg.model.obs_clip,
-            init_log_std=cfg.model.init_log_std, obs_stats=resume["obs_norm"] if resume else None,
-            init_action=cfg.model.init_action, init_action_clip=cfg.model.init_action_clip)
+            spec_env, obs_stats=resume["obs_norm"] if resume else None, **model_options(cfg))
         self.actor, self.critic = self.actor.to(device), self.critic.to(device)
         self.adv_module = GAE(gamma=cfg.loss.gamma, lmbda=cfg.loss.gae_lambda, value_network=self.critic,
                               average_gae=False, device=device)
@@ -191,4 +198,4 @@ class PPO(Algorithm):
     def build_actor(env, config: Mapping[str, Any], obs_stats: Mapping[str, Any]):
         from anm_torchrl.training.models import make_ppo_models
 
-        return make_ppo_models(env, obs_stats=obs_stats, **dict(config.get("model", {})))[0]
+        return make_ppo_models(env, obs_stats=obs_stats, **model_options(config))[0]

@@ -22,7 +22,7 @@ import torch
 from omegaconf import DictConfig
 
 from anm_torchrl.training.algorithms.base import Algorithm
-from anm_torchrl.training.algorithms.ppo import budget_mask, episode_metrics
+from anm_torchrl.training.algorithms.ppo import budget_mask, episode_metrics, model_options
 
 
 class SAC(Algorithm):
@@ -43,10 +43,7 @@ class SAC(Algorithm):
         self.cfg, self.device, self.reward_scale = cfg, device, float(reward_scale)
         env = make_train_env(seed=seed, **train_env_kwargs(cfg, str(device)))
         self.actor, qvalue, self.normalizer = make_sac_models(
-            env, actor_cells=cfg.model.actor_cells, critic_cells=cfg.model.critic_cells,
-            activation=cfg.model.activation, max_obs_scale=cfg.model.max_obs_scale, obs_clip=cfg.model.obs_clip,
-            init_log_std=cfg.model.init_log_std, obs_stats=resume["obs_norm"] if resume else None,
-            init_action=cfg.model.init_action, init_action_clip=cfg.model.init_action_clip)
+            env, obs_stats=resume["obs_norm"] if resume else None, **model_options(cfg))
         self.actor, qvalue = self.actor.to(device), qvalue.to(device)
         act_dim = int(env.full_action_spec["action"].shape[-1])
         self.loss_module = SACLoss(actor_network=self.actor, qvalue_network=qvalue, num_qvalue_nets=2,
@@ -98,8 +95,8 @@ class SAC(Algorithm):
         for _ in range(n_updates):
             batch = self.buffer.sample()
             loss = self.loss_module(batch)
-            for name, key in (("qvalue", "loss_qvalue"), ("actor", "loss_actor"), ("alpha", "loss_alpha")):
-                self.optims[name].zero_grad(set_to_none=True)
+            for optim in self.optims.values():
+                optim.zero_grad(set_to_none=True)
             (loss["loss_qvalue"] + loss["loss_actor"] + loss["loss_alpha"]).backward()
             grad_norm = (torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), cfg.optim.max_grad_norm)
                          if cfg.optim.max_grad_norm else torch.zeros(()))
@@ -130,4 +127,4 @@ class SAC(Algorithm):
     def build_actor(env, config: Mapping[str, Any], obs_stats: Mapping[str, Any]):
         from anm_torchrl.training.models import make_sac_models
 
-        return make_sac_models(env, obs_stats=obs_stats, **dict(config.get("model", {})))[0]
+        return make_sac_models(env, obs_stats=obs_stats, **model_options(config))[0]
