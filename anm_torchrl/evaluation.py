@@ -41,7 +41,10 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from anm_torchrl._extras import require
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid import reset as grid_reset
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 
 EVAL_GAMMA = 0.995
 EVAL_MAX_STEPS = 3000
@@ -87,15 +90,15 @@ def draw_initial_states(num_episodes: int, seed: int, sim: GridSimulator | None 
         seed: seed of a fresh ``torch.Generator`` (the same seed gives the same states).
         sim: the network's simulator (default ANM6-Easy).
         init: the env's reset distribution (``env.init``): ``"gym_anm"`` / ``"intended"`` (ANM6-Easy's
-            ``init_state``, with / without its unit quirks) or ``"uniform"`` (``GridSimulator.random_state``, the
+            ``init_state``, with / without its unit quirks) or ``"uniform"`` (``grid.reset.random_state``, the
             default of ``ANMEnv`` on other networks).
     """
-    sim = anm6_easy_simulator() if sim is None else sim
+    sim = network_simulator(ANM6_EASY) if sim is None else sim
     generator = torch.Generator(device=sim.net.dev.device).manual_seed(int(seed))
     if init == "uniform":
-        states, _ = sim.random_state(int(num_episodes), generator)
+        states, _ = grid_reset.random_state(sim, int(num_episodes), generator)
     elif init in ("gym_anm", "intended"):
-        states, _ = sim.reset(int(num_episodes), generator, intended=init == "intended")
+        states, _ = grid_reset.gym_anm_reset(sim, int(num_episodes), generator, intended=init == "intended")
     else:
         raise ValueError(f"init must be gym_anm, intended or uniform, got {init!r}")
     return states.cpu()

@@ -28,14 +28,15 @@ log = logging.getLogger("make_dataset")
 
 def run(cfg: DictConfig) -> str:
     """Generate and write the dataset described by ``cfg``; returns its folder."""
-    from anm_torchrl.data import available_datasets, make_dataset, simulator_for
+    from anm_torchrl.data import available_datasets, make_dataset
+    from anm_torchrl.networks import simulator as network_simulator
 
     torch.set_num_threads(int(cfg.threads))
     if cfg.dataset not in available_datasets():
         raise ValueError(f"dataset must be one of {list(available_datasets())}, got {cfg.dataset!r}")
     options = dict(cfg[cfg.dataset]) if cfg.get(cfg.dataset) is not None else {}
     start = time.perf_counter()
-    sim = simulator_for(cfg.network)
+    sim = network_simulator(cfg.network)
     path = make_dataset(cfg.dataset, int(cfg.size), int(cfg.seed), path=cfg.out, overwrite=bool(cfg.overwrite),
                         sim=sim, progress=bool(cfg.progress), fractions=tuple(cfg.fractions), **options)
     log.info("%s dataset (%d rows, seed %d) written to %s in %.1f s", cfg.dataset, cfg.size, cfg.seed, path,

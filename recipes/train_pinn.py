@@ -41,7 +41,7 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 
 @hydra.main(config_path="conf", config_name="train_pinn", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
-    from anm_torchrl.data.generic import simulator_for
+    from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.surrogates.pinn.cache import default_path, train_and_save
     from anm_torchrl.surrogates.pinn.chain import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
@@ -49,7 +49,7 @@ def main(cfg: DictConfig) -> dict:
 
     torch.set_num_threads(int(cfg.threads))
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    sim = simulator_for(cfg.network)
+    sim = network_simulator(cfg.network)
     file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
     out: dict = {"path": str(file)}
     if not cfg.eval_only:

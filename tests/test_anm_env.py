@@ -333,8 +333,8 @@ def test_surrogate_env_on_this_network_checks_the_content_key():
     kw = dict(network=NETWORK, load_p=LOAD_P, gen_p_max=GEN_P_MAX, **KW)
     env = SurrogateEnv(model, num_envs=2, seed=0, observation="state", **kw)
     check_env_specs(env)
-    assert env.network_key == make_env(1).network_key  # the content key ignores the observation choice
-    model.network_key = env.network_key
+    assert env.transition_key == make_env(1).transition_key  # the content key ignores the observation choice
+    model.transition_key = env.transition_key
     SurrogateEnv(model, num_envs=2, **kw)
     other = dict(kw, load_p=LOAD_P * 0.5)
     with pytest.raises(ValueError, match="built for another network"):

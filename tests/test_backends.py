@@ -78,7 +78,7 @@ def _loop_without_slack(branch: np.ndarray, n_bus: int) -> bool:
 
 
 def _stages(tr, sim):
-    g, d = sim._gid, sim._did
+    g, d = sim.gen_idx, sim.des_idx
     return {
         "projection (generators)": (torch.stack([tr.p_dev[:, g], tr.q_dev[:, g]], -1), None),
         "projection (storage)": (torch.stack([tr.p_dev[:, d], tr.q_dev[:, d]], -1), None),
@@ -106,8 +106,8 @@ def test_backends_agree_stage_by_stage(seed, solver):
     lo, hi = sims[0].action_bounds()
     n = 400
     action = lo + torch.as_tensor(rng.random((n, lo.numel()))) * (hi - lo)
-    soc_lo = sims[0].net.dev[sims[0]._did, 13] * 100
-    soc_hi = sims[0].net.dev[sims[0]._did, 12] * 100
+    soc_lo = sims[0].net.dev[sims[0].des_idx, 13] * 100
+    soc_hi = sims[0].net.dev[sims[0].des_idx, 12] * 100
     state = torch.zeros(n, sims[0].state_dim, dtype=torch.float64)
     sl = sims[0].state_slices()
     state[:, sl["des_soc"]] = soc_lo + torch.as_tensor(rng.random((n, soc_lo.numel()))) * (soc_hi - soc_lo)
@@ -124,3 +124,25 @@ def test_backends_agree_stage_by_stage(seed, solver):
             a, b = a[ok], b[ok]
         torch.testing.assert_close(b, a, rtol=0, atol=TOL, msg=lambda m, stage=stage: f"stage {stage}: {m}")
     torch.testing.assert_close(n1, n0, rtol=0, atol=TOL, msg=lambda m: f"next state: {m}")
+
+
+def test_backend_registry_resolves_once_by_name():
+    """``get_backend`` is the one place a backend name is resolved: an unknown name is refused naming the known
+    ones, a backend that cannot run a network says why, and ``auto`` picks numba for a float64 CPU network."""
+    from anm_torchrl.grid.backends import get_backend, list_backends
+
+    net, load_p, gen_p_max = random_network(np.random.default_rng(0))
+    sim = GridSimulator.from_tables(net, load_p, gen_p_max, 0.25, 0.995, 100.0, (1.0, 100.0))
+    assert sim.backend == "numba" and sim.physics is get_backend("numba")
+    with pytest.raises(ValueError, match=r"unknown backend 'gpu'; known: \['auto', 'torch', 'numba'\]"):
+        get_backend("gpu")
+    assert list_backends() == ["auto", "torch", "numba"]
+    with pytest.raises(ValueError, match="cannot run this network: it needs a float64 network on the CPU"):
+        get_backend("numba", _Float32Net(sim.net))
+
+
+class _Float32Net:
+    """A stand-in network whose device table is float32 (the numba backend refuses it)."""
+
+    def __init__(self, net):
+        self.dev = net.dev.float()

@@ -9,8 +9,10 @@ from tensordict import TensorDict
 
 from anm_torchrl.baselines import DoNothingPolicy, MPCPolicy, RandomPolicy, make_baseline
 from anm_torchrl.evaluation import EVAL_GAMMA
-from anm_torchrl.grid import anm6_easy_simulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.grid import devices as dv
+from anm_torchrl.grid import reset as grid_reset
 
 torch.set_num_threads(1)
 
@@ -21,14 +23,14 @@ GAMMA = EVAL_GAMMA  # gym-anm-exp's MPC discount
 
 @pytest.fixture(scope="module")
 def sim():
-    return anm6_easy_simulator()
+    return network_simulator(ANM6_EASY)
 
 
 @pytest.fixture(scope="module")
 def states(sim):
     """Initial states plus states after a few random-policy steps (non-trivial SoC), float64 (N, 18)."""
     g = torch.Generator().manual_seed(3)
-    s0 = sim.reset(6, generator=g, intended=True)[0]
+    s0 = grid_reset.gym_anm_reset(sim, 6, generator=g, intended=True)[0]
     s = s0
     pol = RandomPolicy(seed=1, sim=sim)
     for _ in range(3):
@@ -140,7 +142,7 @@ def test_mpc_plan_satisfies_dcopf_constraints(sim, states, forecast):
 
 def test_mpc_perfect_forecast_sees_raw_pv_and_charges_at_noon(sim):
     pol = MPCPolicy(sim, horizon=8, forecast="perfect")
-    state = sim.initial_state(torch.tensor([48]), torch.zeros(1, 2), torch.tensor([[50.0]]))[0][0].numpy()
+    state = grid_reset.initial_state(sim, torch.tensor([48]), torch.zeros(1, 2), torch.tensor([[50.0]]))[0][0].numpy()
     plan = pol.solve(state)
     assert np.isclose(plan["p_pot_forecast"][:, 0].max(), 0.3675)  # the raw 36.75 MW PV value (spec §2.2)
     _check_plan(pol, sim, state, plan)

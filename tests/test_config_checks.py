@@ -180,7 +180,7 @@ def test_make_env_network_by_name_or_dict():
     by_name = make_env("none", network="case33bw", num_envs=2, seed=0)
     by_dict = make_env("none", network=case.network, load_p=case.load_p, gen_p_max=case.gen_p_max, num_envs=2,
                        seed=0, init="uniform")
-    assert by_name.network_key == by_dict.network_key != make_env("none", num_envs=1).network_key
+    assert by_name.transition_key == by_dict.transition_key != make_env("none", num_envs=1).transition_key
     with pytest.raises(ValueError, match="a network dict needs load_p="):
         make_env("none", network=case.network)
     with pytest.raises(ValueError, match="unknown network 'nowhere'"):

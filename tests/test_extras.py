@@ -66,12 +66,12 @@ import anm_torchrl.training.algorithms.ppo
 print("optional imported:", sorted({{m.split(".")[0] for m in sys.modules}} & set({OPTIONAL!r})))
 """ + block(OPTIONAL) + f"""
 import torch
-from anm_torchrl.grid.simulator import anm6_easy_simulator
+from anm_torchrl.networks import ANM6_EASY, simulator as network_simulator
 from anm_torchrl.surrogates.pinn import cache, presets
 from anm_torchrl.training.protocol import train as train_ppo
 from tests.recipe_utils import compose
 torch.set_num_threads(1)
-pinn = cache.train_and_save(presets.preset("smoke"), anm6_easy_simulator(), path={str(tmp_path / "pinn")!r})[0]
+pinn = cache.train_and_save(presets.preset("smoke"), network_simulator(ANM6_EASY), path={str(tmp_path / "pinn")!r})[0]
 cfg = compose("config", ["surrogate=pinn", "surrogate.path=" + str(pinn), "env.num_envs=4",
                          "collector.frames_per_batch=32", "collector.total_frames=32", "loss.mini_batch_size=16",
                          "eval.num_episodes=2", "eval.test_episodes=2", "eval.max_steps=5", "logger.backend=null",

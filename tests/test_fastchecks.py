@@ -10,9 +10,12 @@ import torch
 from anm_torchrl.envs.specs import ActionBox, check_action
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid import fastchecks
-from anm_torchrl.grid.kernel import CompiledTransition, _flat_start_lu, available
+from anm_torchrl.grid.backends.numba import CompiledTransition, _flat_start_lu, available
 from anm_torchrl.grid.state import check_state
 from anm_torchrl.networks import anm6_easy
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
+from anm_torchrl.grid import reset as grid_reset
 
 pytestmark = pytest.mark.skipif(not available(), reason="numba not installed")
 
@@ -27,14 +30,14 @@ def _torch_accepts(fn) -> bool:
 
 @pytest.fixture(scope="module")
 def sim():
-    return anm6_easy.simulator(backend="numba")
+    return network_simulator(ANM6_EASY, backend="numba")
 
 
 def _states(sim, n=64):
     """Valid states, then one corruption per row kind (each must be rejected by both checks)."""
     gen = torch.Generator().manual_seed(0)
-    state, _ = sim.reset(n, gen)
-    sl, soc_max = sim.state_slices(), float(sim.net.dev[sim._did[0], dv.SOC_MAX] * sim.net.base_mva)
+    state, _ = grid_reset.gym_anm_reset(sim, n, gen)
+    sl, soc_max = sim.state_slices(), float(sim.net.dev[sim.des_idx[0], dv.SOC_MAX] * sim.net.base_mva)
     bad = []
     for col, value in ((3, float("nan")), (0, float("inf")), (sl["des_soc"].start, -1e-9),
                        (sl["des_soc"].start, soc_max + 1e-9), (sl["aux"].start, 2.5), (sl["aux"].start, -1.0),
@@ -50,7 +53,7 @@ def _states(sim, n=64):
 
 def test_state_check_agrees_with_torch(sim):
     good, bad = _states(sim)
-    d, b = sim.net.dev[sim._did], sim.net.base_mva
+    d, b = sim.net.dev[sim.des_idx], sim.net.base_mva
     lo, hi = d[:, dv.SOC_MIN] * b, d[:, dv.SOC_MAX] * b  # MWh
     sl = sim.state_slices()
     for s, expected in [(s, True) for s in good] + [(s, False) for s in bad]:
@@ -100,7 +103,7 @@ def test_dense_newton_path_is_bit_identical(sim):
                                           _flat_start_lu(c.y, c.ycsr, False, c.ix, c.kl, c.ku, c.parent))))
     gen = torch.Generator().manual_seed(2)
     n = 512
-    state, _ = sim.reset(n, gen)
+    state, _ = grid_reset.gym_anm_reset(sim, n, gen)
     low, high = sim.action_bounds()
     a = (low + torch.rand(n, low.numel(), generator=gen, dtype=torch.float64) * (high - low)) / sim.net.base_mva
     soc = state[:, sim.state_slices()["des_soc"]] / sim.net.base_mva
@@ -119,7 +122,7 @@ def test_compiled_outputs_equal_the_torch_ops(sim):
 
     gen = torch.Generator().manual_seed(3)
     n = 2048
-    state, _ = sim.reset(n, gen)
+    state, _ = grid_reset.gym_anm_reset(sim, n, gen)
     low, high = sim.action_bounds()
     a = low + torch.rand(n, low.numel(), generator=gen, dtype=torch.float64) * (high - low) * 1.5  # some collapse
     t = torch.randint(0, sim.n_time, (n,), generator=gen)
@@ -146,16 +149,16 @@ def test_compiled_outputs_equal_the_torch_ops(sim):
 def test_step_follows_replaced_and_rescaled_series():
     """GridSimulator.step gathers the exogenous rows from a cached copy of the series: replacing a series (as
     experiments do) or scaling it in place must show in the next step, exactly as next_vars gives it."""
-    sim = anm6_easy.simulator(backend="numba")
-    state, _ = sim.reset(8, torch.Generator().manual_seed(4))
+    sim = network_simulator(ANM6_EASY, backend="numba")
+    state, _ = grid_reset.gym_anm_reset(sim, 8, torch.Generator().manual_seed(4))
     a = torch.zeros(8, sim.action_dim, dtype=torch.float64)
-    lid = sim.state_slices()["dev_p"].start + sim._lid
+    lid = sim.state_slices()["dev_p"].start + sim.load_idx
     for change in (lambda: None, lambda: setattr(sim, "load_series", sim.load_series * 1.1),
                    lambda: sim.load_series.mul_(0.9)):
         change()
         nxt, tr = sim.step(state, a)
         p_load = sim.next_vars(state)[0]
-        dev = sim.net.dev[sim._lid]
+        dev = sim.net.dev[sim.load_idx]
         expected = torch.clamp(p_load / sim.net.base_mva, dev[:, dv.PMIN], dev[:, dv.PMAX])
         ok = tr.converged
         assert torch.equal(nxt[ok][:, lid], (expected * sim.net.base_mva)[ok])

@@ -22,7 +22,10 @@ from anm_torchrl.grid import residuals as res
 from anm_torchrl.grid.network import build_y_bus, branch_flows, make_branches, make_network
 from anm_torchrl.grid.powerflow import newton_raphson
 from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, penalty, terminal_reward
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
+from anm_torchrl.grid import reset as grid_reset
 
 torch.set_num_threads(1)
 N_ = None  # "not given" in gym-anm device tables
@@ -188,7 +191,7 @@ def test_y_bus_tap_2_shift_90():
 
 def test_anm6_y_bus_and_slopes():
     """ANM6-Easy Y-bus (spec §1.3) and capability slopes/offsets (spec §1.5)."""
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     y = sim.net.y_bus.numpy()
     table = {(0, 0): 0.10698836 - 5.45046261j, (0, 1): -0.10698836 + 5.45046261j,
              (1, 1): 28.18058832 - 34.28688189j, (1, 2): -21.67630058 + 15.89595376j,
@@ -224,7 +227,7 @@ def _osqp(target: np.ndarray, g: np.ndarray, h: np.ndarray) -> np.ndarray:
 def test_projection_against_osqp():
     pytest.importorskip("osqp")
     rng = np.random.default_rng(0)
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     pmax = np.array([0.3, 0.5])
     n = 120
     # P_pot: random, 0 (PV at night) and PMAX (two rows coincide); targets inside, near and far outside the box.
@@ -311,7 +314,7 @@ def test_device_defaults_when_corners_not_given():
 
 def test_loads_clip_and_power_factor():
     """Loads clip to [PMIN, 0] with Q = 0.2·P; renewable potentials clip to [PMIN, PMAX] (spec §3.3, §2.2)."""
-    base = anm6_easy_simulator()
+    base = network_simulator(ANM6_EASY)
     f64 = dict(dtype=torch.float64)
     loads = torch.tensor([[-20.0, -5.0, 3.0], [-40.0, 0.0, -1.0], [-31.0, 5.0, -29.0]], **f64)  # MW, 3 steps
     pmax = torch.tensor([[36.75, -1.0, 12.0], [60.0, 14.725, -3.0]], **f64)
@@ -335,7 +338,7 @@ def _kkt_cases(p_pot_zero: bool, n: int = 400, seed: int = 5):
     rows P <= PMAX and P <= P_pot coincide) and DES with SoC empty, full or random.
     """
     rng = np.random.default_rng(seed)
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     pmax = np.array([0.3, 0.5])
     p_pot = np.zeros((n, 2)) if p_pot_zero else rng.uniform(0.01, 1, (n, 2)) * pmax
     if not p_pot_zero:
@@ -404,7 +407,7 @@ def test_projection_duals_dual_feasible_at_p_pot_zero():
 
 
 def test_soc_update_examples():
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     soc = torch.tensor([[0.2], [0.5], [0.95], [0.05]], dtype=torch.float64)
     p = torch.tensor([[-0.5], [0.5], [-0.5], [0.5]], dtype=torch.float64)
     nxt = sim.soc_update(soc, p) * 100
@@ -451,7 +454,7 @@ def test_nan_and_singular_power_flow_not_converged():
     assert not pf.converged.any()
     assert torch.isnan(pf.mismatch_inf).all() or torch.isnan(pf.v).any()
     # The env-level consequence: terminal reward and zero state.
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     st = torch.zeros(1, 18, dtype=torch.float64)
     st[0, 17] = 80
     nxt, tr = sim.step(st, torch.tensor([[30.0, 50.0, -30.0, -50.0, 0.0, -50.0]], dtype=torch.float64))
@@ -488,7 +491,7 @@ def test_reward_examples_gym_anm():
 
 def test_do_nothing_daily_reward_profile():
     """Spec §4.3: a = [30, 50, 0, 0, 0, 0] over one day (t = 0..95)."""
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     state = torch.zeros(1, 18, dtype=torch.float64)
     state[0, 17] = 95  # first step lands on t = 0
     a = torch.tensor([[30.0, 50.0, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
@@ -516,12 +519,13 @@ def test_do_nothing_daily_reward_profile():
 def test_numba_backend_equals_torch_backend():
     """The compiled loop and the batched torch ops give the same Transition, field by field, terminal rows and
     SoC at both bounds included; the series are read at call time (experiments rescale them in place)."""
-    from anm_torchrl.grid.simulator import anm6_easy_simulator
+    from anm_torchrl.networks import ANM6_EASY
+    from anm_torchrl.networks import simulator as network_simulator
 
     pytest.importorskip("numba")
-    st, sn = anm6_easy_simulator(backend="torch"), anm6_easy_simulator(backend="numba")
+    st, sn = network_simulator(ANM6_EASY, backend="torch"), network_simulator(ANM6_EASY, backend="numba")
     gen = torch.Generator().manual_seed(3)
-    state, _ = st.random_state(3000, gen)
+    state, _ = grid_reset.random_state(st, 3000, gen)
     lo, hi = st.action_bounds()
     action = lo + torch.rand(3000, 6, generator=gen, dtype=torch.float64) * (hi - lo)
     action[:500] = torch.where(torch.rand(500, 6, generator=gen) < 0.5, lo, hi)  # box corners: many terminal
@@ -549,7 +553,7 @@ def test_numba_backend_equals_torch_backend():
         torch.set_num_threads(threads)
     assert torch.equal(n3, n1) and torch.equal(t3.reward, t1.reward) and torch.equal(t3.n_iter, t1.n_iter)
     with pytest.raises(ValueError, match="backend"):
-        anm6_easy_simulator(backend="cuda-magic")
+        network_simulator(ANM6_EASY, backend="cuda-magic")
 
 
 def test_numba_backend_on_general_networks():
@@ -568,7 +572,7 @@ def test_numba_backend_on_general_networks():
                 for b in ("torch", "numba")]
         lo, hi = sims[0].action_bounds()
         action = lo + torch.as_tensor(rng.random((500, lo.numel())), **f64) * (hi - lo)
-        state, _ = sims[0].random_state(500, torch.Generator().manual_seed(1))
+        state, _ = grid_reset.random_state(sims[0], 500, torch.Generator().manual_seed(1))
         (n0, t0), (n1, t1) = (s.step(state, action) for s in sims)
         assert t0.converged.double().mean() > 0.5, name
         assert torch.equal(t0.converged, t1.converged) and torch.equal(t0.n_iter, t1.n_iter), name

@@ -154,3 +154,26 @@ def _check_anm_env(name):
 @pytest.mark.parametrize("name", FEEDERS)
 def test_anm_env_matches_pandapower(name):
     _check_anm_env(name)
+
+
+def test_one_function_resolves_a_network():
+    """``networks.simulator`` builds the same simulator from a registered name, its NetworkCase, or the case's
+    dict + profiles + constants; it refuses a dict without profiles and any other type, naming what is wrong."""
+    from anm_torchrl.grid.identity import transition_key
+    from anm_torchrl.networks import ANM6_EASY, simulator
+
+    case = get_network("case33bw")
+    by_name, by_case = simulator("case33bw"), simulator(case)
+    by_dict = simulator(case.network, case.load_p, case.gen_p_max, delta_t=case.delta_t, gamma=case.gamma,
+                        lamb=case.lamb, costs_clipping=case.costs_clipping)
+    assert transition_key(by_name) == transition_key(by_case) == transition_key(by_dict)
+    assert simulator(ANM6_EASY, backend="torch").backend == "torch"
+    assert simulator(case, gamma=0.9).gamma == 0.9 and simulator(case).gamma == case.gamma
+    with pytest.raises(ValueError, match="a network dict needs its profiles"):
+        simulator(case.network)
+    with pytest.raises(ValueError, match="network must be a registered name, a NetworkCase or a gym-anm network dict"):
+        simulator(None)
+    with pytest.raises(ValueError, match="unknown network 'nope'"):
+        simulator("nope")
+    with pytest.raises(ValueError, match="gamma must lie in"):
+        simulator(case, gamma=1.0)

@@ -16,7 +16,8 @@ from anm_torchrl.baselines.nlp_model import ACHorizonNLP, rollout  # noqa: E402
 from anm_torchrl.baselines.optimal import (replay_in_env, solve_optimal,  # noqa: E402
                                            warm_start_actions)
 from anm_torchrl.evaluation import EVAL_GAMMA, draw_initial_states, evaluate_policy  # noqa: E402
-from anm_torchrl.grid.simulator import anm6_easy_simulator  # noqa: E402
+from anm_torchrl.networks import ANM6_EASY  # noqa: E402
+from anm_torchrl.networks import simulator as network_simulator  # noqa: E402
 
 torch.set_num_threads(1)
 
@@ -29,7 +30,7 @@ REPLAY_RTOL = 1e-6
 
 @pytest.fixture(scope="module")
 def sim():
-    return anm6_easy_simulator()
+    return network_simulator(ANM6_EASY)
 
 
 @pytest.fixture(scope="module")
@@ -236,9 +237,8 @@ def test_acmpc_failed_solves_are_recorded(sim, monkeypatch):
 def test_other_network_optimum_replays_in_anmenv(network, steps):
     """The NLP built from a feeder's tables solves, its objective is gym-anm's cost, and its set-points stepped
     through ANMEnv(network=...) give the NLP's return."""
-    from anm_torchrl.data.generic import simulator_for
 
-    sim_n = simulator_for(network)
+    sim_n = network_simulator(network)
     env = gap.true_env(network, 1)
     s0 = draw_initial_states(1, 0, sim_n, env.init)[0].numpy()
     opt = solve_optimal(sim_n, s0, steps, GAMMA, warm_start="do_nothing")
@@ -257,14 +257,13 @@ def test_storage_free_optimum_repeats_over_the_period():
     """Without storage the optimum separates per step: solved over the profiles' period and repeated, it equals
     the optimum solved over the whole horizon at once (the SimBench feeder's tables, profiles cut to 3 steps)."""
     from anm_torchrl.baselines.optimal import solve_horizon
-    from anm_torchrl.envs.anm_env import build_simulator
     from anm_torchrl.networks import get_network
 
     case, period, steps = get_network("simbench_mv_semiurb"), 3, 7
     args = dict(delta_t=case.delta_t, gamma=case.gamma, lamb=case.lamb, costs_clipping=case.costs_clipping)
-    short = build_simulator(case.network, case.load_p[:period], case.gen_p_max[:period], **args)
+    short = network_simulator(case.network, case.load_p[:period], case.gen_p_max[:period], **args)
     reps = -(-steps // period) + 1  # the same profile, repeated past the horizon: no period shorter than it
-    long = build_simulator(case.network, np.tile(case.load_p[:period], (reps, 1)),
+    long = network_simulator(case.network, np.tile(case.load_p[:period], (reps, 1)),
                            np.tile(case.gen_p_max[:period], (reps, 1)), **args)
     assert (solve_horizon(short, steps), solve_horizon(long, steps)) == (period, steps)
     s0 = draw_initial_states(1, 0, short)[0].numpy()  # time index in [0, 3): the same steps on both

@@ -21,7 +21,9 @@ import torch
 
 from anm_torchrl.benchmarks.parity import (ANM6_FIXTURE, FIXTURES, REWARD_RTOL, STATE_TOL, compare, fixture_env,
                                            load_fixture, reference_observation, step_recorded)
-from anm_torchrl.grid.simulator import anm6_easy_simulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
+from anm_torchrl.grid import reset as grid_reset
 
 torch.set_num_threads(1)
 
@@ -65,11 +67,11 @@ def replay_reset_draws(seed: int, n_resets: int = 1):
 
 
 def initial_states(sim, draws) -> tuple[torch.Tensor, torch.Tensor]:
-    """``GridSimulator.initial_state`` for a list of (t0, q, soc) draws: (state (n, 18), converged (n,))."""
+    """``grid.reset.initial_state`` for a list of (t0, q, soc) draws: (state (n, 18), converged (n,))."""
     t0 = torch.tensor([d[0] for d in draws], dtype=torch.long)
     q = torch.tensor([d[1] for d in draws], dtype=torch.float64)
     soc = torch.tensor([[d[2]] for d in draws], dtype=torch.float64)
-    state, extra = sim.initial_state(t0, q, soc)
+    state, extra = grid_reset.initial_state(sim, t0, q, soc)
     converged = extra if isinstance(extra, torch.Tensor) else extra.converged
     return state, converged
 
@@ -81,7 +83,7 @@ BACKENDS = pytest.mark.parametrize("backend", ["torch", "numba"])
 
 @BACKENDS
 def test_golden_trajectory_grid(backend):
-    sim = anm6_easy_simulator(backend=backend)
+    sim = network_simulator(ANM6_EASY, backend=backend)
     assert sim.backend == backend
     draws = replay_reset_draws(0)
     assert draws[0][0] == 81
@@ -117,7 +119,7 @@ def test_golden_trajectory_env(backend):
     from tensordict import TensorDict
 
     anm6 = pytest.importorskip("anm_torchrl.envs.anm6")
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     s0, _ = initial_states(sim, replay_reset_draws(0))
     env = anm6.ANM6Env(num_envs=1, seed=0, backend=backend)
     td = env.reset(TensorDict({"state": s0}, [1]), set_state=True)
@@ -176,7 +178,7 @@ def _compare(name, next_state, reward, terminated, d) -> dict:
 @BACKENDS
 def test_differential_grid(fixture_data, backend):
     d = fixture_data
-    sim = anm6_easy_simulator(backend=backend)
+    sim = network_simulator(ANM6_EASY, backend=backend)
     nxt, tr = sim.step(torch.as_tensor(d["state"]), torch.as_tensor(d["action"]))
     _compare(f"GridSimulator.step ({backend})", nxt.numpy(), tr.reward.numpy(), (~tr.converged).numpy(), d)
 
@@ -205,7 +207,7 @@ def test_differential_env(fixture_data, backend):
 def test_reset_replay_from_fixture(fixture_data):
     """The fixture's reset observations (50 seeds) equal ``initial_state`` of the replayed draws."""
     d = fixture_data
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     draws = [replay_reset_draws(int(s))[0] for s in d["reset_seeds"]]
     state, ok = initial_states(sim, draws)
     assert ok.all()
@@ -227,7 +229,7 @@ def _gym_env():
 
 def test_live_reset_replay():
     env = _gym_env()
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     seeds = [0, 1, 2, 3, 4, 17, 123, 2024]
     draws, ref_states, ref_obs = [], [], []
     for seed in seeds:
@@ -255,7 +257,7 @@ def test_live_reset_replay():
 def test_live_lockstep_200_steps(backend):
     """~200 steps of gym-anm with mixed actions; each transition is re-simulated from gym-anm's own state."""
     env = _gym_env()
-    sim = anm6_easy_simulator(backend=backend)
+    sim = network_simulator(ANM6_EASY, backend=backend)
     rng = np.random.default_rng(99)
     low = np.array([0, 0, -30, -50, -50, -50], dtype=np.float64)
     high = np.array([30, 50, 30, 50, 50, 50], dtype=np.float64)
@@ -304,7 +306,7 @@ def test_live_lockstep_200_steps(backend):
 def test_live_golden_and_do_nothing_day():
     """Spec §5.4 golden steps and the §4.3 do-nothing day, computed by gym-anm now and by us."""
     env = _gym_env()
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     env.reset(seed=0)
     s_ref = [env.state.copy()]
     r_ref = []

@@ -22,7 +22,8 @@ from anm_torchrl.envs import ANM6Env, SurrogateEnv
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.powerflow import newton_raphson
 from anm_torchrl.grid.residuals import constraint_slack
-from anm_torchrl.grid.simulator import anm6_easy_simulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn import cache
 from anm_torchrl.surrogates.pinn import train as tr
 from anm_torchrl.surrogates.pinn.chain import build_chain, load_pinn
@@ -30,6 +31,7 @@ from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn, random_transitio
 from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT, clamp_to_polygon
 from anm_torchrl.surrogates.pinn.losses import kkt_losses, power_balance_losses
 from anm_torchrl.surrogates.pinn.power_balance import bus_injection_box
+from anm_torchrl.grid import reset as grid_reset
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,7 +41,7 @@ ANM6_DEFAULT_DIGEST = "e39cb1b15b325daf"  # sha256[:16] of preset("default").to_
 
 @pytest.fixture(scope="module")
 def sim():
-    return anm6_easy_simulator()
+    return network_simulator(ANM6_EASY)
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +91,7 @@ def test_kkt_losses_vanish_at_exact_projection(sim):
 
 def test_power_balance_losses_vanish_at_power_flow_solution(sim):
     gen = torch.Generator().manual_seed(1)
-    state, tr_ = sim.random_state(500, gen)
+    state, tr_ = grid_reset.random_state(sim, 500, gen)
     p_bus = tr_.p_dev @ sim.net.incidence
     q_bus = tr_.q_dev @ sim.net.incidence
     pf = newton_raphson(sim.net.y_bus, torch.complex(p_bus, q_bus), tol=1e-12)
@@ -269,7 +271,7 @@ def test_load_pinn_trains_and_caches_when_missing(tmp_path, monkeypatch):
     assert (tmp_path / "pinn.safetensors").is_file() and calls == ["smoke"]
     c2 = load_pinn(path=tmp_path, preset="smoke")
     assert calls == ["smoke"]  # second call loads
-    td = _batch(anm6_easy_simulator(), 8)
+    td = _batch(network_simulator(ANM6_EASY), 8)
     assert torch.equal(c1(td.clone()).get("next_state"), c2(td.clone()).get("next_state"))
 
 
@@ -304,9 +306,9 @@ def test_physics_alone(network, monkeypatch):
     """Training never reads an exact solution: with every exact reference (projection, Newton–Raphson) replaced
     by garbage, and the simulator's transition disabled, the trained weights are bit-identical — on ANM6-Easy and
     on a 33-bus feeder."""
-    from anm_torchrl.data.generic import simulator_for
+    from anm_torchrl.networks import simulator as network_simulator
 
-    sim = simulator_for(network)
+    sim = network_simulator(network)
     cfg = tr.preset("smoke", generator={"max_steps": 30, "eval_every": 10}, storage={"max_steps": 30, "eval_every": 10},
                     power_balance={"max_steps": 30, "eval_every": 10})
     clean, _ = tr.train_pinn(cfg, sim)
@@ -353,7 +355,7 @@ def test_classifier_terminal_wiring(sim, smoke_file):
 
 # -------------------------------------------------------------------------------------------------- env
 def test_surrogate_env_specs(chain):
-    env = SurrogateEnv(chain, num_envs=4, seed=0)
+    env = SurrogateEnv(chain, num_envs=4, seed=0, sim=network_simulator(ANM6_EASY))
     check_env_specs(env)
     ref = ANM6Env(4)
     assert env.output_spec == ref.output_spec
@@ -412,7 +414,7 @@ def test_expert_set_never_falls_back(sim, monkeypatch):
 
 # ---------------------------------------------------------------------------------------------- configs
 @pytest.mark.parametrize("name", sorted(tr.PRESETS))
-def test_recipe_composes_the_package_presets(name):
+def test_recipe_composes_the_package_presets(name, sim):
     """The recipe's pinn_preset group is the package's YAML (one home): composing it gives ``preset(name)``."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
@@ -421,7 +423,7 @@ def test_recipe_composes_the_package_presets(name):
         cfg = compose("train_pinn", overrides=[f"pinn_preset={name}"])
     data = OmegaConf.to_container(cfg.pinn_preset, resolve=True)
     assert data["name"] == name
-    assert tr.from_composed(data).to_dict() == tr.preset(name).to_dict()  # on ANM6-Easy: no resolution
+    assert tr.from_composed(data, sim).to_dict() == tr.preset(name).to_dict()  # on ANM6-Easy: no resolution
     assert not (ROOT / "recipes" / "conf" / "pinn_preset").exists()  # no second copy
 
 
@@ -447,9 +449,9 @@ def test_feeder_preset_selection():
     per network after training (``auto``, :mod:`anm_torchrl.surrogates.pinn.refine`);
     other names are never rewritten, and the
     recipe keeps command-line changes to the composed default."""
-    from anm_torchrl.data.generic import simulator_for
+    from anm_torchrl.networks import simulator as network_simulator
 
-    feeder = simulator_for("case33bw")
+    feeder = network_simulator("case33bw")
     assert tr.network_preset_name("default", feeder) == tr.FEEDER_DEFAULT == "feeder"
     assert tr.network_preset_name("smoke", feeder) == "smoke"
     cfg, base = tr.preset_for("default", feeder).to_dict(), tr.preset("default").to_dict()
@@ -470,10 +472,10 @@ def test_chord_refinement_converges_to_newton_raphson(network):
     """``refine_steps``: chord-Newton steps from an untrained network's output contract towards the exact power
     flow (each step at least 5× closer on these light-load injections; a wrong Jacobian or sign diverges), and
     ``refine=False`` is the raw network."""
-    from anm_torchrl.data.generic import simulator_for
+    from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
 
-    sim = simulator_for(network)
+    sim = network_simulator(network)
     state, action = random_transitions(sim, 200, seed=5)
     _, trn = sim.step(state, action)
     p, q = trn.p_dev @ sim.net.incidence, trn.q_dev @ sim.net.incidence

@@ -87,12 +87,12 @@ def test_evaluating_a_saved_model_needs_its_own_training_entry(tmp_path):
     entry (other per-module figures) or no record is refused, never silently mixed."""
     import torch
 
-    from anm_torchrl.data.generic import simulator_for
+    from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.surrogates.pinn import train as tr
     from anm_torchrl.surrogates.pinn.generic_accuracy import training_of
 
     torch.set_num_threads(1)
-    sim = simulator_for("cigre_mv")
+    sim = network_simulator("cigre_mv")
     cfg = tr.preset("smoke")
     modules, report = tr.train_pinn(cfg, sim)
     file = tr.save_pinn(tmp_path / "pinn.safetensors", modules, cfg, report, sim)

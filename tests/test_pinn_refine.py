@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from anm_torchrl.artifacts import ArtifactError, tensors_sha256
-from anm_torchrl.data.generic import simulator_for
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn import refine
 from anm_torchrl.surrogates.pinn import train as tr
 from anm_torchrl.surrogates.pinn.chain import load_pinn
@@ -28,7 +28,7 @@ AUTO = {"refine_steps": "auto"}
 
 @pytest.fixture(scope="module")
 def case33():
-    return simulator_for("case33bw")
+    return network_simulator("case33bw")
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,7 @@ def test_rule_picks_the_smallest_k_that_meets_it():
     """On the 115-bus SimBench feeder (1 MVA base, stiff lines) one chord step from an untrained network leaves a
     residual far above the terminal threshold: the rule picks k > 1, the smallest whose 0.99 quantile is within
     half the threshold (the one before it is not), and sets the module to it."""
-    sim = simulator_for("simbench_mv_semiurb")
+    sim = network_simulator("simbench_mv_semiurb")
     torch.manual_seed(0)
     pb = PowerBalanceNet(sim, hidden=16, depth=2)
     rec = refine.choose_refine_steps(pb, sim, seed=5)
@@ -74,7 +74,7 @@ def test_rule_picks_the_smallest_k_that_meets_it():
 
 def test_rule_unmet_is_an_acceptance_failure(monkeypatch):
     """No k <= K_MAX meets the bar: the record says so at K_MAX steps and the training fails its acceptance bar."""
-    sim = simulator_for("simbench_mv_semiurb")
+    sim = network_simulator("simbench_mv_semiurb")
     monkeypatch.setattr(refine, "K_MAX", 1)
     torch.manual_seed(0)
     pb = PowerBalanceNet(sim, hidden=16, depth=2)
@@ -129,13 +129,13 @@ def test_bad_or_corrupted_chord_step_fields_are_refused(auto_file, tmp_path, edi
     file, _ = auto_file
     bad = _rewrite(file, tmp_path / "bad.safetensors", edit)
     with pytest.raises(ArtifactError, match=match):
-        load_pinn(simulator_for("case33bw"), path=bad)
+        load_pinn(network_simulator("case33bw"), path=bad)
     flipped = bytearray(file.read_bytes())  # and a changed byte is caught by the content hash, as for any artifact
     i = re.search(rb'refine_steps\\": \d', bytes(flipped)).end() - 1
     flipped[i] = ord("7") if flipped[i] != ord("7") else ord("6")
     (tmp_path / "flip.safetensors").write_bytes(bytes(flipped))
     with pytest.raises(ArtifactError, match="corrupted: content hash"):
-        load_pinn(simulator_for("case33bw"), path=tmp_path / "flip.safetensors")
+        load_pinn(network_simulator("case33bw"), path=tmp_path / "flip.safetensors")
 
 
 def test_a_model_from_before_the_rule_is_refused_then_migrated(auto_file, tmp_path, case33):
@@ -172,4 +172,4 @@ def test_refine_option_is_validated():
     with pytest.raises(ValueError, match="'refine_steps' must be an integer >= 0 or 'auto', got 'al'"):
         tr.preset("smoke", power_balance={"refine_steps": "al"})
     with pytest.raises(ValueError, match="must be an integer >= 0, got -1"):
-        PowerBalanceNet(simulator_for("cigre_mv"), hidden=8, depth=1, refine_steps=-1)
+        PowerBalanceNet(network_simulator("cigre_mv"), hidden=8, depth=1, refine_steps=-1)

@@ -18,12 +18,16 @@ from recipe_utils import compose, load_recipe
 from anm_torchrl.artifacts import ArtifactError, LockedError, exclusive_lock, write_manifest
 from anm_torchrl.data import (DatasetError, checksum, generate, generate_agent, generate_generative, load_dataset,
                               make_dataset, split)
-from anm_torchrl.grid.simulator import anm6_easy_simulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.paths import dataset_dir, surrogate_dir
 from anm_torchrl.surrogates import available_surrogates, load_surrogate
 from anm_torchrl.surrogates.features import Featurizer, target_layout
 from anm_torchrl.surrogates.regressors import FORMAT, KINDS, fit_regressor
 from anm_torchrl.surrogates.terminal import ModelFileError, TerminalClassifier, classification_metrics
+from anm_torchrl.grid import reset as grid_reset
+
+ANM6_SIM = network_simulator(ANM6_EASY)  # the datasets below are ANM6-Easy's (sim is a required argument)
 
 torch.set_num_threads(1)
 
@@ -53,7 +57,7 @@ def trained(home):
 
 @pytest.fixture(scope="module")
 def data(trained):
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     return {k: load_dataset(dataset_dir(k, SIZE, 0), kind=k, size=SIZE, seed=0, sim=sim)[0]
             for k in ("generative", "agent")}
 
@@ -62,18 +66,18 @@ def data(trained):
 @pytest.mark.parametrize("kind", ["generative", "agent"])
 def test_dataset_deterministic_under_seed(kind):
     opts = {"num_envs": 10} if kind == "agent" else {"chunk": 128}
-    a, meta_a = generate(kind, 300, seed=3, **opts)
-    b, _ = generate(kind, 300, seed=3, **opts)
-    c, _ = generate(kind, 300, seed=4, **opts)
+    a, meta_a = generate(kind, 300, seed=3, sim=ANM6_SIM, **opts)
+    b, _ = generate(kind, 300, seed=3, sim=ANM6_SIM, **opts)
+    c, _ = generate(kind, 300, seed=4, sim=ANM6_SIM, **opts)
     assert checksum(a) == checksum(b)
     assert checksum(a) != checksum(c)
     assert meta_a["size"] == 300 and sum(meta_a["splits"].values()) == 300
 
 
 def test_generative_content_is_consistent():
-    sim = anm6_easy_simulator()
-    td, _ = generate_generative(256, seed=0, chunk=100)  # chunking does not change the data (beyond round-off)
-    td2, _ = generate_generative(256, seed=0, chunk=256)
+    sim = network_simulator(ANM6_EASY)
+    td, _ = generate_generative(256, seed=0, sim=ANM6_SIM, chunk=100)  # chunking does not change the data (beyond round-off)
+    td2, _ = generate_generative(256, seed=0, sim=ANM6_SIM, chunk=256)
     assert torch.equal(td["action"], td2["action"])
     assert torch.allclose(td["state"], td2["state"], rtol=0, atol=1e-9)
     a_low, a_high = sim.action_bounds()
@@ -90,8 +94,8 @@ def test_generative_content_is_consistent():
 
 
 def test_agent_trajectories_are_contiguous():
-    sim = anm6_easy_simulator()
-    td, meta = generate_agent(400, seed=1, num_envs=8, max_episode_steps=20)
+    sim = network_simulator(ANM6_EASY)
+    td, meta = generate_agent(400, seed=1, sim=ANM6_SIM, num_envs=8, max_episode_steps=20)
     steps = meta["generator"]["steps_per_env"]
     env0 = td[:steps]
     cont = env0["step"][1:] != 0  # inside an episode the next row starts where the previous ended
@@ -106,12 +110,12 @@ def test_agent_trajectories_are_contiguous():
 
 
 def test_dataset_roundtrip_and_corruption(tmp_path):
-    path = make_dataset("generative", 200, seed=0, path=tmp_path / "ds")
-    td, meta = load_dataset(path, kind="generative", size=200, seed=0, sim=anm6_easy_simulator())
+    path = make_dataset("generative", 200, seed=0, path=tmp_path / "ds", sim=ANM6_SIM)
+    td, meta = load_dataset(path, kind="generative", size=200, seed=0, sim=network_simulator(ANM6_EASY))
     assert meta["checksum"] == checksum(td) and td.batch_size == torch.Size([200])
     assert split(td, "train").shape[0] + split(td, "val").shape[0] + split(td, "test").shape[0] == 200
     with pytest.raises(FileExistsError):
-        make_dataset("generative", 200, seed=0, path=path)
+        make_dataset("generative", 200, seed=0, path=path, sim=ANM6_SIM)
     with pytest.raises(DatasetError, match="kind='generative', expected 'agent'"):
         load_dataset(path, kind="agent")
     with pytest.raises(DatasetError, match="size=200, expected 300"):
@@ -131,13 +135,13 @@ def test_dataset_roundtrip_and_corruption(tmp_path):
     with pytest.raises(DatasetError, match="corrupted"):
         load_dataset(path, verify=False)
     # another simulator
-    path2 = make_dataset("agent", 60, seed=0, path=tmp_path / "ds2", num_envs=3)
+    path2 = make_dataset("agent", 60, seed=0, path=tmp_path / "ds2", sim=ANM6_SIM, num_envs=3)
     meta2 = json.loads((path2 / "dataset.json").read_text())
     meta2["simulator"]["fingerprint"] = "0" * 16
     (path2 / "dataset.json").write_text(json.dumps(meta2))
     write_manifest(path2, "anm_torchrl.transitions")  # as if saved so: the simulator check itself must catch it
     with pytest.raises(DatasetError, match="different simulator"):
-        load_dataset(path2, sim=anm6_easy_simulator())
+        load_dataset(path2, sim=network_simulator(ANM6_EASY))
     (path2 / "dataset.json").write_text("{not json")
     with pytest.raises(DatasetError, match="corrupted"):
         load_dataset(path2)
@@ -147,9 +151,9 @@ def test_dataset_writers_are_exclusive_and_atomic(tmp_path):
     path = tmp_path / "ds"
     with exclusive_lock(path):  # another writer holds the path
         with pytest.raises(LockedError, match="being written by another process"):
-            make_dataset("generative", 50, seed=0, path=path)
+            make_dataset("generative", 50, seed=0, path=path, sim=ANM6_SIM)
     assert not path.exists()
-    make_dataset("generative", 50, seed=0, path=path)
+    make_dataset("generative", 50, seed=0, path=path, sim=ANM6_SIM)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]  # no temporary folder, no lock left
     assert sorted(p.name for p in path.iterdir()) == ["data", "dataset.json", "manifest.json"]
 
@@ -182,7 +186,7 @@ def test_training_end_to_end(trained, home):
         for f in ("surrogate.json", "metrics.json", "config.yaml", "terminal.json", "manifest.json"):
             assert (folder / f).is_file(), (kind, dataset, f)
         assert m["cross_dataset"]["dataset"] != dataset
-        assert set(m["in_dataset"]["per_output"]) == set(target_layout(anm6_easy_simulator())[1])
+        assert set(m["in_dataset"]["per_output"]) == set(target_layout(network_simulator(ANM6_EASY))[1])
         assert m["in_dataset"]["r2"] > MIN_R2[kind], (kind, dataset, m["in_dataset"]["r2"])
     assert (home / "surrogates" / "summary.md").is_file()
     assert any((surrogate_dir("dnn", "generative") / "tb").iterdir())  # TensorBoard curves
@@ -217,9 +221,9 @@ def test_surrogate_env_specs(trained, kind):
 
 
 def _random_batch(n: int, seed: int = 0):
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     g = torch.Generator().manual_seed(seed)
-    state, _ = sim.random_state(n, g)
+    state, _ = grid_reset.random_state(sim, n, g)
     low, high = sim.action_bounds()
     return state, low + torch.rand(n, 6, generator=g, dtype=torch.float64) * (high - low)
 
@@ -346,7 +350,7 @@ def test_terminal_classifier_api(data, tmp_path):
 
 
 def test_featurizer_foresight_matches_next_step():
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     state, action = _random_batch(16, seed=2)
     x = Featurizer(sim)(state, action)
     nxt, _ = sim.step(state, action)
@@ -372,7 +376,7 @@ def surrogate_options(trained, tmp_path_factory):
     """Loader options of every registered surrogate: the tiny data-driven models and a smoke PINN."""
     from anm_torchrl.surrogates.pinn import train as tr
 
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     cfg = tr.preset("smoke")
     modules, report = tr.train_pinn(cfg, sim)
     pinn = tr.save_pinn(tmp_path_factory.mktemp("pinn") / "pinn.safetensors", modules, cfg, report, sim)
@@ -392,7 +396,7 @@ def test_surrogate_env_runs_on_its_envs_profiles(surrogate_options, name, monkey
 
     if name not in surrogate_options:
         pytest.fail(f"registered surrogate {name!r} has no options in this test: add it")
-    sim = scaled_simulator(load=1.2, sim=anm6_easy_simulator())
+    sim = scaled_simulator(load=1.2, sim=network_simulator(ANM6_EASY))
     model = load_surrogate(name, sim=sim, **surrogate_options[name])
     env = SurrogateEnv(model, num_envs=4, seed=0, action_mode="clip", sim=sim)
     readers = []
@@ -415,8 +419,8 @@ def test_pinn_next_state_follows_scaled_loads(surrogate_options):
     """The PINN's physics uses the scaled loads: its bus injections move by exactly the load change."""
     from anm_torchrl.experiments.rollout_error import scaled_simulator
 
-    base = anm6_easy_simulator()
-    scaled = scaled_simulator(load=1.2, sim=anm6_easy_simulator())
+    base = network_simulator(ANM6_EASY)
+    scaled = scaled_simulator(load=1.2, sim=network_simulator(ANM6_EASY))
     state, action = _random_batch(64, seed=3)
     td = TensorDict({"state": state, "action": action}, [64])
     a = load_surrogate("pinn", sim=base, **surrogate_options["pinn"])(td.clone())

@@ -10,10 +10,12 @@ import torch
 
 from recipe_utils import compose, load_recipe
 from anm_torchrl.artifacts import ArtifactError
-from anm_torchrl.data import DatasetError, default_dataset_dir, for_network, generate, load_dataset, simulator_for
-from anm_torchrl.data.storage import network_key
+from anm_torchrl.data import DatasetError, default_dataset_dir, for_network, generate, load_dataset
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
+from anm_torchrl.grid.identity import network_key
 from anm_torchrl.envs import SurrogateEnv
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import get_network
 from anm_torchrl.paths import dataset_dir, surrogate_dir
 from anm_torchrl.surrogates import load_surrogate
@@ -28,15 +30,15 @@ torch.set_num_threads(1)
 
 @pytest.fixture(scope="module")
 def case33():
-    return simulator_for("case33bw")
+    return network_simulator("case33bw")
 
 
 def test_simulator_for_and_network_folders(case33):
     assert case33.net.n_bus == 33 and case33.n_des == 2
-    anm6 = anm6_easy_simulator()
-    assert network_key(simulator_for("anm6_easy")) == network_key(anm6)
+    anm6 = network_simulator(ANM6_EASY)
+    assert network_key(network_simulator("anm6_easy")) == network_key(anm6)
     base = dataset_dir("generative", 10, 0)
-    assert for_network(base, anm6) == base == default_dataset_dir("generative", 10, 0)  # ANM6 paths unchanged
+    assert for_network(base, anm6) == base == default_dataset_dir("generative", 10, 0, anm6)  # ANM6 paths unchanged
     assert default_dataset_dir("generative", 10, 0, case33) == base.with_name(f"{base.name}_{network_key(case33)}")
     assert cache.default_path(case33) != cache.default_path(anm6)
     # a changed network (one branch's resistance) never reads the model cached for the original one
@@ -47,14 +49,14 @@ def test_simulator_for_and_network_folders(case33):
                                         c.lamb, c.costs_clipping)
     assert cache.default_path(changed) != cache.default_path(case33)
     with pytest.raises(ValueError, match="unknown network 'nope'"):
-        simulator_for("nope")
+        network_simulator("nope")
 
 
 @pytest.mark.parametrize("network", ["case33bw", "simbench_mv_semiurb"])
 def test_pinn_chain_on_a_feeder(network, tmp_path):
     """A smoke PINN trained on a feeder (the 115-bus one has no storage) runs as that feeder's SurrogateEnv, and its
     file is refused by another network."""
-    sim = simulator_for(network)
+    sim = network_simulator(network)
     modules, report = tr.train_pinn(tr.preset("smoke"), sim)
     assert report["storage"].get("devices") != 0 or sim.n_des == 0
     file = tr.save_pinn(tmp_path / "pinn.safetensors", modules, tr.preset("smoke"), report, sim)
@@ -64,7 +66,7 @@ def test_pinn_chain_on_a_feeder(network, tmp_path):
     assert td["next", "state"].shape == (3, 2, sim.state_dim)
     assert torch.isfinite(td["next", "reward"]).all()
     with pytest.raises(ArtifactError, match="trained on network"):
-        load_pinn(anm6_easy_simulator(), path=file)
+        load_pinn(network_simulator(ANM6_EASY), path=file)
 
 
 def test_pinn_curtailment_counts_only_renewables():
@@ -75,7 +77,7 @@ def test_pinn_curtailment_counts_only_renewables():
     from anm_torchrl.grid.reward import curtailment
     from anm_torchrl.surrogates.pinn.evaluate import random_transitions
 
-    sim = simulator_for("cigre_mv")
+    sim = network_simulator("cigre_mv")
     assert 0 < sim.renewable.sum() < sim.n_gen
     modules, report = tr.train_pinn(tr.preset("smoke"), sim)
     chain = tr_chain(sim, modules)
@@ -110,7 +112,7 @@ def test_data_driven_surrogates_on_case33bw(case33, tmp_path, monkeypatch):
                                         "agent.num_envs=8"])
         assert load_recipe("make_dataset").run(cfg) == str(default_dataset_dir(kind, size, 0, case33))
     with pytest.raises(DatasetError, match="different simulator"):
-        load_dataset(default_dataset_dir("agent", size, 0, case33), kind="agent", sim=anm6_easy_simulator())
+        load_dataset(default_dataset_dir("agent", size, 0, case33), kind="agent", sim=network_simulator(ANM6_EASY))
     cfg = compose("train_surrogate", ["network=case33bw", "surrogate=xgb", f"data.size={size}", "progress=false",
                                        "n_jobs=1", "overwrite_cache=true", "models.xgb.num_boost_round=5",
                                        "terminal.num_boost_round=5"])
@@ -125,7 +127,7 @@ def test_data_driven_surrogates_on_case33bw(case33, tmp_path, monkeypatch):
     with pytest.raises(FileNotFoundError, match="train_surrogate.py network=<its name> surrogate=xgb"):
         load_surrogate("xgb", sim=case33, dataset="agent")
     with pytest.raises(FileNotFoundError, match="no trained 'xgb'"):  # ANM6-Easy never sees case33bw's model
-        load_surrogate("xgb", sim=anm6_easy_simulator(), dataset="generative")
+        load_surrogate("xgb", sim=network_simulator(ANM6_EASY), dataset="generative")
 
 
 def test_generated_rows_match_the_simulator(case33):
@@ -145,7 +147,7 @@ def test_per_device_batches_keep_anm6_rows_and_scale_on_feeders():
     cfg = tr.preset("default")
     for network, name, batch, val in (("anm6_easy", "generator", 1024, 4096), ("anm6_easy", "storage", 1024, 4096),
                                       ("simbench_mv_semiurb", "generator", 17, 68)):
-        sim = simulator_for(network)
+        sim = network_simulator(network)
         task = TASKS[name](tr.build_modules(cfg, sim)[name], sim)
         mcfg = getattr(cfg, name)
         assert (_points(mcfg.batch_size, task, mcfg), _points(mcfg.val_size, task, mcfg)) == (batch, val), network
@@ -158,7 +160,7 @@ def test_recipe_trained_surrogate_loads_through_make_env(tmp_path, monkeypatch):
     from anm_torchrl.training.factory import make_env
 
     monkeypatch.setenv("ANM_TORCHRL_HOME", str(tmp_path))
-    assert network_key(make_env("none", network="case33bw").sim) == network_key(simulator_for("case33bw"))
+    assert network_key(make_env("none", network="case33bw").sim) == network_key(network_simulator("case33bw"))
     size = 200  # below the default data.size: overwrite_cache=true lets it into the default folder make_env reads
     cfg = compose("train_surrogate", ["network=case33bw", "surrogate=xgb", "surrogate.dataset=generative",
                                        f"data.size={size}", "progress=false", "n_jobs=1", "overwrite_cache=true",

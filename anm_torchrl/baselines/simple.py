@@ -12,11 +12,13 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 
 
 def _box(sim: GridSimulator | None) -> tuple[GridSimulator, torch.Tensor, torch.Tensor]:
-    sim = anm6_easy_simulator() if sim is None else sim
+    sim = network_simulator(ANM6_EASY) if sim is None else sim
     lo, hi = sim.action_bounds()
     return sim, lo.detach().cpu(), hi.detach().cpu()
 
@@ -97,7 +99,7 @@ def make_baseline(name: str, sim: GridSimulator | None = None, **kw) -> TensorDi
         return DoNothingPolicy(sim, **kw)
     if name == "random":
         return RandomPolicy(sim=sim, **kw)
-    sim = anm6_easy_simulator() if sim is None else sim
+    sim = network_simulator(ANM6_EASY) if sim is None else sim
     if name in ("mpc_perfect", "mpc_constant"):
         from anm_torchrl.baselines.mpc import MPCPolicy
 

@@ -28,53 +28,14 @@ The ratio column is steady-state transitions/s divided by gym-anm's steps/s.
 from __future__ import annotations
 
 import argparse
-import time
-from collections.abc import Callable
 
 import numpy as np
 import torch
 
+from anm_torchrl.benchmarks.timing import _timed, time_env_steps, time_gym_steps
+from anm_torchrl.grid import reset as grid_reset
+
 DEFAULT_BATCH_SIZES = (1, 16, 256, 1024, 4096, 16384)
-
-
-def _timed(first: Callable[[], None], step: Callable[[], None], min_time: float, min_steps: int
-           ) -> tuple[float, float, int]:
-    """Run ``first`` once (warm-up), then ``step`` until ``min_time`` s and ``min_steps`` calls have passed.
-
-    Returns (warm-up seconds, steady-state seconds, number of steady-state calls).
-    """
-    t0 = time.perf_counter()
-    first()
-    warm = time.perf_counter() - t0
-    n, t1 = 0, time.perf_counter()
-    while True:
-        step()
-        n += 1
-        elapsed = time.perf_counter() - t1
-        if n >= min_steps and elapsed >= min_time:
-            return warm, elapsed, n
-
-
-def time_gym_steps(make: Callable[[], object], n_steps: int, seed: int = 0) -> tuple[float, float]:
-    """Warm-up seconds (construction + seeded reset + first step) and steady-state steps/s over ``n_steps``
-    ``action_space.sample()`` steps of the gym-anm env ``make()`` builds (reset on termination)."""
-    box = {}
-
-    def first():
-        env = make()
-        env.reset(seed=seed)
-        env.action_space.seed(seed)
-        env.step(env.action_space.sample())
-        box["env"] = env
-
-    def run():
-        env = box["env"]
-        for _ in range(n_steps):
-            if env.step(env.action_space.sample())[2]:
-                env.reset()
-
-    warm, elapsed, _ = _timed(first, run, 0.0, 1)
-    return warm, n_steps / elapsed
 
 
 def bench_gym_anm(n_steps: int, seed: int = 0) -> dict:
@@ -86,27 +47,6 @@ def bench_gym_anm(n_steps: int, seed: int = 0) -> dict:
     warnings.filterwarnings("ignore", module="gym_anm")
     warm, rate = time_gym_steps(ANM6Easy, n_steps, seed)
     return {"impl": "gym-anm 2.0.1 (`ANM6Easy.step`)", "batch": 1, "warm": warm, "rate": rate}
-
-
-def time_env_steps(make: Callable[[], object], min_time: float, min_steps: int, seed: int = 0
-                   ) -> tuple[float, float]:
-    """Warm-up seconds (construction + reset + first step) and steady-state steps/s of the env ``make()`` builds,
-    stepped with random actions through ``step_and_maybe_reset`` (auto-resets included)."""
-    box = {}
-
-    def first():
-        env = make()
-        torch.manual_seed(seed)
-        td = env.reset()
-        _, td = env.step_and_maybe_reset(env.rand_action(td))
-        box["env"], box["td"] = env, td
-
-    def step():
-        env = box["env"]
-        _, box["td"] = env.step_and_maybe_reset(env.rand_action(box["td"]))
-
-    warm, elapsed, n = _timed(first, step, min_time, min_steps)
-    return warm, n / elapsed
 
 
 def bench_env(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0, backend: str = "auto") -> dict:
@@ -126,7 +66,8 @@ def bench_env(batch: int, min_time: float, min_steps: int, device: str, seed: in
 
 
 def bench_grid(batch: int, min_time: float, min_steps: int, device: str, seed: int = 0, backend: str = "auto") -> dict:
-    from anm_torchrl.grid.simulator import anm6_easy_simulator
+    from anm_torchrl.networks import ANM6_EASY
+    from anm_torchrl.networks import simulator as network_simulator
 
     gen = torch.Generator(device=device).manual_seed(seed)
     box = {}
@@ -136,9 +77,9 @@ def bench_grid(batch: int, min_time: float, min_steps: int, device: str, seed: i
                                        device=device) * (box["high"] - box["low"])
 
     def first():
-        sim = anm6_easy_simulator(device, backend=backend)
+        sim = network_simulator(ANM6_EASY, device=device, backend=backend)
         box["low"], box["high"] = sim.action_bounds()
-        state = sim.reset(batch, gen)
+        state = grid_reset.gym_anm_reset(sim, batch, gen)
         state = state[0] if isinstance(state, tuple) else state
         box["sim"], box["state"] = sim, sim.step(state, actions())[0]
 

@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from anm_torchrl.benchmarks.env import _timed, time_env_steps, time_gym_steps
+from anm_torchrl.benchmarks.timing import _timed, time_env_steps, time_gym_steps
+from anm_torchrl.grid import reset as grid_reset
 
 log = logging.getLogger(__name__)
 N_ = np.nan
@@ -229,7 +230,7 @@ def solver_sweep(sizes: list[int], batch: int, min_time: float) -> list[dict]:
             sim = GridSimulator.from_tables(net, load_p, gen_p_max, 0.25, 0.995, 100.0, (1.0, 100.0),
                                             backend="numba", linear_solver=solver)
             gen = torch.Generator().manual_seed(0)
-            state, _ = sim.random_state(batch, gen)
+            state, _ = grid_reset.random_state(sim, batch, gen)
             lo, hi = sim.action_bounds()
             action = lo + torch.rand(batch, lo.numel(), generator=gen, dtype=torch.float64) * (hi - lo)
             box = {}

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import statistics
 
-from anm_torchrl.benchmarks.env import time_env_steps
+from anm_torchrl.benchmarks.timing import time_env_steps
 
 KINDS = ("lr", "dt", "rf", "xgb", "dnn")
 DATASETS = ("generative", "agent")

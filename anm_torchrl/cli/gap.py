@@ -86,10 +86,10 @@ def main(argv: list[str] | None = None) -> dict:
         return rec
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     torch.set_num_threads(1)
-    from anm_torchrl.data.generic import simulator_for
+    from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.evaluation import draw_initial_states
 
-    sim, env = simulator_for(args.network), true_env(args.network, 1)
+    sim, env = network_simulator(args.network), true_env(args.network, 1)
     states = draw_initial_states(args.episodes, args.seed, sim, env.init)
     # "states" names the draw as the committed records do (from when the protocol lived in training/): a record
     # key compared on --out and --merge, so it stays verbatim

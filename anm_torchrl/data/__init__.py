@@ -14,7 +14,7 @@ from tensordict import TensorDict
 
 from anm_torchrl.artifacts import exclusive_lock
 from anm_torchrl.data.agent import WaypointAgent, generate_agent
-from anm_torchrl.data.generic import for_network, is_anm6, simulator_for
+from anm_torchrl.data.generic import for_network, is_anm6
 from anm_torchrl.data.generative import generate_generative
 from anm_torchrl.data.registry import available_datasets, dataset_generator, register_dataset
 from anm_torchrl.data.storage import (KINDS, SPLITS, DatasetError, checksum, load_dataset, make_command, read_meta,
@@ -23,18 +23,18 @@ from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.paths import dataset_dir
 
 __all__ = ["KINDS", "SPLITS", "DatasetError", "WaypointAgent", "available_datasets", "checksum", "default_dataset_dir",
-           "ensure_dataset", "for_network", "simulator_for",
+           "ensure_dataset", "for_network",
            "generate", "generate_agent", "generate_generative", "load_dataset", "make_dataset", "read_meta",
            "register_dataset", "save_dataset", "split"]
 
 
-def default_dataset_dir(kind: str, size: int, seed: int, sim: GridSimulator | None = None) -> Path:
-    """Default folder of a dataset of ``sim``'s network (None: ANM6-Easy): :func:`anm_torchrl.paths.dataset_dir`,
+def default_dataset_dir(kind: str, size: int, seed: int, sim: GridSimulator) -> Path:
+    """Default folder of a dataset of ``sim``'s network: :func:`anm_torchrl.paths.dataset_dir` (ANM6-Easy),
     suffixed with the network key on any other network (:func:`anm_torchrl.data.generic.for_network`)."""
     return for_network(dataset_dir(kind, size, seed), sim)
 
 
-def generate(kind: str, size: int, seed: int = 0, sim: GridSimulator | None = None, progress: bool = False,
+def generate(kind: str, size: int, seed: int = 0, *, sim: GridSimulator, progress: bool = False,
              **options) -> tuple[TensorDict, dict]:
     """Generate (in memory) a dataset of a registered ``kind`` (:func:`available_datasets`); ``options`` go to
     its generator."""
@@ -42,7 +42,7 @@ def generate(kind: str, size: int, seed: int = 0, sim: GridSimulator | None = No
 
 
 def make_dataset(kind: str, size: int, seed: int = 0, path: str | os.PathLike | None = None,
-                 overwrite: bool = False, sim: GridSimulator | None = None, progress: bool = False,
+                 overwrite: bool = False, *, sim: GridSimulator, progress: bool = False,
                  **options) -> Path:
     """Generate a dataset and write it to ``path`` (default :func:`anm_torchrl.paths.dataset_dir`).
 
@@ -59,7 +59,7 @@ def make_dataset(kind: str, size: int, seed: int = 0, path: str | os.PathLike | 
 
 
 def ensure_dataset(kind: str, size: int, seed: int = 0, path: str | os.PathLike | None = None,
-                   generate_missing: bool = True, sim: GridSimulator | None = None, progress: bool = False,
+                   generate_missing: bool = True, *, sim: GridSimulator, progress: bool = False,
                    verify: bool = True, **options) -> tuple[TensorDict, dict]:
     """Load the dataset at ``path`` (default location), generating it first if it is missing.
 

@@ -14,6 +14,7 @@ trajectory straddles two splits.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 
@@ -23,7 +24,8 @@ from tqdm.auto import tqdm
 
 from anm_torchrl.data.generic import is_anm6
 from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid import reset as grid_reset
+from anm_torchrl.grid.simulator import GridSimulator
 
 log = logging.getLogger(__name__)
 
@@ -102,10 +104,10 @@ def initial_sampler(sim: GridSimulator):
     """The env's default reset distribution of ``sim``'s network, ``(n, generator) -> (state, transition)``:
     gym-anm's ANM6-Easy resets on ANM6-Easy, uniform reachable states (``random_state``, ``ANMEnv``'s default
     ``init="uniform"``) on every other network, whose gym-anm reset distribution is not defined."""
-    return sim.reset if is_anm6(sim) else sim.random_state
+    return functools.partial(grid_reset.gym_anm_reset if is_anm6(sim) else grid_reset.random_state, sim)
 
 
-def generate_agent(size: int, seed: int = 0, sim: GridSimulator | None = None, num_envs: int = 100,
+def generate_agent(size: int, seed: int = 0, *, sim: GridSimulator, num_envs: int = 100,
                    waypoint_every: int = 8, random_every: bool = True, waypoints: str = "arcsine",
                    max_episode_steps: int = 480, fractions=DEFAULT_FRACTIONS,
                    progress: bool = False) -> tuple[TensorDict, dict]:
@@ -114,7 +116,7 @@ def generate_agent(size: int, seed: int = 0, sim: GridSimulator | None = None, n
     Args:
         size: number of transitions (the last env's trajectory is cut to fit).
         seed: seed of the resets, waypoints and the env-level split.
-        sim: the simulator (default ANM6-Easy).
+        sim: the simulator (``anm_torchrl.networks.simulator(<network>)``).
         num_envs: envs stepped together (≥ 3 so that every split gets an env).
         waypoint_every: steps between waypoints (8 = 2 h); with ``random_every`` the largest such interval.
         random_every, waypoints: see :class:`WaypointAgent`.
@@ -128,7 +130,6 @@ def generate_agent(size: int, seed: int = 0, sim: GridSimulator | None = None, n
     if size < 1:
         raise ValueError(f"size must be >= 1, got {size}")
     num_envs = int(min(num_envs, size))
-    sim = sim if sim is not None else anm6_easy_simulator()
     gen = torch.Generator(device=sim.net.dev.device).manual_seed(int(seed))
     a_low, a_high = sim.action_bounds()
     agent = WaypointAgent(a_low, a_high, num_envs, waypoint_every, gen, random_every=random_every,
@@ -172,7 +173,7 @@ def generate_agent(size: int, seed: int = 0, sim: GridSimulator | None = None, n
     meta = {
         "kind": "agent", "size": int(size), "seed": int(seed), "simulator": simulator_settings(sim),
         "generator": {"method": "random waypoint agent, cosine-interpolated actions, "
-                                + ("gym-anm resets" if is_anm6(sim) else "uniform resets (GridSimulator.random_state)"),
+                                + ("gym-anm resets" if is_anm6(sim) else "uniform resets (grid.reset.random_state)"),
                       "num_envs": num_envs, "steps_per_env": n_steps, "waypoint_every": int(waypoint_every),
                       "random_every": bool(random_every), "waypoints": waypoints,
                       "max_episode_steps": int(max_episode_steps), "episodes": next_episode},

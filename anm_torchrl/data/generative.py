@@ -12,7 +12,7 @@ next A         device set-points of the state     uniform over the action box (M
 last A         action                             uniform over the action box (MW / MVAr)
 =============  =================================  ===========================================================
 
-The state is made consistent the way :meth:`GridSimulator.random_state` does it: one transition at time ``t``
+The state is made consistent the way :func:`anm_torchrl.grid.reset.random_state` does it: one transition at time ``t``
 from the state set-points (loads and potentials of the series, projection onto the feasible sets, power flow
 for the slack), after which the SoC entry is set to the Sobol SoC (any SoC is reachable with any DES power).
 Points whose *state* power flow does not converge (≈0.6 %) are skipped, so the dataset takes the first
@@ -30,7 +30,7 @@ from tqdm.auto import tqdm
 
 from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
 from anm_torchrl.grid import devices as dv
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.simulator import GridSimulator
 
 log = logging.getLogger(__name__)
 
@@ -40,14 +40,14 @@ def sobol_dims(sim: GridSimulator) -> tuple[str, ...]:
     return ("t", soc, f"state_setpoints[{sim.action_dim}]", f"action[{sim.action_dim}]")
 
 
-def generate_generative(size: int, seed: int = 0, sim: GridSimulator | None = None, chunk: int = 8192,
+def generate_generative(size: int, seed: int = 0, *, sim: GridSimulator, chunk: int = 8192,
                         fractions=DEFAULT_FRACTIONS, progress: bool = False) -> tuple[TensorDict, dict]:
     """Sample and label ``size`` Sobol transitions.
 
     Args:
         size: number of transitions.
         seed: seed of the scrambled Sobol engine and of the train/val/test split.
-        sim: the simulator (default ANM6-Easy, float64 on CPU).
+        sim: the simulator (``anm_torchrl.networks.simulator(<network>)``; float64).
         chunk: rows simulated per batch (memory/speed only; the rows do not depend on it beyond float64 round-off).
         fractions: train/validation/test fractions (rows are assigned by a seeded permutation).
         progress: show a progress bar.
@@ -57,10 +57,9 @@ def generate_generative(size: int, seed: int = 0, sim: GridSimulator | None = No
     """
     if size < 1:
         raise ValueError(f"size must be >= 1, got {size}")
-    sim = sim if sim is not None else anm6_easy_simulator()
     dev, b = sim.net.dev, sim.net.base_mva
     a_low, a_high = sim.action_bounds()
-    des = dev[sim._did]
+    des = dev[sim.des_idx]
     soc_low, soc_high = des[:, dv.SOC_MIN] * b, des[:, dv.SOC_MAX] * b
     na, nd = sim.action_dim, sim.n_des
     dim = 1 + nd + 2 * na

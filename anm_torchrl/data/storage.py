@@ -45,7 +45,7 @@ from tensordict import TensorDict, TensorDictBase
 import anm_torchrl
 from anm_torchrl.artifacts import ArtifactError, atomic_folder, exclusive_lock, verify_manifest, write_manifest
 from anm_torchrl.data.registry import available_datasets
-from anm_torchrl.grid.constants import content_key
+from anm_torchrl.grid.identity import network_key, simulator_fingerprint
 from anm_torchrl.grid.simulator import GridSimulator
 
 LAYOUT = "anm_torchrl.transitions"
@@ -74,28 +74,6 @@ def make_command(kind: str | None, size: int | None, seed: int | None) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ simulator
-def simulator_fingerprint(sim: GridSimulator) -> str:
-    """SHA-256 (hex, 16 chars) of the network tables and time series that define ``sim``'s transitions."""
-    h = hashlib.sha256()
-    tensors = [sim.net.dev, sim.net.y_bus.real, sim.net.y_bus.imag, sim.load_series, sim.p_max_series,
-               sim.net.branches.rate]
-    for t in tensors:
-        h.update(np.ascontiguousarray(t.detach().cpu().numpy()).tobytes())
-    h.update(repr((sim.gamma, sim.lamb, tuple(sim.costs_clipping), float(sim.net.delta_t),
-                   float(sim.net.base_mva))).encode())
-    return h.hexdigest()[:16]
-
-
-def network_key(sim: GridSimulator) -> str:
-    """SHA-256 (hex, 16 chars) of what a saved surrogate is tied to: the network tables, the number of time
-    steps and the reward constants — not the load and generation profiles, which a surrogate reads from the
-    simulator it is loaded on (so one saved model runs on scaled or shifted profiles). A loaded model carries
-    ``sim.content_key()`` (profiles included) as ``network_key``, which ``SurrogateEnv`` compares with its own."""
-    net, br = sim.net, sim.net.branches
-    return content_key(net.dev, net.y_bus, net.v_min, net.v_max, br.f_bus, br.t_bus, br.y_series, br.y_shunt, br.tap,
-                       br.rate, [sim.n_time, net.base_mva, net.delta_t, sim.gamma, sim.lamb, *sim.costs_clipping])[:16]
-
-
 def simulator_settings(sim: GridSimulator) -> dict[str, Any]:
     """The simulator constants a dataset (or a surrogate) depends on, JSON-ready."""
     return {

@@ -8,7 +8,8 @@ import torch
 
 from anm_torchrl.envs.anm_env import INITS, ANMEnv
 from anm_torchrl.grid.simulator import GridSimulator
-from anm_torchrl.networks import anm6_easy
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 
 
 class ANM6Env(ANMEnv):
@@ -30,7 +31,7 @@ class ANM6Env(ANMEnv):
         init: ``"gym_anm"`` samples gym-anm's initial distribution with its unit quirks (SoC in [0, 1) MWh,
             generator Q within ±0.3/±0.5 MVAr); ``"intended"`` samples SoC in [0, 100) MWh and Q in the full
             ±30/±50 MVAr range; ``"uniform"`` spreads states over the whole reachable state space
-            (:meth:`GridSimulator.random_state`; the surrogates' default, as in the paper).
+            (:func:`anm_torchrl.grid.reset.random_state`; the surrogates' default, as in the paper).
         sim: a custom :class:`GridSimulator` (default: ANM6-Easy).
         backend: physics backend of the default simulator: ``"auto"`` (the compiled numba loop on the CPU,
             batched torch ops elsewhere), ``"numba"`` or ``"torch"``; same transitions to round-off.
@@ -46,5 +47,5 @@ class ANM6Env(ANMEnv):
         if init not in INITS:
             raise ValueError(f"init must be one of {INITS}, got {init!r}")
         if sim is None:
-            sim = anm6_easy.simulator(torch.device(device), backend=backend)
+            sim = network_simulator(ANM6_EASY, device=torch.device(device), backend=backend)
         super().__init__(num_envs=num_envs, seed=seed, device=device, action_mode=action_mode, init=init, sim=sim)

@@ -2,78 +2,21 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import Literal
 
-import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from anm_torchrl.envs.observation import ObservationMap
 from anm_torchrl.envs.specs import GRID_KEYS, ActionBox, check_action, make_specs
-from anm_torchrl.grid import fastoutput
+from anm_torchrl.grid import reset as grid_reset
+from anm_torchrl.grid.identity import transition_key
 from anm_torchrl.grid.simulator import GridSimulator, Transition
+from anm_torchrl.networks import simulator as network_simulator
 
 INITS = ("uniform", "gym_anm", "intended")
-
-
-def _check_reward_args(delta_t, gamma, lamb, costs_clipping) -> tuple[float, float]:
-    """gym-anm's ``check_env_args`` for the reward constants; ``None`` clipping entries mean +inf (gym-anm)."""
-    if not (isinstance(delta_t, (int, float)) and delta_t > 0):
-        raise ValueError(f"delta_t must be > 0 (h), got {delta_t!r}")
-    # gamma = 1 makes the terminal reward -c1 / (1 - gamma) a division by zero
-    if not (isinstance(gamma, (int, float)) and 0 <= gamma < 1):
-        raise ValueError(f"gamma must lie in [0, 1), got {gamma!r}")
-    if not (isinstance(lamb, (int, float)) and lamb >= 0):
-        raise ValueError(f"lamb must be >= 0, got {lamb!r}")
-    if costs_clipping is None:
-        return math.inf, math.inf
-    if len(costs_clipping) != 2:
-        raise ValueError(f"costs_clipping must be (c_energy, c_penalty), got {costs_clipping!r}")
-    c = tuple(math.inf if v is None else float(v) for v in costs_clipping)
-    if not all(v > 0 for v in c):
-        raise ValueError(f"costs_clipping entries must be > 0 (or None), got {costs_clipping!r}")
-    return c
-
-
-def build_simulator(network: dict, load_p, gen_p_max, delta_t: float = 0.25, gamma: float = 0.995,
-                    lamb: float = 100, costs_clipping=(1, 100), *, device=None, backend: str = "auto",
-                    next_vars: Callable | None = None) -> GridSimulator:
-    """The :class:`GridSimulator` of a gym-anm network and its profiles, with gym-anm's checks and defaults
-    (:func:`anm_torchrl.networks.validation.validate_network`). ``ANMEnv`` and
-    :func:`anm_torchrl.data.generic.simulator_for` both build through it, so an env and a recipe given the same
-    network get the same simulator (and the same :func:`anm_torchrl.data.storage.network_key`).
-
-    Args:
-        network: gym-anm network dict (``None``/NaN where gym-anm allows a missing value).
-        load_p: (T, n_load) MW, loads in device-id order.
-        gen_p_max: (T, n_gen) MW, non-slack generators in device-id order.
-        delta_t, gamma, lamb, costs_clipping: as ``ANMEnv``.
-        device: torch device (None: CPU).
-        backend: ``"auto"``, ``"numba"`` or ``"torch"``.
-        next_vars: optional batched exogenous-variable hook (``ANMEnv``).
-
-    Raises:
-        ValueError: a network, profile or constant gym-anm would reject (naming what is wrong).
-    """
-    from anm_torchrl.networks.validation import device_ids, validate_network, validate_profile
-
-    if network is None or load_p is None or gen_p_max is None:
-        raise ValueError("a simulator needs network=, load_p= and gen_p_max= (ANMEnv: or sim=)")
-    net = validate_network(network)
-    loads, gens = device_ids(net, (-1,)), device_ids(net, (1, 2))
-    load_p = validate_profile(load_p, "load_p", len(loads), f"loads {loads} in device-id order")
-    gen_p_max = validate_profile(gen_p_max, "gen_p_max", len(gens), f"non-slack generators {gens} in device-id order")
-    if load_p.shape[0] != gen_p_max.shape[0]:
-        raise ValueError(f"load_p and gen_p_max must have the same T rows, got {load_p.shape[0]} and "
-                         f"{gen_p_max.shape[0]}")
-    clip = _check_reward_args(delta_t, gamma, lamb, costs_clipping)
-    if next_vars is not None and not callable(next_vars):
-        raise ValueError(f"next_vars must be callable, got {next_vars!r}")
-    return GridSimulator.from_tables(net, load_p, gen_p_max, float(delta_t), float(gamma), float(lamb), clip,
-                                     device=device, backend=backend, next_vars_hook=next_vars)
 
 
 class ANMEnv(EnvBase):
@@ -92,7 +35,7 @@ class ANMEnv(EnvBase):
     left to it.
 
     Args:
-        network: gym-anm network dict (validated by :func:`anm_torchrl.networks.validation.validate_network`).
+        network: gym-anm network dict (built by :func:`anm_torchrl.networks.simulator`: gym-anm's checks).
         load_p: (T, n_load) MW, loads in device-id order.
         gen_p_max: (T, n_gen) MW, non-slack generators (classical and renewable) in device-id order.
         num_envs: batch size N.
@@ -115,7 +58,8 @@ class ANMEnv(EnvBase):
 
     Reset: ``env.reset()`` samples; ``env.reset(TensorDict({"state": s}, [N]), set_state=True)`` puts each env
     in the exact state ``s`` (validated; a state whose power flow does not converge is reported terminated);
-    partial resets follow ``"_reset"``. ``network_key`` is the content key of network + profiles + constants.
+    partial resets follow ``"_reset"``. ``transition_key``: :func:`anm_torchrl.grid.identity.transition_key` (network,
+    profiles, constants).
     """
 
     _supports_set_state = True
@@ -134,23 +78,24 @@ class ANMEnv(EnvBase):
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         super().__init__(batch_size=torch.Size([int(num_envs)]), device=device, allow_done_after_reset=True)
         if sim is None:
-            sim = build_simulator(network, load_p, gen_p_max, delta_t, gamma, lamb, costs_clipping,
-                                  device=self.device, backend=backend, next_vars=next_vars)
+            if network is None or load_p is None or gen_p_max is None:
+                raise ValueError("ANMEnv needs network=, load_p= and gen_p_max=, or a ready sim=")
+            sim = network_simulator(network, load_p, gen_p_max, delta_t=delta_t, gamma=gamma, lamb=lamb,
+                                    costs_clipping=costs_clipping, device=self.device, backend=backend,
+                                    next_vars=next_vars)
         elif network is not None or load_p is not None or gen_p_max is not None or next_vars is not None:
             raise ValueError("pass either sim= or network=/load_p=/gen_p_max=/next_vars=, not both")
         self.sim = sim
         self.action_mode, self.init = action_mode, init
         self.obs_map = ObservationMap(sim, observation, (0.0, float(sim.n_time - 1)))
-        # the "state" observation's bounds for the compiled output pass (numba backend); (None, None): the map's
-        self._obs_bounds = (None, None)
-        if self.obs_map.is_state and sim.backend == "numba":
-            self._obs_bounds = tuple(np.ascontiguousarray(x.numpy(), dtype=np.float64)
-                                     for x in (self.obs_map.low, self.obs_map.high))
+        # the "state" observation's bounds in the form the backend's output pass reads (None: the map clips)
+        self._obs_bounds = sim.physics.output_bounds(self.obs_map.low, self.obs_map.high) if self.obs_map.is_state \
+            else None
         for name, spec in make_specs(sim, self.batch_size, self.device, self.obs_map).items():
             setattr(self, name, spec)
         self._a_low, self._a_high = sim.action_bounds()
         self._a_box = ActionBox.of(self._a_low, self._a_high)
-        self.network_key = sim.content_key()
+        self.transition_key = transition_key(sim)
         self.set_seed(seed)
 
     def _set_seed(self, seed: int | None) -> None:
@@ -163,22 +108,11 @@ class ANMEnv(EnvBase):
     # ------------------------------------------------------------------------------------------------------
     def _output(self, state: torch.Tensor, tr: Transition) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:
         """The TensorDict of ``state`` and ``tr`` (state, observation, grid), and tr's reward (N, 1) float32 and
-        ``terminated`` (N, 1). On the numba backend one compiled pass (:mod:`anm_torchrl.grid.fastoutput`)
-        writes what the torch ops below would, bit for bit."""
-        f32, b = torch.float32, self.sim.net.base_mva
-        obs = None
-        if self.sim.backend == "numba":
-            out = fastoutput.env_outputs(state, tr, b, *self._obs_bounds)
-            grid = {k: out[k] for k in GRID_KEYS}
-            obs, reward, terminated = out.get("observation"), out["reward"], out["terminated"]
-        else:
-            grid = {
-                "e_loss": tr.e_loss.unsqueeze(-1), "penalty": tr.penalty.unsqueeze(-1),
-                "curtailment": (tr.curtailment * b).unsqueeze(-1), "v_magn": tr.v.abs(),
-                "branch_s": tr.s_apparent_max * b,
-            }
-            grid = {k: grid[k].to(f32) for k in GRID_KEYS}
-            reward, terminated = tr.reward.to(f32).unsqueeze(-1), (~tr.converged).unsqueeze(-1)
+        ``terminated`` (N, 1), from the backend's ``env_outputs`` (numba: one compiled pass, bit for bit the torch
+        backend's ops)."""
+        out = self.sim.physics.env_outputs(state, tr, self.sim.net.base_mva, self._obs_bounds)
+        grid = {k: out[k] for k in GRID_KEYS}
+        obs, reward, terminated = out.get("observation"), out["reward"], out["terminated"]
         if obs is None:
             obs = self.obs_map.observe(state, tr.v if self.obs_map.needs_grid else None, ~tr.converged)
         td = TensorDict({"state": state, "observation": obs, "grid": grid}, batch_size=self.batch_size,
@@ -197,10 +131,10 @@ class ANMEnv(EnvBase):
 
     def _sample(self, rows: int) -> tuple[torch.Tensor, Transition]:
         if callable(self.init):
-            return self.sim.reset_with(self.init, rows, self.rng)
+            return grid_reset.reset_with(self.sim, self.init, rows, self.rng)
         if self.init == "uniform":
-            return self.sim.random_state(rows, self.rng)
-        return self.sim.reset(rows, self.rng, intended=self.init == "intended")
+            return grid_reset.random_state(self.sim, rows, self.rng)
+        return grid_reset.gym_anm_reset(self.sim, rows, self.rng, intended=self.init == "intended")
 
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
         n = self.batch_size[0]

@@ -120,8 +120,8 @@ class ObservationMap:
         q_hi = torch.where(is_load, dev[:, 3] * p_hi, dev[:, dv.QMAX])
         lo_hi = {
             "dev_p": (p_lo, p_hi), "dev_q": (q_lo, q_hi),
-            "des_soc": (dev[sim._did, dv.SOC_MIN], dev[sim._did, dv.SOC_MAX]),
-            "gen_p_max": (dev[sim._gid, dv.PMIN], dev[sim._gid, dv.QMAX if unit == "MW" else dv.PMAX]),
+            "des_soc": (dev[sim.des_idx, dv.SOC_MIN], dev[sim.des_idx, dv.SOC_MAX]),
+            "gen_p_max": (dev[sim.gen_idx, dv.PMIN], dev[sim.gen_idx, dv.QMAX if unit == "MW" else dv.PMAX]),
             "bus_p": (p_lo @ net.incidence, p_hi @ net.incidence), "bus_q": (q_lo @ net.incidence, q_hi @ net.incidence),
         }[key]
         scale = b if unit in _POWER_UNITS else 1.0

@@ -9,7 +9,6 @@ from tensordict.nn import TensorDictModuleBase
 from anm_torchrl.envs.anm_env import ANMEnv
 from anm_torchrl.envs.specs import GRID_KEYS, check_action, grid_sizes
 from anm_torchrl.grid.simulator import GridSimulator
-from anm_torchrl.networks import anm6_easy
 
 
 class SurrogateEnv(ANMEnv):
@@ -22,8 +21,8 @@ class SurrogateEnv(ANMEnv):
     the exogenous entries of the next state — load P/Q, generator potentials and the auxiliary variable — from
     the simulator's ``next_vars``; terminal rows get the terminal reward and a zero state, as in gym-anm.
 
-    A model that carries a ``network_key`` attribute must have been built for this env's network (the content
-    key of :meth:`GridSimulator.content_key`); another key raises ``ValueError``.
+    A model that carries a ``transition_key`` attribute must have been built for this env's network and profiles
+    (:func:`anm_torchrl.grid.identity.transition_key`); another key raises ``ValueError``.
 
     Resets reuse the simulator's samplers (``init="uniform"`` by default, as in the paper; ``"gym_anm"`` for
     gym-anm's ANM6-Easy distribution); ``set_state`` and ``"_reset"`` behave as in ``ANMEnv``.
@@ -32,8 +31,8 @@ class SurrogateEnv(ANMEnv):
         model: the transition model; moved to ``device`` and frozen (``requires_grad_(False)``).
         num_envs, device, seed, action_mode: as ``ANMEnv``.
         init: reset distribution, ``"uniform"`` (default), ``"gym_anm"``, ``"intended"`` or a callable.
-        sim: the simulator providing specs, exogenous variables and resets (default ANM6-Easy, unless
-            ``network`` is given).
+        sim: the simulator providing specs, exogenous variables and resets (required unless ``network`` is
+            given).
         **network: ``ANMEnv`` arguments (``network``, ``load_p``, ``gen_p_max``, ``observation``, ``delta_t``,
             ``gamma``, ``lamb``, ``costs_clipping``, ``next_vars``, ``backend``) to run on another network.
             The observation must be computable from the state (no bus or branch quantities).
@@ -42,16 +41,17 @@ class SurrogateEnv(ANMEnv):
     def __init__(self, model: TensorDictModuleBase, num_envs: int = 1, device="cpu", seed: int | None = None,
                  action_mode: str = "raise", init="uniform", sim: GridSimulator | None = None, **network):
         if sim is None and "network" not in network:
-            sim = anm6_easy.simulator(torch.device(device))
+            raise ValueError("SurrogateEnv needs the network it runs on: sim=anm_torchrl.networks.simulator(...) or "
+                             "network=/load_p=/gen_p_max=")
         super().__init__(num_envs=num_envs, device=device, seed=seed, action_mode=action_mode, init=init, sim=sim,
                          **network)
         if self.obs_map.needs_grid:
             raise ValueError("a SurrogateEnv observation must come from the state alone (dev_*, des_soc, "
                              "gen_p_max, aux); bus and branch quantities need the true power flow")
-        key = getattr(model, "network_key", None)
-        if key is not None and key != self.network_key:
-            raise ValueError(f"the model was built for another network (network_key {key[:12]}…), this env runs "
-                             f"{self.network_key[:12]}…")
+        key = getattr(model, "transition_key", None)
+        if key is not None and key != self.transition_key:
+            raise ValueError(f"the model was built for another network (transition_key {key[:12]}…), this env runs "
+                             f"{self.transition_key[:12]}…")
         self.model = model.to(self.device).requires_grad_(False)
         self._grid_sizes = grid_sizes(self.sim)
 

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from anm_torchrl.evaluation import EVAL_GAMMA
+from anm_torchrl.networks import ANM6_EASY
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +50,7 @@ MPC_VARIANT = r"(_cold|_free)?"
 MPC_ROW = re.compile(r"(acmpc|mpc)_(\d+)" + MPC_VARIANT)
 
 
-ANM6 = "anm6_easy"
+ANM6 = ANM6_EASY
 
 
 def _policy(name: str, sim, steps: int):

@@ -57,7 +57,7 @@ def _row(network: str, n_bus: int, impl: str, batch: int, warm: float | None, ra
 def surrogate_row(spec: dict, network: str, n_bus: int, batch: int, min_time: float, min_steps: int,
                   seed: int) -> dict[str, Any]:
     """One surrogate env's warm-up and rate on ``network`` at ``batch`` (a reason instead when it has no model)."""
-    from anm_torchrl.benchmarks.env import time_env_steps
+    from anm_torchrl.benchmarks.timing import time_env_steps
 
     load = _load()
     if spec["name"] == "pinn":  # time an existing model only: never train one inside a timing loop
@@ -238,7 +238,7 @@ def surrogate_model_ids(network: str, specs: list[dict]) -> dict[str, Any]:
     folder) and the file's SHA-256, so a record says which model the runs were trained on."""
     import hashlib
 
-    from anm_torchrl.envs.anm_env import build_simulator
+    from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.surrogates.pinn.cache import default_path
     from anm_torchrl.training.factory import network_arguments
 
@@ -246,7 +246,7 @@ def surrogate_model_ids(network: str, specs: list[dict]) -> dict[str, Any]:
     for spec in specs:
         if spec["name"] != "pinn":
             continue
-        f = Path(spec["path"]) if spec.get("path") else default_path(build_simulator(**network_arguments(network)))
+        f = Path(spec["path"]) if spec.get("path") else default_path(network_simulator(**network_arguments(network)))
         out[label(spec)] = {"file": str(f), "network_key": f.parent.name if not spec.get("path") else None,
                             "sha256": hashlib.sha256(f.read_bytes()).hexdigest() if f.is_file() else None}
     return out

@@ -170,9 +170,10 @@ def measure(cfg: dict[str, Any], surrogates: list[dict], seed: int = 0, sim=None
 
 
 def _default_sim():
-    from anm_torchrl.grid.simulator import anm6_easy_simulator
+    from anm_torchrl.networks import ANM6_EASY
+    from anm_torchrl.networks import simulator as network_simulator
 
-    return anm6_easy_simulator()
+    return network_simulator(ANM6_EASY)
 
 
 def scaled_simulator(load: float = 1.0, gen: float = 1.0, sim=None, shift: int = 0):

@@ -26,6 +26,7 @@ import torch
 
 from anm_torchrl.experiments.common import RunContext, label, make_env_or_reason
 from anm_torchrl.experiments.io import result
+from anm_torchrl.grid import reset as grid_reset
 
 
 def _quantiles(xs: list[float]) -> dict[str, float]:
@@ -71,12 +72,13 @@ def time_env(env, n_steps: int, seed: int = 0) -> list[float]:
 
 def time_grid(batch: int, n_steps: int, seed: int = 0) -> list[float]:
     """Seconds of each of ``n_steps`` raw ``GridSimulator.step`` calls on ``batch`` grids."""
-    from anm_torchrl.grid.simulator import anm6_easy_simulator
+    from anm_torchrl.networks import ANM6_EASY
+    from anm_torchrl.networks import simulator as network_simulator
 
-    sim = anm6_easy_simulator()
+    sim = network_simulator(ANM6_EASY)
     gen = torch.Generator().manual_seed(seed)
     lo, hi = sim.action_bounds()
-    state = sim.reset(batch, gen)
+    state = grid_reset.gym_anm_reset(sim, batch, gen)
     state = state[0] if isinstance(state, tuple) else state
 
     def act():
@@ -124,12 +126,13 @@ def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
     if 1 in batch_sizes:
         scaling.append({"impl": "grid_sim", "batch": 1, "s_per_transition": next(r["median"] for r in rows if r["impl"] == "grid_sim" and r["batch"] == 1)})
 
-    from anm_torchrl.grid.simulator import anm6_easy_simulator
+    from anm_torchrl.networks import ANM6_EASY
+    from anm_torchrl.networks import simulator as network_simulator
 
     # ANM6Env on its default backend (numba on the CPU) and on the batched-torch backend, then every surrogate
     envs = [("anm6env", {"name": "none"}, None), ("anm6env_torch", {"name": "none"}, "torch")]
     for name, spec, backend in envs + [(label(s), s, None) for s in surrogates]:
-        sim = anm6_easy_simulator(backend=backend) if backend else None
+        sim = network_simulator(ANM6_EASY, backend=backend) if backend else None
         env, reason = make_env_or_reason(spec, 1, seed, sim=sim)
         if env is None:
             missing[name] = reason

@@ -1,15 +1,13 @@
-"""``TransitionConstants``: every network table the transition reads, as ONE structure, and its content key.
+"""``TransitionConstants``: every network table the numba backend reads, as ONE structure.
 
 A ``NamedTuple`` of NumPy arrays and scalars (p.u.), built once per simulator by :func:`build_constants`. The
-numba kernel (:mod:`anm_torchrl.grid.kernel`) takes it as one argument and unpacks it in one place; the
+numba backend (:mod:`anm_torchrl.grid.backends.numba`) takes it as one argument and reads its fields by name; the
 torch backend reads the same tables from its :class:`~anm_torchrl.grid.network.Network` (torch tensors,
-any device). :func:`content_key` hashes the tables and profiles so that a model built for one network can
-refuse another.
+any device). The content keys of a network live in :mod:`anm_torchrl.grid.identity`.
 """
 
 from __future__ import annotations
 
-import hashlib
 from typing import NamedTuple
 
 import numpy as np
@@ -171,11 +169,11 @@ def _tree_ordering(bfs: list[int], parent: np.ndarray) -> tuple[np.ndarray, int,
 def build_constants(sim, solver: str = "auto") -> TransitionConstants:
     """The :class:`TransitionConstants` of a :class:`~anm_torchrl.grid.simulator.GridSimulator` (``solver``: the
     Jacobian layout of :func:`jacobian_ordering`)."""
-    from anm_torchrl.grid.kernel import _flat_start_lu, _polygon_arrays
+    from anm_torchrl.grid.backends.numba import _flat_start_lu, _polygon_arrays
 
     net, br = sim.net, sim.net.branches
-    gen_poly, gen_h0 = _polygon_arrays(sim._gen_poly, sim.gen_h0)
-    des_poly, des_h0 = _polygon_arrays(sim._des_poly, sim.des_h0)
+    gen_poly, gen_h0 = _polygon_arrays(sim.gen_polygons, sim.gen_h0)
+    des_poly, des_h0 = _polygon_arrays(sim.des_polygons, sim.des_h0)
     ys, ysh, tp = (_npy(x) for x in (br.y_series, br.y_shunt, br.tap))
     y_bus = _npy(net.y_bus)
     ix, kl, ku, parent = jacobian_ordering(y_bus, solver)
@@ -184,7 +182,7 @@ def build_constants(sim, solver: str = "auto") -> TransitionConstants:
     ycsr = (np.searchsorted(rows, np.arange(y_bus.shape[0] + 1)).astype(np.int64), cols.astype(np.int64),
             np.ascontiguousarray(y_bus[rows, cols]))
     return TransitionConstants(
-        dev=_npy(net.dev).astype(np.float64), lid=_npy(sim._lid), gid=_npy(sim._gid), did=_npy(sim._did),
+        dev=_npy(net.dev).astype(np.float64), lid=_npy(sim.load_idx), gid=_npy(sim.gen_idx), did=_npy(sim.des_idx),
         renewable=_npy(sim.renewable).astype(np.float64), slack=int(sim.slack_ids[0]), dev_bus=_npy(net.dev_bus),
         counted=_npy(sim.counted).astype(np.float64), gen_poly=gen_poly, des_poly=des_poly, gen_h0=gen_h0,
         des_h0=des_h0, gen_ppot_row=GEN_PPOT_ROW, des_soc_rows=np.array(DES_SOC_ROWS, dtype=np.int64), y=y_bus,
@@ -198,12 +196,3 @@ def build_constants(sim, solver: str = "auto") -> TransitionConstants:
         c0=float(sim.costs_clipping[0]), c1=float(sim.costs_clipping[1]), term_reward=float(sim.terminal_reward),
         tol=TOL, max_iter=MAX_ITER)
 
-
-def content_key(*arrays) -> str:
-    """sha256 (hex) of a sequence of arrays / numbers: shapes, dtypes and bytes, in order."""
-    h = hashlib.sha256()
-    for a in arrays:
-        a = np.ascontiguousarray(a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a))
-        h.update(f"{a.dtype.str}{a.shape}".encode())
-        h.update(a.tobytes())
-    return h.hexdigest()

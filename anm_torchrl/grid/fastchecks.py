@@ -16,7 +16,8 @@ import math
 import numpy as np
 import torch
 
-from anm_torchrl.grid.kernel import _njit, available
+from anm_torchrl.grid.jit import available
+from anm_torchrl.grid.jit import njit as _njit
 
 
 def usable(x: torch.Tensor) -> bool:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from anm_torchrl.grid.kernel import _njit
+from anm_torchrl.grid.jit import njit as _njit
 
 
 @_njit()

@@ -1,15 +1,13 @@
 """gym-anm's transition on any network as batched float64 maths, numbered as in gym-anm (spec §3.5), and resets.
 
 State vectors are in gym-anm's order and units (MW, MVAr, MWh, auxiliary variable; spec §3.1); actions in
-MW/MVAr (spec §3.2). Internally everything is p.u. on ``base_mva``. Two backends compute the same transition:
-batched torch ops here (any device, differentiable) and a compiled numba loop (:mod:`anm_torchrl.grid.kernel`)
-fed with one :class:`~anm_torchrl.grid.constants.TransitionConstants`. No TorchRL here: :mod:`anm_torchrl.envs`
-wraps it.
+MW/MVAr (spec §3.2). Internally everything is p.u. on ``base_mva``. The transition itself is computed by the
+backend resolved once at construction (:mod:`anm_torchrl.grid.backends`: batched torch ops, or a compiled numba
+loop fed with one :class:`~anm_torchrl.grid.constants.TransitionConstants`); the reset samplers are functions of
+:mod:`anm_torchrl.grid.reset`. No TorchRL here: :mod:`anm_torchrl.envs` wraps it.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 from collections.abc import Callable
 
@@ -17,45 +15,21 @@ import numpy as np
 import torch
 
 from anm_torchrl.grid import devices as dv
-from anm_torchrl.grid import fastchecks, fastoutput
-from anm_torchrl.grid.constants import TransitionConstants, build_constants, content_key
-from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STORAGE, Network, branch_flows
-from anm_torchrl.grid.powerflow import newton_raphson
-from anm_torchrl.grid.residuals import power_injection
-from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, penalty, terminal_reward
+from anm_torchrl.grid import fastchecks
+from anm_torchrl.grid.backends import get_backend
+from anm_torchrl.grid.backends import torch as torch_backend
+from anm_torchrl.grid.constants import TransitionConstants, build_constants
+from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STORAGE, Network
+from anm_torchrl.grid.reward import terminal_reward
 from anm_torchrl.grid.state import check_state, state_sizes, state_slices
+from anm_torchrl.grid.transition import Transition
+
+__all__ = ["GridSimulator", "Transition"]
 
 
 def _stack(parts: list[torch.Tensor], empty: torch.Tensor) -> torch.Tensor:
     """``torch.stack(parts, 1)``, or ``empty`` (the (N, 0, ...) result) for a network without such devices."""
     return torch.stack(parts, 1) if parts else empty
-
-
-@dataclasses.dataclass
-class Transition:
-    """Everything one batched transition computes (p.u. unless noted); N = batch size.
-
-    Attributes:
-        p_dev, q_dev: (N, n_dev) applied injections, slack from the power flow (+inf if NaN).
-        soc: (N, n_des) p.u.·h after the update.  p_pot: (N, n_gen) clipped potentials of the non-slack
-            generators (classical and renewable).
-        v: (N, n_bus) complex voltages.  s_apparent_max: (N, n_branch) signed flows.
-        converged: (N,) bool.  n_iter: (N,) long.
-        e_loss: (N,) p.u.·h.  penalty: (N,) λΦ.  curtailment: (N,) p.u.  reward: (N,) with terminal reward.
-    """
-
-    p_dev: torch.Tensor
-    q_dev: torch.Tensor
-    soc: torch.Tensor
-    p_pot: torch.Tensor
-    v: torch.Tensor
-    s_apparent_max: torch.Tensor
-    converged: torch.Tensor
-    n_iter: torch.Tensor
-    e_loss: torch.Tensor
-    penalty: torch.Tensor
-    curtailment: torch.Tensor
-    reward: torch.Tensor
 
 
 class GridSimulator:
@@ -74,8 +48,17 @@ class GridSimulator:
         linear_solver: the numba kernel's Newton step: ``"dense"`` LU, ``"band"`` (RCM-ordered banded LU, for
             large feeders) or ``"auto"`` (:func:`anm_torchrl.grid.constants.jacobian_ordering`).
         backend: ``"torch"`` (batched tensor ops, any device), ``"numba"`` (one compiled loop over the batch,
-            float64 CPU only, several times faster; :mod:`anm_torchrl.grid.kernel`) or ``"auto"`` (numba when
-            it is installed and the network is on the CPU). Both give the same transitions to round-off.
+            float64 CPU only, several times faster) or ``"auto"`` (numba when it is installed and the network is
+            on the CPU), resolved once by :func:`anm_torchrl.grid.backends.get_backend`. Both give the same
+            transitions to round-off.
+
+    Attributes (public, read by the envs, datasets and surrogates):
+        load_ids, gen_ids, des_ids, slack_ids: device rows (Python lists) of the loads, non-slack generators
+            (classical and renewable), storage units and the slack.
+        load_idx, gen_idx, des_idx: the same rows as (n,) long tensors on the network's device.
+        gen_polygons, des_polygons: the :class:`~anm_torchrl.grid.devices.Polygon` of each generator / storage
+            unit.
+        physics: the resolved backend (:mod:`anm_torchrl.grid.backends`); ``backend``: its name.
     """
 
     def __init__(self, net: Network, load_series: torch.Tensor, p_max_series: torch.Tensor, gamma: float,
@@ -108,22 +91,22 @@ class GridSimulator:
         kw = dict(dtype=net.dev.dtype, device=net.dev.device)
         self.des_g = torch.stack([p[0] for p in polys]) if polys else torch.zeros(0, dv.DES_ROWS, 2, **kw)
         self.des_h0 = torch.stack([p[1] for p in polys]) if polys else torch.zeros(0, dv.DES_ROWS, **kw)
-        self._gen_poly = [dv.Polygon(g) for g in self.gen_g]
-        self._des_poly = [dv.Polygon(g) for g in self.des_g] if polys else []
-        gid, did, lid = (torch.tensor(ix, dtype=torch.long, device=net.dev.device)
-                         for ix in (self.gen_ids, self.des_ids, self.load_ids))
-        self._gid, self._did, self._lid = gid, did, lid
+        self.gen_polygons = [dv.Polygon(g) for g in self.gen_g]
+        self.des_polygons = [dv.Polygon(g) for g in self.des_g] if polys else []
+        self.gen_idx, self.des_idx, self.load_idx = (torch.tensor(ix, dtype=torch.long, device=net.dev.device)
+                                                     for ix in (self.gen_ids, self.des_ids, self.load_ids))
         self.counted = (net.dev_type != STORAGE).to(net.dev.dtype)  # ΔE counts gens, slack and loads
         self.terminal_reward = terminal_reward(gamma, costs_clipping)
-        self.backend = self._pick_backend(backend)
+        self.physics = get_backend(backend, net)
+        self.backend = self.physics.name
         self._rows_src, self._rows_key, self._rows = None, None, None  # see _series_rows
         # check_state's compiled one-pass path (CPU): SoC columns and bounds (MWh), aux column
-        d, sl = net.dev[self._did], self.state_slices()
+        d, sl = net.dev[self.des_idx], self.state_slices()
         self._soc_cols = sl["des_soc"]
         self._fast_state = None if net.dev.device.type != "cpu" else (
             sl["des_soc"].start, *(np.ascontiguousarray((x * net.base_mva).numpy()) for x in
                                    (d[:, dv.SOC_MIN], d[:, dv.SOC_MAX])), sl["aux"].start)
-        self._kernel = None
+        self._transition = None  # bound on first use: the numba backend builds its constants then
         self._constants: TransitionConstants | None = None
 
     @property
@@ -132,20 +115,6 @@ class GridSimulator:
         if self._constants is None:
             self._constants = build_constants(self, self.linear_solver)
         return self._constants
-
-    def _pick_backend(self, backend: str) -> str:
-        from anm_torchrl.grid import kernel
-
-        if backend not in ("auto", "torch", "numba"):
-            raise ValueError(f"backend must be 'auto', 'torch' or 'numba', got {backend!r}")
-        cpu64 = self.net.dev.device.type == "cpu" and self.net.dev.dtype == torch.float64
-        if backend == "numba" and not (kernel.available() and cpu64):
-            raise ValueError("backend='numba' needs numba installed and a float64 network on the CPU "
-                             f"(numba {'found' if kernel.available() else 'missing'}, "
-                             f"network on {self.net.dev.device})")
-        if backend == "auto":
-            return "numba" if kernel.available() and cpu64 else "torch"
-        return backend
 
     # ----------------------------------------------------------------------------------------------- layout
     @classmethod
@@ -199,16 +168,8 @@ class GridSimulator:
                 and state.dtype == torch.float64 and fastchecks.usable(state):
             if fastchecks.state_ok(state, *self._fast_state, n_time):
                 return  # valid; otherwise the torch check below names what is wrong
-        d, b = self.net.dev[self._did], self.net.base_mva
+        d, b = self.net.dev[self.des_idx], self.net.base_mva
         check_state(state, self.state_sizes, d[:, dv.SOC_MIN] * b, d[:, dv.SOC_MAX] * b, n_time)
-
-    def content_key(self) -> str:
-        """sha256 of everything that defines this simulator's transitions: network tables, profiles, Δt, γ, λ,
-        costs clipping. Models built for one network compare it to refuse another."""
-        net, br = self.net, self.net.branches
-        return content_key(net.dev, net.y_bus, net.v_min, net.v_max, br.f_bus, br.t_bus, br.y_series, br.y_shunt,
-                           br.tap, br.rate, self.load_series, self.p_max_series,
-                           [net.base_mva, net.delta_t, self.gamma, self.lamb, *self.costs_clipping])
 
     def state_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Observation bounds (state_dim,) in MW/MVAr/MWh (spec §3.1)."""
@@ -217,9 +178,9 @@ class GridSimulator:
         qp = dev[:, 3]
         is_load = self.net.dev_type == LOAD
         qmax[is_load], qmin[is_load] = (qp * dev[:, dv.PMAX])[is_load], (qp * dev[:, dv.PMIN])[is_load]
-        des = dev[self._did]
-        low = torch.cat([dev[:, dv.PMIN], qmin, des[:, dv.SOC_MIN], dev[self._gid, dv.PMIN], dev.new_zeros(1)])
-        high = torch.cat([dev[:, dv.PMAX], qmax, des[:, dv.SOC_MAX], dev[self._gid, dv.QMAX],
+        des = dev[self.des_idx]
+        low = torch.cat([dev[:, dv.PMIN], qmin, des[:, dv.SOC_MIN], dev[self.gen_idx, dv.PMIN], dev.new_zeros(1)])
+        high = torch.cat([dev[:, dv.PMAX], qmax, des[:, dv.SOC_MAX], dev[self.gen_idx, dv.QMAX],
                           dev.new_full((1,), self.n_time - 1)])
         scale = torch.cat([torch.full((2 * self.net.n_dev + self.n_des + self.n_gen,), b, dtype=dev.dtype,
                                       device=dev.device), dev.new_ones(1)])
@@ -228,7 +189,7 @@ class GridSimulator:
     def action_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Action box (action_dim,) in MW/MVAr (spec §3.2)."""
         dev, b = self.net.dev, self.net.base_mva
-        g, d = dev[self._gid], dev[self._did]
+        g, d = dev[self.gen_idx], dev[self.des_idx]
         low = torch.cat([g[:, dv.PMIN], g[:, dv.QMIN], d[:, dv.PMIN], d[:, dv.QMIN]])
         high = torch.cat([g[:, dv.PMAX], g[:, dv.QMAX], d[:, dv.PMAX], d[:, dv.QMAX]])
         return low * b, high * b
@@ -240,7 +201,7 @@ class GridSimulator:
 
     def load_pq(self, p_load: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Load (P, Q) (N, n_load) p.u. from raw load P (N, n_load) p.u.: clipped to [PMIN, PMAX], Q = (Q/P)·P."""
-        dev = self.net.dev[self._lid]
+        dev = self.net.dev[self.load_idx]
         p = torch.clamp(p_load, dev[:, dv.PMIN], dev[:, dv.PMAX])
         return p, p * dev[:, 3]
 
@@ -250,7 +211,7 @@ class GridSimulator:
 
     def clip_p_pot(self, p_pot: torch.Tensor) -> torch.Tensor:
         """Potentials (N, n_gen) p.u. clipped to each generator's [PMIN, PMAX] (gym-anm's ``p_pot`` setter)."""
-        dev = self.net.dev[self._gid]
+        dev = self.net.dev[self.gen_idx]
         return torch.clamp(p_pot, dev[:, dv.PMIN], dev[:, dv.PMAX])
 
     def next_vars(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -279,7 +240,7 @@ class GridSimulator:
     def project_generators(self, target: torch.Tensor, p_pot: torch.Tensor) -> torch.Tensor:
         """Feasible (P, Q) (N, n_gen, 2) p.u. for set-points ``target`` (N, n_gen, 2) and ``p_pot`` (N, n_gen)."""
         h = self.generator_h(p_pot)
-        return _stack([poly.project(target[:, k], h[:, k]) for k, poly in enumerate(self._gen_poly)], target)
+        return _stack([poly.project(target[:, k], h[:, k]) for k, poly in enumerate(self.gen_polygons)], target)
 
     def generator_h(self, p_pot: torch.Tensor) -> torch.Tensor:
         """Generator right-hand sides (N, n_gen, 7) for ``p_pot`` (N, n_gen) p.u."""
@@ -293,11 +254,11 @@ class GridSimulator:
     def project_storage(self, target: torch.Tensor, soc: torch.Tensor) -> torch.Tensor:
         """Feasible (P, Q) (N, n_des, 2) p.u. for set-points (N, n_des, 2) and SoC (N, n_des) p.u.·h."""
         h = self.storage_h(soc)
-        return _stack([poly.project(target[:, k], h[:, k]) for k, poly in enumerate(self._des_poly)], target)
+        return _stack([poly.project(target[:, k], h[:, k]) for k, poly in enumerate(self.des_polygons)], target)
 
     def soc_update(self, soc: torch.Tensor, p_des: torch.Tensor) -> torch.Tensor:
         """SoC after applying ``p_des`` (N, n_des) p.u. for Δt; one-way efficiency both ways, then clipped."""
-        d = self.net.dev[self._did]
+        d = self.net.dev[self.des_idx]
         eff, dt = d[:, dv.EFF], self.net.delta_t
         nxt = torch.where(p_des <= 0, soc - dt * eff * p_des, soc - dt * p_des / eff)
         return torch.clamp(nxt, d[:, dv.SOC_MIN], d[:, dv.SOC_MAX])
@@ -316,52 +277,9 @@ class GridSimulator:
             p_pot: (N, n_gen) raw generator potentials p.u. (clipped to [PMIN, PMAX] here).
             setpoints: (N, action_dim) p.u., action order (P gen, Q gen, P DES, Q DES).
         """
-        if self.backend == "numba":
-            if self._kernel is None:
-                from anm_torchrl.grid.kernel import CompiledTransition
-
-                self._kernel = CompiledTransition(self.constants)
-            return Transition(**self._kernel(soc, p_load, p_pot, setpoints))
-        net, ng, nd = self.net, self.n_gen, self.n_des
-        n_env = setpoints.shape[0]
-        p_dev = setpoints.new_zeros(n_env, net.n_dev)
-        q_dev = setpoints.new_zeros(n_env, net.n_dev)
-        # 1. loads follow their exogenous P.
-        p_dev[:, self._lid], q_dev[:, self._lid] = self.load_pq(p_load)
-        # 2. non-slack generators: potential, then projection onto the capability polygon.
-        p_pot = self.clip_p_pot(p_pot)
-        gen = self.project_generators(torch.stack([setpoints[:, :ng], setpoints[:, ng:2 * ng]], -1), p_pot)
-        p_dev[:, self._gid], q_dev[:, self._gid] = gen[..., 0], gen[..., 1]
-        # 3. storage: SoC-dependent projection, then SoC update.
-        des_target = torch.stack([setpoints[:, 2 * ng:2 * ng + nd], setpoints[:, 2 * ng + nd:]], -1)
-        des = self.project_storage(des_target, soc)
-        p_dev[:, self._did], q_dev[:, self._did] = des[..., 0], des[..., 1]
-        soc_next = self.soc_update(soc, des[..., 0])
-        return self._solve(p_dev, q_dev, p_pot, soc_next)
-
-    def _solve(self, p_dev: torch.Tensor, q_dev: torch.Tensor, p_pot: torch.Tensor, soc: torch.Tensor) -> Transition:
-        """Power flow, slack injection, branch flows and reward for device injections (N, n_dev) p.u."""
-        net = self.net
-        # 4. bus injections and AC power flow (the slack injection is 0 at this point).
-        p_dev[:, self.slack_ids[0]] = 0.0
-        q_dev[:, self.slack_ids[0]] = 0.0
-        s_bus = torch.complex(p_dev @ net.incidence, q_dev @ net.incidence)
-        pf = newton_raphson(net.y_bus, s_bus)
-        # 5. slack injection and branch flows from the (possibly non-converged) voltages.
-        s_slack = power_injection(pf.v, net.y_bus)[:, 0]
-        inf = torch.full_like(s_slack.real, float("inf"))
-        p_dev[:, self.slack_ids[0]] = torch.where(torch.isnan(s_slack.real), inf, s_slack.real)
-        q_dev[:, self.slack_ids[0]] = torch.where(torch.isnan(s_slack.imag), inf, s_slack.imag)
-        s_max = branch_flows(pf.v, net.branches)["s_apparent_max"]
-        # 6. reward terms; a non-converged power flow is terminal.
-        curt = curtailment(p_pot, p_dev[:, self._gid], self.renewable)
-        e_loss = energy_loss(p_dev, self.counted, curt, net.delta_t)
-        pen = penalty(pf.v.abs(), s_max, net, self.lamb)
-        reward = clipped_reward(e_loss, pen, self.costs_clipping)
-        reward = torch.where(pf.converged, reward, torch.full_like(reward, self.terminal_reward))
-        return Transition(p_dev=p_dev, q_dev=q_dev, soc=soc, p_pot=p_pot, v=pf.v, s_apparent_max=s_max,
-                          converged=pf.converged, n_iter=pf.n_iter, e_loss=e_loss, penalty=pen,
-                          curtailment=curt, reward=reward)
+        if self._transition is None:
+            self._transition = self.physics.bind(self)
+        return self._transition(soc, p_load, p_pot, setpoints)
 
     def operating_point(self, state: torch.Tensor) -> Transition:
         """Re-solve the power flow of the injections written in ``state`` (N, state_dim) MW… .
@@ -370,8 +288,9 @@ class GridSimulator:
         transition; for a reached state they equal the transition's (up to the NR tolerance).
         """
         sl, b = self.state_slices(), self.net.base_mva
-        return self._solve(state[:, sl["dev_p"]] / b, state[:, sl["dev_q"]] / b, state[:, sl["gen_p_max"]] / b,
-                           state[:, sl["des_soc"]] / b)
+        # always the torch solve: it reads any state's injections, while a backend's transition starts from set-points
+        return torch_backend.solve(self, state[:, sl["dev_p"]] / b, state[:, sl["dev_q"]] / b,
+                                   state[:, sl["gen_p_max"]] / b, state[:, sl["des_soc"]] / b)
 
     def with_exogenous(self, state: torch.Tensor, t_index: torch.Tensor) -> torch.Tensor:
         """A copy of ``state`` (N, state_dim) whose exogenous entries — load P and Q, renewable potentials and
@@ -386,8 +305,8 @@ class GridSimulator:
         sl, b = self.state_slices(), self.net.base_mva
         out = state.clone()
         p, q = self.load_pq(p_load / b)
-        out[:, sl["dev_p"].start + self._lid] = p * b
-        out[:, sl["dev_q"].start + self._lid] = q * b
+        out[:, sl["dev_p"].start + self.load_idx] = p * b
+        out[:, sl["dev_q"].start + self.load_idx] = q * b
         out[:, sl["gen_p_max"]] = self.clip_p_pot(p_pot / b) * b
         out[:, sl["aux"]] = aux.to(out)
         return out
@@ -395,11 +314,7 @@ class GridSimulator:
     def build_state(self, tr: Transition, aux: torch.Tensor) -> torch.Tensor:
         """State (N, state_dim) in MW/MVAr/MWh after ``tr`` and ``aux`` (N,) or (N, 1); zeros where the power flow
         did not converge."""
-        b = self.net.base_mva
-        if self.backend == "numba":  # one compiled pass, the same values bit for bit
-            return fastoutput.build_state(tr, aux, b)
-        state = torch.cat([tr.p_dev * b, tr.q_dev * b, tr.soc * b, tr.p_pot * b, aux.reshape(-1, 1).to(tr.p_dev)], 1)
-        return torch.where(tr.converged.unsqueeze(1), state, torch.zeros_like(state))
+        return self.physics.build_state(tr, aux, self.net.base_mva)
 
     def step(self, state: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, Transition]:
         """gym-anm ``step`` for a batch: ``state`` (N, state_dim) MW…, ``action`` (N, action_dim) MW/MVAr.
@@ -435,129 +350,3 @@ class GridSimulator:
             self._rows_src, self._rows_key = src, key  # holding the tensors: their ids cannot be reused
         return self._rows
 
-    # --------------------------------------------------------------------------------------------- reset
-    def sample_initial(self, n: int, generator: torch.Generator | None = None,
-                       intended: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Draw ANM6-Easy initial conditions (spec §5.2).
-
-        gym-anm's distribution (``intended=False``) keeps its unit bugs: generator Q uniform in
-        ±QMAX/base_mva MVAr (±0.3 / ±0.5) and SoC uniform in [SOC_MIN, SOC_MAX)/base_mva MWh ([0, 1)).
-        ``intended=True`` draws Q in [QMIN, QMAX] MVAr and SoC in [SOC_MIN, SOC_MAX) MWh instead.
-
-        Returns ``t0`` (n,) long, generator Q (n, n_gen) MVAr and SoC (n, n_des) MWh.
-        """
-        dev, b = self.net.dev, self.net.base_mva
-        kw = dict(generator=generator, dtype=dev.dtype, device=dev.device)
-        t0 = torch.randint(0, self.n_time, (n,), generator=generator, device=dev.device)
-        g, d = dev[self._gid], dev[self._did]
-        unit = b if intended else 1.0  # gym-anm uses the p.u. bounds as MVAr / MWh
-        q = g[:, dv.QMIN] * unit + torch.rand(n, self.n_gen, **kw) * (g[:, dv.QMAX] - g[:, dv.QMIN]) * unit
-        soc = d[:, dv.SOC_MIN] * unit + torch.rand(n, self.n_des, **kw) * (d[:, dv.SOC_MAX] - d[:, dv.SOC_MIN]) * unit
-        return t0, q, soc
-
-    def initial_state(self, t0: torch.Tensor, q_gen: torch.Tensor, soc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """gym-anm ``Simulator.reset``: the state reached from initial conditions (spec §5.3).
-
-        Generators are set to their raw potential P and ``q_gen`` (MVAr), storage to (0, 0) with SoC at
-        SOC_MIN, one transition at time ``t0`` is solved, then the SoC is overwritten with ``soc`` (MWh).
-
-        Returns the state (n, state_dim) and the :class:`Transition` of that initial power flow.
-        """
-        b = self.net.base_mva
-        setpoints = torch.cat([self.p_max_series[:, t0].T, q_gen / b, soc.new_zeros(soc.shape[0], 2 * self.n_des)], 1)
-        soc_min = self.net.dev[self._did, dv.SOC_MIN].expand_as(soc)
-        tr = self.transition(soc_min, t0, setpoints)
-        tr.soc = soc / b
-        return self.build_state(tr, t0), tr
-
-    def reset_from_states(self, state: torch.Tensor) -> Transition:
-        """gym-anm's ``Simulator.reset(init_state)`` for a batch of states (N, state_dim) MW….
-
-        Loads take the state's P (clipped), generators project the state's (P, Q) under the state's potentials,
-        storage projects its (P, Q) with the SoC at SOC_MIN (P <= 0) or SOC_MAX (P > 0), the power flow is
-        solved; then the SoC is the state's. Returns that :class:`Transition` (``build_state`` with the state's
-        aux gives gym-anm's reconstructed initial state).
-        """
-        sl, b = self.state_slices(), self.net.base_mva
-        p, q = state[:, sl["dev_p"]] / b, state[:, sl["dev_q"]] / b
-        d = self.net.dev[self._did]
-        p_des = p[:, self._did]
-        soc0 = torch.where(p_des <= 0, d[:, dv.SOC_MIN], d[:, dv.SOC_MAX])
-        setpoints = torch.cat([p[:, self._gid], q[:, self._gid], p_des, q[:, self._did]], 1)
-        tr = self.apply(soc0, p[:, self._lid], state[:, sl["gen_p_max"]] / b, setpoints)
-        tr.soc = state[:, sl["des_soc"]] / b
-        return tr
-
-    def reset_with(self, init, n: int, generator: torch.Generator | None = None, max_attempts: int = 100
-                   ) -> tuple[torch.Tensor, Transition]:
-        """``n`` initial states from a user sampler ``init(n, generator) -> (n, state_dim)`` MW…, each passed
-        through :meth:`reset_from_states`; rows whose power flow fails are re-drawn (gym-anm: 100 attempts)."""
-
-        def draw(k: int) -> tuple[torch.Tensor, Transition]:
-            s = torch.as_tensor(init(k, generator), dtype=self.net.dev.dtype, device=self.net.dev.device)
-            if tuple(s.shape) != (k, self.state_dim):
-                raise ValueError(f"init must return a ({k}, {self.state_dim}) state batch, got {tuple(s.shape)}")
-            tr = self.reset_from_states(s)
-            return self.build_state(tr, s[:, self.state_slices()["aux"]]), tr
-
-        return self._resample(draw, n, max_attempts)
-
-    def reset(self, n: int, generator: torch.Generator | None = None, intended: bool = False,
-              max_attempts: int = 100) -> tuple[torch.Tensor, Transition]:
-        """Sample ``n`` gym-anm initial states (n, state_dim) and their initial transitions.
-
-        Rows whose initial power flow fails are re-drawn, at most ``max_attempts`` times (as gym-anm).
-        """
-        return self._resample(lambda k: self.initial_state(*self.sample_initial(k, generator, intended)), n,
-                              max_attempts)
-
-    def random_state(self, n: int, generator: torch.Generator | None = None,
-                     max_attempts: int = 100) -> tuple[torch.Tensor, Transition]:
-        """States spread over the whole reachable state space, (n, state_dim), with their transitions.
-
-        The free variables are drawn uniformly — time index in [0, T), SoC in [SOC_MIN, SOC_MAX), set-points
-        over the action box — and everything else follows from one transition at that time index (projection,
-        SoC update, power flow). Non-converging draws are re-drawn.
-        """
-        dev, b = self.net.dev, self.net.base_mva
-        a_low, a_high = self.action_bounds()
-        if not (torch.isfinite(a_low).all() and torch.isfinite(a_high).all()):
-            raise ValueError(f"random_state draws set-points over the action box, which must be finite; got low "
-                             f"{a_low.tolist()}, high {a_high.tolist()} (give PMAX/QMAX/QMIN or use a reset hook)")
-        d = dev[self._did]
-        kw = dict(generator=generator, dtype=dev.dtype, device=dev.device)
-
-        def draw(k: int) -> tuple[torch.Tensor, Transition]:
-            t = torch.randint(0, self.n_time, (k,), generator=generator, device=dev.device)
-            soc = d[:, dv.SOC_MIN] + torch.rand(k, self.n_des, **kw) * (d[:, dv.SOC_MAX] - d[:, dv.SOC_MIN])
-            a = a_low + torch.rand(k, self.action_dim, **kw) * (a_high - a_low)
-            tr = self.transition(soc, t, a / b)
-            return self.build_state(tr, t), tr
-
-        return self._resample(draw, n, max_attempts)
-
-    @staticmethod
-    def _resample(draw, n: int, max_attempts: int) -> tuple[torch.Tensor, Transition]:
-        state, tr = draw(n)
-        for _ in range(max_attempts - 1):
-            todo = (~tr.converged).nonzero().squeeze(1)
-            if todo.numel() == 0:
-                return state, tr
-            s_new, tr_new = draw(todo.numel())
-            state = state.index_copy(0, todo, s_new)
-            tr = Transition(**{f.name: getattr(tr, f.name).index_copy(0, todo, getattr(tr_new, f.name))
-                               for f in dataclasses.fields(Transition)})
-        if not tr.converged.all():
-            raise RuntimeError(f"{int((~tr.converged).sum())} sampled states did not converge after "
-                               f"{max_attempts} attempts")
-        return state, tr
-
-
-def anm6_easy_simulator(device=None, backend: str = "auto") -> GridSimulator:
-    """The ANM6-Easy simulator of gym-anm 2.0.1 on ``device`` (``backend``: see :class:`GridSimulator`).
-
-    Kept here for its many importers; the data lives in :mod:`anm_torchrl.networks.anm6_easy`.
-    """
-    from anm_torchrl.networks import anm6_easy
-
-    return anm6_easy.simulator(device=device, backend=backend)

@@ -1,7 +1,7 @@
 """ANM6-Easy data: network tables and the five 96-step time series (gym-anm 2.0.1).
 
 Data plus the gym-anm network dict and profile tables built from it (:func:`network`, :func:`load_p`,
-:func:`gen_p_max`); the series are built from their nine pieces (spec §2.2). Units are those of
+:func:`gen_p_max`; its simulator: ``anm_torchrl.networks.simulator(ANM6_EASY)``); the series are built from their nine pieces (spec §2.2). Units are those of
 gym-anm's ``network.py``: MW, MVAr, MWh, p.u. on ``BASE_MVA``; device rows use the column order of
 ``gym_anm/simulator/components/constants.py``.
 """
@@ -93,11 +93,3 @@ def gen_p_max() -> np.ndarray:
     PMAX at four steps (clipped by the simulator, as gym-anm)."""
     return TIME_SERIES_MW[3:].T.copy()
 
-
-def simulator(device=None, backend: str = "auto"):
-    """The ANM6-Easy :class:`~anm_torchrl.grid.simulator.GridSimulator` (gym-anm 2.0.1) on ``device``."""
-    from anm_torchrl.grid.simulator import GridSimulator
-    from anm_torchrl.networks.validation import validate_network
-
-    return GridSimulator.from_tables(validate_network(network()), load_p(), gen_p_max(), DELTA_T, GAMMA, LAMB,
-                                     COSTS_CLIPPING, device=device, backend=backend)

@@ -1,9 +1,13 @@
 """The registered pandapower / SimBench feeders: how each is built, profiled, checked and saved.
 
-Needs the ``feeders`` extra (pandapower, simbench); the runtime package never imports this module. Profiles are
-SimBench's 15-minute profiles (year 2016), one slice of ``N_DAYS`` days from ``START_DAY``; the feeders that
-ship none (``case33bw``, ``cigre_mv``) take SimBench's standard profiles by customer class, each scaled so that
-its annual maximum is the feeder's nominal value (the nominal loads of these cases are peak loads).
+Re-make a committed case (needs the ``feeders`` extra: pandapower, simbench; the runtime package never imports
+this module)::
+
+    python -m anm_torchrl.networks.feeders --name case33bw   # or cigre_mv, simbench_mv_semiurb, all
+
+Profiles are SimBench's 15-minute profiles (year 2016), one slice of ``N_DAYS`` days from ``START_DAY``; the
+feeders that ship none (``case33bw``, ``cigre_mv``) take SimBench's standard profiles by customer class, each
+scaled so that its annual maximum is the feeder's nominal value (the nominal loads of these cases are peak loads).
 
 * ``case33bw`` — pandapower's Baran & Wu 33-bus feeder (M. E. Baran, F. F. Wu, "Network reconfiguration in
   distribution systems for loss reduction and load balancing", IEEE Trans. Power Delivery 4(2), 1989; 12.66 kV,
@@ -39,6 +43,7 @@ its annual maximum is the feeder's nominal value (the nominal loads of these cas
 
 from __future__ import annotations
 
+import argparse
 import logging
 from pathlib import Path
 
@@ -185,3 +190,18 @@ def build_and_save(name: str) -> Path:
             "elements": {"load": res.load_idx, "gen": res.gen_elements, "storage": res.storage_idx},
             "bus_map": {str(k): v for k, v in res.bus_map.items()}, "do_nothing_pandapower": sweep}
     return save_case(name, res.network, load_p, gen_p_max, meta)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command line: re-import one registered feeder (or ``all``) and rewrite its case file."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--name", required=True, choices=[*BUILDERS, "all"])
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    for name in BUILDERS if args.name == "all" else [args.name]:
+        path = build_and_save(name)
+        logger.info("wrote %s", path)
+
+
+if __name__ == "__main__":
+    main()

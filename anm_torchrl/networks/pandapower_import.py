@@ -1,8 +1,5 @@
-"""pandapower net -> gym-anm network dict and profiles; re-runs a registered import from the command line.
-
-Re-make a committed case (needs the ``feeders`` extra: pandapower, simbench)::
-
-    python -m anm_torchrl.networks.pandapower_import --name case33bw   # or cigre_mv, simbench_mv_semiurb, all
+"""pandapower net -> gym-anm network dict and profiles (the registered feeders are built with it in
+:mod:`anm_torchrl.networks.feeders`, whose command line re-makes a committed case).
 
 What gym-anm can represent, and the defaults used where pandapower has no value (:class:`ImportDefaults`):
 
@@ -38,7 +35,6 @@ What gym-anm can represent, and the defaults used where pandapower has no value 
 
 from __future__ import annotations
 
-import argparse
 import copy
 import logging
 import re
@@ -337,19 +333,3 @@ def defaults_record(defaults: ImportDefaults) -> dict:
     """The defaults as a JSON-serialisable dict (stored in a case's meta)."""
     return asdict(defaults)
 
-
-def main(argv: list[str] | None = None) -> None:
-    """Command line: re-import one registered feeder (or ``all``) and rewrite its case file."""
-    from anm_torchrl.networks import feeders
-
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--name", required=True, choices=[*feeders.BUILDERS, "all"])
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    for name in feeders.BUILDERS if args.name == "all" else [args.name]:
-        path = feeders.build_and_save(name)
-        logger.info("wrote %s", path)
-
-
-if __name__ == "__main__":
-    main()

@@ -3,20 +3,20 @@
 ``anm6_easy`` is built from :mod:`anm_torchrl.networks.anm6_easy`; the imported feeders load from the
 committed case files under ``networks/data/`` (hash-checked, no pandapower needed). How each feeder was made,
 its sizes and its citation are in ``NetworkCase.source`` and in ``networks/data/README.md``; re-run an import
-with ``python -m anm_torchrl.networks.pandapower_import --name <name>``.
+with ``python -m anm_torchrl.networks.feeders --name <name>``.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from anm_torchrl.grid.identity import case_key
 from anm_torchrl.networks import anm6_easy
 from anm_torchrl.networks.case_file import load_case
 
+ANM6_EASY = "anm6_easy"  # the one spelling of gym-anm's ANM6-Easy network name; import it, do not re-type it
 # Feeders imported from pandapower / SimBench; their case files live in networks/data/.
 IMPORTED = ("case33bw", "cigre_mv", "simbench_mv_semiurb")
 
@@ -39,7 +39,7 @@ class NetworkCase:
         lamb: penalty factor lambda.
         costs_clipping: (energy-loss clip, penalty clip).
         source: where the data come from (citation text) and what was assumed.
-        content_hash: sha256 over the tables, profiles and constants (identifies the case).
+        content_hash: :func:`anm_torchrl.grid.identity.case_key` of the tables, profiles and constants.
         meta: the import record (defaults used, do-nothing power-flow summary); empty for ``anm6_easy``.
     """
 
@@ -61,28 +61,16 @@ class NetworkCase:
         return int(self.network["bus"].shape[0])
 
 
-def content_hash(network: dict, load_p: np.ndarray, gen_p_max: np.ndarray, constants: tuple) -> str:
-    """sha256 over the float64 bytes of the tables and profiles and the JSON of the constants."""
-    h = hashlib.sha256()
-    h.update(np.float64(network["baseMVA"]).tobytes())
-    for a in (network["bus"], network["device"], network["branch"], load_p, gen_p_max):
-        a = np.ascontiguousarray(a, dtype=np.float64)
-        h.update(str(a.shape).encode())
-        h.update(a.tobytes())
-    h.update(json.dumps(list(constants)).encode())
-    return h.hexdigest()
-
-
 def _make(name: str, network: dict, load_p: np.ndarray, gen_p_max: np.ndarray, delta_t: float, gamma: float,
           lamb: float, costs_clipping: tuple, source: str, meta: dict) -> NetworkCase:
     constants = (delta_t, gamma, lamb, tuple(costs_clipping))
     return NetworkCase(name, network, load_p, gen_p_max, delta_t, gamma, lamb, tuple(costs_clipping), source,
-                       content_hash(network, load_p, gen_p_max, constants), meta)
+                       case_key(network, load_p, gen_p_max, constants), meta)
 
 
 def _anm6_easy() -> NetworkCase:
     m = anm6_easy
-    return _make("anm6_easy", m.network(), m.load_p(), m.gen_p_max(), m.DELTA_T, m.GAMMA, m.LAMB,
+    return _make(ANM6_EASY, m.network(), m.load_p(), m.gen_p_max(), m.DELTA_T, m.GAMMA, m.LAMB,
                  m.COSTS_CLIPPING, ANM6_SOURCE, {})
 
 
@@ -95,7 +83,7 @@ def _imported(name: str) -> NetworkCase:
 
 def list_networks() -> list[str]:
     """Every registered network name, ``anm6_easy`` first."""
-    return ["anm6_easy", *IMPORTED]
+    return [ANM6_EASY, *IMPORTED]
 
 
 def get_network(name: str) -> NetworkCase:
@@ -104,7 +92,7 @@ def get_network(name: str) -> NetworkCase:
     Raises:
         ValueError: unknown name, or a case file whose sha256 differs from the recorded one.
     """
-    if name == "anm6_easy":
+    if name == ANM6_EASY:
         return _anm6_easy()
     if name in IMPORTED:
         return _imported(name)

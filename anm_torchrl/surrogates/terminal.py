@@ -34,7 +34,9 @@ import torch
 import anm_torchrl
 from anm_torchrl._extras import require
 from anm_torchrl.artifacts import ArtifactError, atomic_folder, verify_manifest, write_manifest
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates._xgb import predict as xgb_predict, train_booster
 from anm_torchrl.surrogates.conf import load_defaults
 from anm_torchrl.surrogates.features import Featurizer
@@ -95,7 +97,7 @@ class TerminalClassifier:
                  num_boost_round: int = DEFAULTS["num_boost_round"],
                  early_stopping_rounds: int = DEFAULTS["early_stopping_rounds"],
                  threshold: str | float = DEFAULTS["threshold"], n_jobs: int = 1, seed: int = 0):
-        self.sim = sim if sim is not None else anm6_easy_simulator()
+        self.sim = sim if sim is not None else network_simulator(ANM6_EASY)
         self.featurizer = Featurizer(self.sim, foresight=foresight)
         self.params = {**DEFAULT_PARAMS, **(params or {})}
         self.num_boost_round, self.early_stopping_rounds = int(num_boost_round), int(early_stopping_rounds)

@@ -9,7 +9,8 @@ from torchrl.envs import DoubleToFloat, EnvBase, SerialEnv, StepCounter, Transfo
 from anm_torchrl._extras import require
 from anm_torchrl.console import plain_torchrl_console
 from anm_torchrl.envs import ANM6Env, ANMEnv, SurrogateEnv
-from anm_torchrl.envs.anm_env import build_simulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.paths import artifact_home
 from anm_torchrl.surrogates.registry import load_surrogate
 
@@ -52,7 +53,7 @@ def load_surrogate_in_home(name: str, **kwargs):
                         f"set ANM_TORCHRL_HOME to a writable folder, or pass path=") from err
 
 
-ANM6 = "anm6_easy"
+ANM6 = ANM6_EASY
 
 
 def network_arguments(network: str | dict | None = None, load_p=None, gen_p_max=None) -> dict | None:
@@ -131,10 +132,11 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
         env = make_gym_anm_env(num_envs, device=device, seed=seed)
     else:
         # the surrogate runs on this network's simulator (its tables and profiles); None = ANM6-Easy's. Built as
-        # simulator_for(name) builds it for the recipes, so the model is looked up under the key it was saved under
+        # network_simulator(name) builds it for the recipes, so the model is looked up under the key it was saved under
         kwargs = network_arguments(network, load_p, gen_p_max)
-        sim = None if kwargs is None else build_simulator(**kwargs, device=device)
+        sim = None if kwargs is None else network_simulator(**kwargs, device=device)
         model = load_surrogate_in_home(surrogate, sim=sim, device=device, **surrogate_kwargs)
+        sim = network_simulator(ANM6_EASY, device=device) if sim is None else sim  # SurrogateEnv needs its network
         env = SurrogateEnv(model, num_envs, device=device, seed=seed, action_mode=action_mode,
                            init=init or "uniform", sim=sim)
     if max_steps is not None:

@@ -1,7 +1,7 @@
 """Where a trained PINN lives and when a training may replace it.
 
 The default cache of a network is ``surrogate_dir("pinn") / <network key> / pinn.safetensors``
-(:func:`anm_torchrl.data.storage.network_key`: a changed network never loads a stale model). Rules:
+(:func:`anm_torchrl.grid.identity.network_key`: a changed network never loads a stale model). Rules:
 
 * a preset without an acceptance bar (``smoke``) never trains into the default cache unless
   ``overwrite_cache=True`` (checked before training);
@@ -17,7 +17,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.data.storage import network_key
+from anm_torchrl.grid.identity import network_key
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.paths import surrogate_dir
 from anm_torchrl.surrogates.pinn.io import resolve_path, save_pinn

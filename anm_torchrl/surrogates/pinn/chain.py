@@ -36,7 +36,7 @@ Terminal states (``terminal="physics"``, the default, needs no simulator sample)
 the power-flow residual of the predicted voltages at the predicted injections exceeds ``residual_threshold``
 (p.u.) — the network cannot satisfy the equations where no power-flow solution exists (voltage collapse) —
 or a predicted |V| leaves ``[v_low, v_high]``. Measured against the simulator's non-convergence on 2 × 20,000
-uniform random transitions (``GridSimulator.random_state`` + uniform actions, 0.48–0.52 % terminal) with the
+uniform random transitions (``grid.reset.random_state`` + uniform actions, 0.48–0.52 % terminal) with the
 ``default`` model (``evaluate.terminal_sweep``):
 
 =========  ===========  ===========
@@ -68,7 +68,10 @@ from torch import nn
 from anm_torchrl.grid.network import branch_flows
 from anm_torchrl.grid.residuals import bus_voltage, power_injection
 from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, penalty
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.grid.identity import transition_key
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT
 from anm_torchrl.surrogates.pinn.losses import power_balance_residuals
 from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
@@ -245,7 +248,7 @@ def build_chain(sim: GridSimulator, generator: GeneratorKKT, storage: StorageKKT
         out_keys=["next_state", "reward", ("grid", "e_loss"), ("grid", "penalty"), ("grid", "curtailment"),
                   ("grid", "v_magn"), ("grid", "branch_s")]))
     chain = TensorDictSequential(*mods)
-    chain.network_key = sim.content_key()  # SurrogateEnv refuses to run it on another network or other profiles
+    chain.transition_key = transition_key(sim)  # SurrogateEnv refuses to run it on another network or other profiles
     return chain.eval()
 
 
@@ -293,7 +296,7 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
     v_range = DEFAULT_V_RANGE if v_range is None else v_range
     PhysicsTerminal(residual_threshold, v_range)  # validate before any work
     if sim is None:
-        sim = anm6_easy_simulator(device if device is not None else "cpu")
+        sim = network_simulator(ANM6_EASY, device=device if device is not None else "cpu")
     elif device is not None and torch.device(device) != sim.net.dev.device:
         raise ValueError(f"device={device!r} differs from the simulator's device {sim.net.dev.device}; pass one")
     classifier = None

@@ -2,7 +2,7 @@
 
 Two transition sets (held out: the PINN never saw a transition):
 
-* ``random``: states spread over the reachable state space (:meth:`GridSimulator.random_state`) and uniform
+* ``random``: states spread over the reachable state space (:func:`anm_torchrl.grid.reset.random_state`) and uniform
   actions over the action box — about 0.5 % of them do not converge (terminal);
 * ``expert``: consecutive transitions of gym-anm's MPC DC-OPF policy (``mpc_perfect``, :mod:`anm_torchrl.baselines`)
   on the true simulator from random reachable states (if the MPC cannot run, the evaluation raises: no other
@@ -51,7 +51,10 @@ from tensordict.nn import TensorDictSequential
 
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.residuals import constraint_slack
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
+from anm_torchrl.grid import reset as grid_reset
 
 log = logging.getLogger(__name__)
 P = "pinn"
@@ -59,9 +62,9 @@ FEAS_TOL = 1e-9
 
 
 def random_transitions(sim: GridSimulator, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n`` states from :meth:`GridSimulator.random_state` and uniform actions (MW/MVAr), float64."""
+    """``n`` states from :func:`anm_torchrl.grid.reset.random_state` and uniform actions (MW/MVAr), float64."""
     gen = torch.Generator(device=sim.net.dev.device).manual_seed(seed)
-    state, _ = sim.random_state(n, gen)
+    state, _ = grid_reset.random_state(sim, n, gen)
     lo, hi = sim.action_bounds()
     action = lo + torch.rand(n, sim.action_dim, generator=gen, dtype=lo.dtype, device=lo.device) * (hi - lo)
     return state, action
@@ -75,7 +78,7 @@ def expert_transitions(sim: GridSimulator, n_envs: int = 8, steps: int = 125, se
 
     pol = simple.make_baseline(policy, sim=sim)
     gen = torch.Generator(device=sim.net.dev.device).manual_seed(seed)
-    state, _ = sim.random_state(n_envs, gen)
+    state, _ = grid_reset.random_state(sim, n_envs, gen)
     states, actions = [], []
     for _ in range(steps):
         action = pol(TensorDict({"state": state}, [n_envs])).get("action").to(torch.float64)
@@ -83,7 +86,7 @@ def expert_transitions(sim: GridSimulator, n_envs: int = 8, steps: int = 125, se
         actions.append(action)
         nxt, tr = sim.step(state, action)
         if not tr.converged.all():
-            fresh, _ = sim.random_state(int((~tr.converged).sum()), gen)
+            fresh, _ = grid_reset.random_state(sim, int((~tr.converged).sum()), gen)
             nxt[~tr.converged] = fresh
         state = nxt
     return torch.cat(states), torch.cat(actions)
@@ -236,7 +239,7 @@ def terminal_sweep(chain: TensorDictSequential, sim: GridSimulator, state: torch
 def evaluate_sets(chain: TensorDictSequential, sim: GridSimulator | None = None, n_random: int = 20_000,
                   n_expert_envs: int = 8, expert_steps: int = 125, seed: int = 12345) -> dict[str, dict[str, Any]]:
     """:func:`evaluate_pinn` on the ``random`` and ``expert`` sets (module docstring)."""
-    sim = sim if sim is not None else anm6_easy_simulator()
+    sim = sim if sim is not None else network_simulator(ANM6_EASY)
     out = {"random": evaluate_pinn(chain, sim, *random_transitions(sim, n_random, seed))}
     if n_expert_envs > 0 and expert_steps > 0:
         out["expert"] = evaluate_pinn(chain, sim, *expert_transitions(sim, n_expert_envs, expert_steps, seed))
@@ -264,7 +267,7 @@ def format_table(results: dict[str, dict[str, Any]]) -> str:
 
 def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     """CLI: evaluate a saved PINN (trains the default one first if ``--path`` holds none)."""
-    from anm_torchrl.data.generic import simulator_for
+    from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.surrogates.pinn.chain import DEFAULT_RESIDUAL_THRESHOLD, load_pinn
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -279,7 +282,7 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     ap.add_argument("--json", default=None, help="also write the results to this JSON file")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    sim = simulator_for(args.network)
+    sim = network_simulator(args.network)
     chain = load_pinn(sim, path=args.path, residual_threshold=args.residual_threshold)
     res = evaluate_sets(chain, sim, n_random=args.n_random, n_expert_envs=args.expert_envs,
                         expert_steps=args.expert_steps, seed=args.seed)

@@ -48,7 +48,8 @@ from typing import Any
 
 import torch
 
-from anm_torchrl.data.generic import is_anm6, simulator_for
+from anm_torchrl.data.generic import is_anm6
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn import cache
 from anm_torchrl.surrogates.pinn.chain import load_pinn
 from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets
@@ -76,7 +77,7 @@ def measure_network(network: str, preset_name: str = "default", seed: int = 0, n
     its training figures taken from ``training_from``'s entry for ``network`` — only when the file holds that
     entry's training (:func:`training_of`): e.g. after :mod:`.refine` re-chose the chord steps of the same weights.
     """
-    sim = simulator_for(network)
+    sim = network_simulator(network)
     preset_name = network_preset_name(preset_name, sim)
     if model is not None:
         file = Path(model)
@@ -155,7 +156,7 @@ def _train_one(network: str, preset_name: str, seed: int, name: str) -> tuple[di
     the worker's CPU seconds."""
     torch.set_num_threads(1)
     cpu0 = time.process_time()
-    sim = simulator_for(network)
+    sim = network_simulator(network)
     cfg = preset(preset_name, seed=seed)
     torch.manual_seed(cfg.seed)
     modules = build_modules(cfg, sim)
@@ -170,7 +171,7 @@ def train_modules_in_parallel(network: str, preset_name: str, seed: int) -> tupl
     from concurrent.futures import ProcessPoolExecutor
     import multiprocessing
 
-    sim = simulator_for(network)
+    sim = network_simulator(network)
     cfg = preset(preset_name, seed=seed)
     torch.manual_seed(cfg.seed)
     modules = build_modules(cfg, sim)

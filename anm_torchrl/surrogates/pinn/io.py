@@ -1,7 +1,7 @@
 """The saved PINN: one safetensors file (:mod:`anm_torchrl.artifacts`: content hash, kind, finite weights).
 
 Tensors ``<module>.<parameter>`` for the three modules; metadata ``config`` (the :class:`PINNTrainConfig`),
-``report`` (training report), ``network`` (:func:`anm_torchrl.data.storage.network_key` of the simulator it
+``report`` (training report), ``network`` (:func:`anm_torchrl.grid.identity.network_key` of the simulator it
 was trained on: loading it on another network raises), ``refine_steps`` (the chord-Newton steps the power balance
 runs with: the config's, or the one :mod:`.refine` chose for ``auto``, with its record in
 ``report.power_balance.refine``; checked at load by :func:`.refine.check_record`) and ``torch_version``.
@@ -16,8 +16,10 @@ import torch
 from torch import nn
 
 from anm_torchrl.artifacts import ArtifactError, load_tensors, save_tensors
-from anm_torchrl.data.storage import network_key
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.identity import network_key
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn.model import build_modules
 from anm_torchrl.surrogates.pinn.presets import MODULES, PINNTrainConfig
 
@@ -52,7 +54,7 @@ def save_pinn(path: str | Path, modules: dict[str, nn.Module], cfg: PINNTrainCon
     Raises:
         ArtifactError: a weight is NaN or inf (a diverged training is never saved).
     """
-    sim = sim if sim is not None else anm6_easy_simulator()
+    sim = sim if sim is not None else network_simulator(ANM6_EASY)
     tensors = {f"{k}.{n}": t for k, m in modules.items() for n, t in m.state_dict().items()}
     meta = {"config": cfg.to_dict(), "report": _plain(report or {}), "network": network_key(sim),
             "refine_steps": int(modules["power_balance"].refine_steps), "torch_version": str(torch.__version__)}

@@ -28,7 +28,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn.model import build_modules
 from anm_torchrl.surrogates.pinn.presets import (MODULES, REFINE_AUTO, ModuleTrainConfig, PINNTrainConfig,
                                                  check_acceptance, module_seed, preset_for)
@@ -179,7 +181,7 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
         times and validation errors against the exact solvers; ``accepted`` and ``acceptance_failures``
         against the preset's bar).
     """
-    sim = sim if sim is not None else anm6_easy_simulator()
+    sim = sim if sim is not None else network_simulator(ANM6_EASY)
     cfg = cfg if cfg is not None else preset_for("default", sim)
     torch.manual_seed(cfg.seed)
     modules = build_modules(cfg, sim)

@@ -325,7 +325,7 @@ def preset(name: str, **overrides: Any) -> PINNTrainConfig:
 
 
 def network_preset_name(name: str, sim) -> str:
-    """The preset ``name`` stands for on ``sim``'s network (a :class:`GridSimulator`; None: ANM6-Easy):
+    """The preset ``name`` stands for on ``sim``'s network (a :class:`GridSimulator`):
     ``default`` is the ANM6-Easy design on ANM6-Easy (unchanged) and :data:`FEEDER_DEFAULT` on any other
     network; every other name is itself."""
     from anm_torchrl.data.generic import is_anm6
@@ -355,7 +355,7 @@ def overrides_of(d: dict[str, Any], name: str) -> dict[str, Any]:
     return out
 
 
-def from_composed(composed: dict[str, Any], sim=None, **overrides: Any) -> PINNTrainConfig:
+def from_composed(composed: dict[str, Any], sim, **overrides: Any) -> PINNTrainConfig:
     """The training configuration a recipe's composed ``pinn_preset`` group (a dict with its ``name``) stands for
     on ``sim``'s network: the preset it names (``default`` resolved by :func:`network_preset_name`) with the
     entries the command line changed (:func:`overrides_of`) and ``overrides`` (e.g. ``seed``)."""

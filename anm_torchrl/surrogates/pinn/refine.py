@@ -182,14 +182,14 @@ def apply_to_file(path: str | Path, sim: GridSimulator) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """CLI: apply the rule to a saved model (module docstring)."""
-    from anm_torchrl.data.generic import simulator_for
+    from anm_torchrl.networks import simulator as network_simulator
 
     ap = argparse.ArgumentParser(description="choose a saved PINN's chord steps by the rule and rewrite the file")
     ap.add_argument("--network", required=True, help="the registered network the model was trained on")
     ap.add_argument("--path", required=True, help="the model file (or its folder)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    rec = apply_to_file(args.path, simulator_for(args.network))
+    rec = apply_to_file(args.path, network_simulator(args.network))
     log.info("%s: k = %d (%s)", args.path, rec["k"], rec)
     return rec
 

@@ -10,7 +10,9 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.features import Featurizer, target_layout
 from anm_torchrl.surrogates.regressors.backends import DNNBackend, SklearnBackend, XGBBackend
 from anm_torchrl.surrogates.regressors.defaults import DEFAULT_PARAMS, KINDS
@@ -41,7 +43,7 @@ def fit_regressor(kind: str, train: TensorDictBase, val: TensorDictBase, sim: Gr
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
-    sim = sim if sim is not None else anm6_easy_simulator()
+    sim = sim if sim is not None else network_simulator(ANM6_EASY)
     featurizer = Featurizer(sim, foresight=foresight)
     tr, va = regression_rows(train), regression_rows(val)
     x = featurizer(tr.get("state"), tr.get("action"))

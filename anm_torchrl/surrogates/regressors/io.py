@@ -17,8 +17,11 @@ import torch
 
 import anm_torchrl
 from anm_torchrl.artifacts import atomic_folder, verify_manifest, write_manifest
-from anm_torchrl.data.storage import network_key, simulator_settings
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.data.storage import simulator_settings
+from anm_torchrl.grid.identity import network_key
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.features import Featurizer, target_layout
 from anm_torchrl.surrogates.regressors.backends import load_backend
 from anm_torchrl.surrogates.regressors.defaults import FORMAT, FORMAT_VERSION, KINDS, META_FILE, train_command
@@ -93,7 +96,7 @@ def load_surrogate_folder(path: str | os.PathLike, kind: str | None = None, devi
         retrain = train_command(kind, meta.get("dataset", "generative"))
         raise ModelFileError(f"{path} holds a {stored!r} surrogate, not {kind!r}: load it with "
                              f"surrogate={stored} or train a {kind!r} one ({retrain})")
-    sim = sim if sim is not None else anm6_easy_simulator()
+    sim = sim if sim is not None else network_simulator(ANM6_EASY)
     have_net, want_net = meta.get("simulator", {}).get("network_key"), network_key(sim)
     if have_net != want_net:
         raise ModelFileError(f"{path} was trained on network {have_net!r}, the simulator is network {want_net!r}: "

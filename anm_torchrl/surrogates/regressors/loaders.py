@@ -14,7 +14,9 @@ from pathlib import Path
 import torch
 
 from anm_torchrl.data.generic import for_network
-from anm_torchrl.grid.simulator import GridSimulator, anm6_easy_simulator
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.paths import surrogate_dir
 from anm_torchrl.surrogates.regressors.defaults import DATASETS, KINDS, META_FILE, train_command
 from anm_torchrl.surrogates.regressors.io import load_surrogate_folder
@@ -45,7 +47,7 @@ def load_regressor_surrogate(kind: str, sim: GridSimulator | None = None, device
     if dataset not in DATASETS:
         raise ValueError(f"dataset must be one of {DATASETS}, got {dataset!r}")
     if sim is None:
-        sim = anm6_easy_simulator(device if device is not None else "cpu")
+        sim = network_simulator(ANM6_EASY, device=device if device is not None else "cpu")
     elif device is not None and torch.device(device) != sim.net.dev.device:
         raise ValueError(f"device={device!r} differs from the simulator's device {sim.net.dev.device}; pass one")
     default = path is None

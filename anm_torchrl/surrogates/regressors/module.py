@@ -11,6 +11,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.grid.identity import transition_key
 from anm_torchrl.surrogates.features import Featurizer, target_layout
 from anm_torchrl.surrogates.regressors.backends import Backend
 from anm_torchrl.surrogates.regressors.defaults import KINDS, train_command
@@ -39,7 +40,7 @@ class RegressorSurrogate(TensorDictModuleBase):
         if kind not in KINDS:
             raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
         self.kind, self.backend, self.sim, self.featurizer = kind, backend, sim, featurizer
-        self.network_key = sim.content_key()  # SurrogateEnv refuses to run it on another network or other profiles
+        self.transition_key = transition_key(sim)  # SurrogateEnv refuses to run it on another network or other profiles
         self.classifier, self.clip, self.meta = classifier, bool(clip), dict(meta or {})
         idx, names = target_layout(sim)
         self.target_names = names

@@ -163,7 +163,8 @@ def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int) -
     ``default_size``: the default ``data.size``, below which a model never replaces the default one unless
     ``overwrite_cache``."""
     from anm_torchrl.artifacts import atomic_write
-    from anm_torchrl.data import for_network, simulator_for
+    from anm_torchrl.data import for_network
+    from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.paths import artifact_home
     from anm_torchrl.surrogates.regressors import DATASETS, KINDS
 
@@ -174,7 +175,7 @@ def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int) -
         check_default_slot(int(cfg.data.size), None if cfg.all else cfg.surrogate.get("path"),
                            bool(cfg.overwrite_cache), default_size)
     start = time.perf_counter()
-    sim = simulator_for(cfg.network)
+    sim = network_simulator(cfg.network)
     data = load_datasets(cfg, sim, make_cfg)
     if cfg.all:
         if cfg.surrogate.get("path"):

@@ -1,14 +1,16 @@
-"""The transition of :class:`~anm_torchrl.grid.simulator.GridSimulator` as one compiled CPU loop (numba).
+"""The ``numba`` backend: the transition of a :class:`~anm_torchrl.grid.simulator.GridSimulator` as one compiled
+CPU loop (float64, not differentiable), behind the contract of :mod:`anm_torchrl.grid.backends`.
 
 The torch implementation spends its time in dispatch and in memory traffic: at batch 16,384 every one of
 its ~400 small ops streams (N, 2n-2, 2n-2) tensors through memory. Here each env runs the same maths start to
 end in registers and cache — edge-clamp projections, SoC update, Newton–Raphson, slack, branch flows, reward —
 on any network, whose tables arrive as one :class:`~anm_torchrl.grid.constants.TransitionConstants`. The
 Newton step is a dense LU on small networks and a band LU after an RCM ordering on larger ones
-(:func:`~anm_torchrl.grid.constants.jacobian_ordering`; O(n·kl²) instead of O(n³)). With ``torch.get_num_threads() > 1`` and a large batch, the batch is split into that many slices run
-by Python threads (the kernel releases the GIL). Not numba's ``parallel=True``: its OpenMP layer resets torch's
-thread count and its own pool hangs a process forked after first use (TorchRL's multi-process collectors);
-the pool here is per process. Same algorithms, same stopping rule and order of operations as the torch code,
+(:func:`~anm_torchrl.grid.constants.jacobian_ordering`; O(n·kl²) instead of O(n³)). With
+``torch.get_num_threads() > 1`` and a large batch, the batch is split into that many slices run by Python threads
+(the kernel releases the GIL). Not numba's ``parallel=True``: its OpenMP layer resets torch's thread count and
+its own pool hangs a process forked after first use (TorchRL's multi-process collectors); the pool here is per
+process. Same algorithms, same stopping rule and order of operations as the torch code,
 so results agree to float64 round-off (tested against both the torch backend and gym-anm).
 
 Compiled on first use (cached on disk by numba); ``available()`` says whether numba can be used.
@@ -23,25 +25,15 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
+from anm_torchrl.grid import fastoutput
 from anm_torchrl.grid.devices import _FEAS_TOL, EFF, PMAX, PMIN, SOC_MAX, SOC_MIN
-
-try:
-    import numba
-except ImportError:  # pragma: no cover - numba is a dependency; the torch backend is the fallback
-    numba = None
+from anm_torchrl.grid.jit import available
+from anm_torchrl.grid.jit import njit as _njit
+from anm_torchrl.grid.transition import Transition
 
 PARALLEL_MIN_BATCH = 1024  # below this, splitting the batch over threads costs more than it saves
 SLICES_PER_THREAD = 8
 _POOL: dict[int, tuple[int, ThreadPoolExecutor]] = {}  # pid -> (threads, pool): a forked child makes its own
-
-
-def available() -> bool:
-    """True when numba is importable (the ``numba`` backend can be used)."""
-    return numba is not None
-
-
-def _njit(**kw):
-    return numba.njit(cache=True, nogil=True, **kw) if numba is not None else (lambda f: f)
 
 
 # --------------------------------------------------------------------------------------------- scalars
@@ -419,10 +411,16 @@ def _dense_newton_raphson(y, lu0, piv0, ok0, s_bus, tol, max_iter, vm, va, s, v,
 @_njit()
 def _env_steps(c, soc, p_load, p_pot_raw, setpoints, out, scratch):
     """The loop of :func:`_transition` over the envs, with its scratch arrays passed in (measured ~8 % faster
-    than allocating them in the same function). ``c`` is a :class:`TransitionConstants`, unpacked here once."""
-    (dev, lid, gid, did, renewable, slack, dev_bus, counted, gen_poly, des_poly, gen_h0, des_h0, gen_ppot_row,
-     des_soc_rows, y, ycsr, dense, lu0, piv0, ok0, ix, kl, ku, parent, f_bus, t_bus, y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max,
-     delta_t, lamb, c0, c1, term_reward, tol, max_iter) = c
+    than allocating them in the same function). ``c`` is a :class:`TransitionConstants`, read by field name (numba
+    types a NamedTuple as a record: resolved at compile time) into locals once, so that the loop body reads as
+    gym-anm's steps (and compiles as the positional unpacking did: same speed, measured)."""
+    dev, lid, gid, did, renewable, slack, dev_bus = c.dev, c.lid, c.gid, c.did, c.renewable, c.slack, c.dev_bus
+    counted, gen_poly, des_poly, gen_h0, des_h0 = c.counted, c.gen_poly, c.des_poly, c.gen_h0, c.des_h0
+    gen_ppot_row, des_soc_rows, y, ycsr, dense, lu0 = c.gen_ppot_row, c.des_soc_rows, c.y, c.ycsr, c.dense, c.lu0
+    piv0, ok0, ix, kl, ku, parent, f_bus, t_bus = c.piv0, c.ok0, c.ix, c.kl, c.ku, c.parent, c.f_bus, c.t_bus
+    y_ff, y_ft, y_tf, y_tt, rate, v_min, v_max = c.y_ff, c.y_ft, c.y_tf, c.y_tt, c.rate, c.v_min, c.v_max
+    delta_t, lamb, c0, c1, term_reward, tol = c.delta_t, c.lamb, c.c0, c.c1, c.term_reward, c.tol
+    max_iter = c.max_iter
     p_dev, q_dev, soc_next, p_pot, v_out, s_max, converged, n_iter, e_loss, pen, curt, reward = out
     hp, h_gen, h_des, s_bus, s, vm, va, f, jac, piv = scratch
     n_gen, n_des = gid.shape[0], did.shape[0]
@@ -507,10 +505,9 @@ def _transition(c, soc, p_load, p_pot_raw, setpoints, out):
     values), setpoints (N, action_dim) p.u.; ``out`` a tuple of preallocated (N, ...) arrays in the order of
     :data:`OUTPUTS`. Called once per batch slice, never per env.
     """
-    gen_poly, des_poly, gen_h0, des_h0, y = c[8], c[9], c[10], c[11], c[14]
-    n_bus = y.shape[0]
-    scratch = (np.empty(max(gen_poly[1].shape[1], des_poly[1].shape[1])),
-               np.empty(gen_h0.shape[1]), np.empty(des_h0.shape[1]), np.empty(n_bus, dtype=np.complex128),
+    n_bus = c.y.shape[0]
+    scratch = (np.empty(max(c.gen_poly[1].shape[1], c.des_poly[1].shape[1])),
+               np.empty(c.gen_h0.shape[1]), np.empty(c.des_h0.shape[1]), np.empty(n_bus, dtype=np.complex128),
                np.empty(n_bus, dtype=np.complex128), np.empty(n_bus), np.empty(n_bus),
                np.empty(2 * n_bus - 2), np.zeros((2 * n_bus - 2, 2 * n_bus - 2)),
                np.empty(2 * n_bus - 2, dtype=np.int64))
@@ -593,3 +590,34 @@ class CompiledTransition:
         else:
             run(0, n)
         return {k: torch.from_numpy(v) for k, v in out.items()}
+
+
+class NumbaBackend:
+    """The ``numba`` backend (see :mod:`anm_torchrl.grid.backends` for the contract): the compiled kernel above
+    on the simulator's :class:`~anm_torchrl.grid.constants.TransitionConstants`, and one-pass compiled output
+    assembly (:mod:`anm_torchrl.grid.fastoutput`), bit for bit what the torch ops would give."""
+
+    name = "numba"
+
+    def unusable(self, net) -> str | None:
+        """Why this backend cannot run ``net`` (a :class:`~anm_torchrl.grid.network.Network`), or ``None``."""
+        if not available():
+            return "numba is not installed"
+        if net.dev.device.type != "cpu" or net.dev.dtype != torch.float64:
+            return f"it needs a float64 network on the CPU, got {net.dev.dtype} on {net.dev.device}"
+        return None
+
+    def bind(self, sim):
+        """The transition function of ``sim`` (builds, once, its :class:`TransitionConstants`)."""
+        kernel = CompiledTransition(sim.constants)
+        return lambda soc, p_load, p_pot, setpoints: Transition(**kernel(soc, p_load, p_pot, setpoints))
+
+    def build_state(self, tr, aux: torch.Tensor, base_mva: float) -> torch.Tensor:
+        return fastoutput.build_state(tr, aux, base_mva)
+
+    def output_bounds(self, low: torch.Tensor, high: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """``low``/``high`` (state_dim,) in the form :meth:`env_outputs` reads (contiguous float64 arrays)."""
+        return tuple(np.ascontiguousarray(x.numpy(), dtype=np.float64) for x in (low, high))
+
+    def env_outputs(self, state: torch.Tensor, tr, base_mva: float, bounds) -> dict[str, torch.Tensor]:
+        return fastoutput.env_outputs(state, tr, base_mva, *(bounds or (None, None)))

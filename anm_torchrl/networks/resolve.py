@@ -1,0 +1,100 @@
+"""The one place a network becomes a simulator: :func:`simulator`.
+
+A network is given as a registered name (:func:`anm_torchrl.networks.list_networks`), a registered
+:class:`~anm_torchrl.networks.registry.NetworkCase`, or a user's gym-anm network dict with its profiles. Every
+path goes through gym-anm's checks (:mod:`anm_torchrl.networks.validation`) and gym-anm's defaults, so that an
+env, a dataset and a surrogate given the same network get the same simulator, and hence the same identity keys
+(:mod:`anm_torchrl.grid.identity`) under which their artifacts are saved and looked up.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.networks.registry import NetworkCase, get_network
+from anm_torchrl.networks.validation import device_ids, validate_network, validate_profile
+
+# gym-anm's ANMEnv defaults, used for a user's dict when a constant is not given
+DEFAULT_CONSTANTS = {"delta_t": 0.25, "gamma": 0.995, "lamb": 100.0, "costs_clipping": (1, 100)}
+_UNSET = object()  # "not given": a registered case's constant, or gym-anm's default (None means +inf clipping)
+
+
+def check_reward_args(delta_t, gamma, lamb, costs_clipping) -> tuple[float, float]:
+    """gym-anm's ``check_env_args`` for the reward constants; returns the clipping with ``None`` entries as +inf.
+
+    Raises:
+        ValueError: a constant gym-anm would reject (naming it and the value received).
+    """
+    if not (isinstance(delta_t, (int, float)) and delta_t > 0):
+        raise ValueError(f"delta_t must be > 0 (h), got {delta_t!r}")
+    # gamma = 1 makes the terminal reward -c1 / (1 - gamma) a division by zero
+    if not (isinstance(gamma, (int, float)) and 0 <= gamma < 1):
+        raise ValueError(f"gamma must lie in [0, 1), got {gamma!r}")
+    if not (isinstance(lamb, (int, float)) and lamb >= 0):
+        raise ValueError(f"lamb must be >= 0, got {lamb!r}")
+    if costs_clipping is None:
+        return math.inf, math.inf
+    if len(costs_clipping) != 2:
+        raise ValueError(f"costs_clipping must be (c_energy, c_penalty), got {costs_clipping!r}")
+    c = tuple(math.inf if v is None else float(v) for v in costs_clipping)
+    if not all(v > 0 for v in c):
+        raise ValueError(f"costs_clipping entries must be > 0 (or None), got {costs_clipping!r}")
+    return c
+
+
+def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *, delta_t=_UNSET, gamma=_UNSET,
+              lamb=_UNSET, costs_clipping=_UNSET, device=None, backend: str = "auto",
+              next_vars: Callable | None = None, linear_solver: str = "auto") -> GridSimulator:
+    """The :class:`GridSimulator` of a network.
+
+    Args:
+        network: a registered name, a registered :class:`NetworkCase`, or a gym-anm network dict (``None`` / NaN
+            where gym-anm allows a missing value).
+        load_p: (T, n_load) MW, loads in device-id order; required with a dict, optional with a registered
+            network (replaces its profile).
+        gen_p_max: (T, n_gen) MW, non-slack generators in device-id order; as ``load_p``.
+        delta_t, gamma, lamb, costs_clipping: env constants (h; discount; penalty factor; clipping of |ΔE| and
+            λΦ, ``None`` entries meaning +inf). Not given: the registered case's, or gym-anm's defaults
+            (:data:`DEFAULT_CONSTANTS`) for a dict.
+        device: torch device (None: CPU).
+        backend: ``"auto"``, ``"numba"`` or ``"torch"`` (:func:`anm_torchrl.grid.backends.get_backend`).
+        next_vars: optional batched exogenous-variable hook (``GridSimulator``'s ``next_vars_hook``).
+        linear_solver: the numba backend's Newton step (``GridSimulator``).
+
+    Raises:
+        ValueError: an unknown name (listing the registered ones), a dict without both profiles, another type,
+            or a network, profile or constant gym-anm would reject (naming what is wrong).
+    """
+    if isinstance(network, str):
+        network = get_network(network)
+    if isinstance(network, NetworkCase):
+        case = network
+        defaults = {"delta_t": case.delta_t, "gamma": case.gamma, "lamb": case.lamb,
+                    "costs_clipping": case.costs_clipping}
+        network = case.network
+        load_p = case.load_p if load_p is None else load_p
+        gen_p_max = case.gen_p_max if gen_p_max is None else gen_p_max
+    elif isinstance(network, dict):
+        defaults = DEFAULT_CONSTANTS
+        if load_p is None or gen_p_max is None:
+            raise ValueError("a network dict needs its profiles: load_p= (T, n_load) and gen_p_max= (T, n_gen) MW")
+    else:
+        raise ValueError(f"network must be a registered name, a NetworkCase or a gym-anm network dict, got "
+                         f"{type(network).__name__}")
+    given = {"delta_t": delta_t, "gamma": gamma, "lamb": lamb, "costs_clipping": costs_clipping}
+    c = {k: defaults[k] if v is _UNSET else v for k, v in given.items()}
+    net = validate_network(network)
+    loads, gens = device_ids(net, (-1,)), device_ids(net, (1, 2))
+    load_p = validate_profile(load_p, "load_p", len(loads), f"loads {loads} in device-id order")
+    gen_p_max = validate_profile(gen_p_max, "gen_p_max", len(gens), f"non-slack generators {gens} in device-id order")
+    if load_p.shape[0] != gen_p_max.shape[0]:
+        raise ValueError(f"load_p and gen_p_max must have the same T rows, got {load_p.shape[0]} and "
+                         f"{gen_p_max.shape[0]}")
+    clip = check_reward_args(c["delta_t"], c["gamma"], c["lamb"], c["costs_clipping"])
+    if next_vars is not None and not callable(next_vars):
+        raise ValueError(f"next_vars must be callable, got {next_vars!r}")
+    return GridSimulator.from_tables(net, load_p, gen_p_max, float(c["delta_t"]), float(c["gamma"]),
+                                     float(c["lamb"]), clip, device=device, backend=backend,
+                                     next_vars_hook=next_vars, linear_solver=linear_solver)
