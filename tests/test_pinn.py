@@ -435,7 +435,7 @@ def test_anm6_default_preset_is_unchanged(sim):
     import json
 
     cfg = tr.preset_for("default", sim)
-    assert cfg.preset == "default" and tr.network_preset_name("default", None) == "default"
+    assert cfg.preset == "default" and tr.network_preset_name("default", sim) == "default"
     d = cfg.to_dict()
     for m in tr.MODULES:
         assert d[m].pop("refine_steps") == 0

@@ -44,13 +44,16 @@ def available(kinds, datasets) -> tuple[list[tuple[str, str]], list[str]]:
     from anm_torchrl.paths import surrogate_dir
     from anm_torchrl.surrogates.regressors import META_FILE, train_command
 
+    from anm_torchrl.networks import ANM6_EASY, simulator
+
+    sim = simulator(ANM6_EASY)  # the benchmark's surrogates are ANM6-Easy's (surrogate_dir's default folders)
     found, missing = [], []
     for d in datasets:
         for k in kinds:
             if (surrogate_dir(k, d) / META_FILE).is_file():
                 found.append((k, d))
             else:
-                missing.append(f"{k}/{d}: not trained ({train_command(k, d)})")
+                missing.append(f"{k}/{d}: not trained ({train_command(k, d, sim)})")
     return found, missing
 
 

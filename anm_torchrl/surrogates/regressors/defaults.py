@@ -50,9 +50,10 @@ MODEL_FILES = {"lr": "model.skops", "dt": "model.skops", "rf": "model.skops", "x
 DEFAULT_PARAMS: dict[str, dict[str, Any]] = load_defaults("models/default")
 
 
-def train_command(kind: str, dataset: str, path: str | os.PathLike | None = None, sim=None) -> str:
+def train_command(kind: str, dataset: str, sim, path: str | os.PathLike | None = None) -> str:
     """The command that trains surrogate ``kind`` on ``dataset`` (into ``path`` if not the default) for ``sim``'s
-    network (None: ANM6-Easy; another network is named by a placeholder, the simulator does not know its name)."""
+    network (a :class:`GridSimulator`; a network other than ANM6-Easy is named by a placeholder: the simulator
+    does not know its name)."""
     from anm_torchrl.data.generic import is_anm6
 
     network = "" if is_anm6(sim) else " network=<its name>"

@@ -92,11 +92,11 @@ def load_surrogate_folder(path: str | os.PathLike, kind: str | None = None, devi
     stored = meta.get("kind")
     if stored not in KINDS:
         raise ModelFileError(f"{path / META_FILE} names an unknown surrogate kind {stored!r}")
+    sim = sim if sim is not None else network_simulator(ANM6_EASY)
     if kind is not None and stored != kind:
-        retrain = train_command(kind, meta.get("dataset", "generative"))
+        retrain = train_command(kind, meta.get("dataset", "generative"), sim)
         raise ModelFileError(f"{path} holds a {stored!r} surrogate, not {kind!r}: load it with "
                              f"surrogate={stored} or train a {kind!r} one ({retrain})")
-    sim = sim if sim is not None else network_simulator(ANM6_EASY)
     have_net, want_net = meta.get("simulator", {}).get("network_key"), network_key(sim)
     if have_net != want_net:
         raise ModelFileError(f"{path} was trained on network {have_net!r}, the simulator is network {want_net!r}: "

@@ -54,12 +54,12 @@ def load_regressor_surrogate(kind: str, sim: GridSimulator | None = None, device
     p = for_network(surrogate_dir(kind, dataset), sim) if default else Path(path)
     if not (p / META_FILE).is_file():
         raise FileNotFoundError(f"no trained {kind!r} surrogate for the {dataset!r} dataset at {p}; train it with: "
-                                f"{train_command(kind, dataset, None if default else p, sim)}")
+                                f"{train_command(kind, dataset, sim, None if default else p)}")
     sur = load_surrogate_folder(p, kind=kind, device=sim.net.dev.device, sim=sim, n_jobs=n_jobs)
     stored = sur.meta.get("dataset")
     if stored != dataset:
         raise ModelFileError(f"{p} holds a surrogate trained on the {stored!r} dataset, dataset={dataset!r} was asked "
-                             f"for; pass dataset={stored!r} or train one: {train_command(kind, dataset)}")
+                             f"for; pass dataset={stored!r} or train one: {train_command(kind, dataset, sim)}")
     return sur
 
 

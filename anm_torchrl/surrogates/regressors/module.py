@@ -77,7 +77,7 @@ class RegressorSurrogate(TensorDictModuleBase):
         next_state[:, self.target_index.to(state.device)] = y[:, :-1]
         if self.classifier is None:
             raise RuntimeError(f"{self.kind} surrogate has no terminal classifier; retrain it "
-                               f"({train_command(self.kind, self.meta.get('dataset', 'generative'))})")
+                               f"({train_command(self.kind, self.meta.get('dataset', 'generative'), self.sim)})")
         terminated = self.classifier.predict_terminated(state, action).reshape(-1, 1).to(state.device)
         tensordict.set("next_state", next_state)
         tensordict.set("reward", y[:, -1:])
