@@ -1,7 +1,7 @@
 """The one place a network becomes a simulator: :func:`simulator`.
 
 A network is given as a registered name (:func:`anm_torchrl.networks.list_networks`), a registered
-:class:`~anm_torchrl.networks.registry.NetworkCase`, or a user's gym-anm network dict with its profiles. Every
+:class:`~anm_torchrl.networks.case.NetworkCase`, or a user's gym-anm network dict with its profiles. Every
 path goes through gym-anm's checks (:mod:`anm_torchrl.networks.validation`) and gym-anm's defaults, so that an
 env, a dataset and a surrogate given the same network get the same simulator, and hence the same identity keys
 (:mod:`anm_torchrl.grid.identity`) under which their artifacts are saved and looked up.
@@ -9,39 +9,15 @@ env, a dataset and a surrogate given the same network get the same simulator, an
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 from anm_torchrl.grid.simulator import GridSimulator
-from anm_torchrl.networks.registry import NetworkCase, get_network
-from anm_torchrl.networks.validation import device_ids, validate_network, validate_profile
+from anm_torchrl.networks.case import NetworkCase
+from anm_torchrl.networks.registry import get_network
+from anm_torchrl.networks.user import DEFAULT_CONSTANTS
+from anm_torchrl.networks.validation import check_reward_args, device_ids, validate_network, validate_profile
 
-# gym-anm's ANMEnv defaults, used for a user's dict when a constant is not given
-DEFAULT_CONSTANTS = {"delta_t": 0.25, "gamma": 0.995, "lamb": 100.0, "costs_clipping": (1, 100)}
 _UNSET = object()  # "not given": a registered case's constant, or gym-anm's default (None means +inf clipping)
-
-
-def check_reward_args(delta_t, gamma, lamb, costs_clipping) -> tuple[float, float]:
-    """gym-anm's ``check_env_args`` for the reward constants; returns the clipping with ``None`` entries as +inf.
-
-    Raises:
-        ValueError: a constant gym-anm would reject (naming it and the value received).
-    """
-    if not (isinstance(delta_t, (int, float)) and delta_t > 0):
-        raise ValueError(f"delta_t must be > 0 (h), got {delta_t!r}")
-    # gamma = 1 makes the terminal reward -c1 / (1 - gamma) a division by zero
-    if not (isinstance(gamma, (int, float)) and 0 <= gamma < 1):
-        raise ValueError(f"gamma must lie in [0, 1), got {gamma!r}")
-    if not (isinstance(lamb, (int, float)) and lamb >= 0):
-        raise ValueError(f"lamb must be >= 0, got {lamb!r}")
-    if costs_clipping is None:
-        return math.inf, math.inf
-    if len(costs_clipping) != 2:
-        raise ValueError(f"costs_clipping must be (c_energy, c_penalty), got {costs_clipping!r}")
-    c = tuple(math.inf if v is None else float(v) for v in costs_clipping)
-    if not all(v > 0 for v in c):
-        raise ValueError(f"costs_clipping entries must be > 0 (or None), got {costs_clipping!r}")
-    return c
 
 
 def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *, delta_t=_UNSET, gamma=_UNSET,

@@ -279,3 +279,26 @@ def validate_profile(values, name: str, n_cols: int, what: str) -> np.ndarray:
         raise ValueError(f"{name} must be finite; row {t}, column {c} ({what}) is {arr[t, c]} "
                          f"({len(bad)} non-finite entries)")
     return arr
+
+
+def check_reward_args(delta_t, gamma, lamb, costs_clipping) -> tuple[float, float]:
+    """gym-anm's ``check_env_args`` for the reward constants; returns the clipping with ``None`` entries as +inf.
+
+    Raises:
+        ValueError: a constant gym-anm would reject (naming it and the value received).
+    """
+    if not (isinstance(delta_t, (int, float)) and delta_t > 0):
+        raise ValueError(f"delta_t must be > 0 (h), got {delta_t!r}")
+    # gamma = 1 makes the terminal reward -c1 / (1 - gamma) a division by zero
+    if not (isinstance(gamma, (int, float)) and 0 <= gamma < 1):
+        raise ValueError(f"gamma must lie in [0, 1), got {gamma!r}")
+    if not (isinstance(lamb, (int, float)) and lamb >= 0):
+        raise ValueError(f"lamb must be >= 0, got {lamb!r}")
+    if costs_clipping is None:
+        return math.inf, math.inf
+    if len(costs_clipping) != 2:
+        raise ValueError(f"costs_clipping must be (c_energy, c_penalty), got {costs_clipping!r}")
+    c = tuple(math.inf if v is None else float(v) for v in costs_clipping)
+    if not all(v > 0 for v in c):
+        raise ValueError(f"costs_clipping entries must be > 0 (or None), got {costs_clipping!r}")
+    return c

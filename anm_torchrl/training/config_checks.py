@@ -81,9 +81,9 @@ def check_protocol_config(cfg: Mapping) -> None:
     Raises:
         ValueError: the first offending key, with the expected range and the value received.
     """
-    from anm_torchrl.networks import list_networks
+    from anm_torchrl.networks import check_network_name
 
-    _choice(cfg, "network", tuple(list_networks()))
+    check_network_name(_get(cfg, "network"))
     _int(cfg, "seed", low=0)
     _int(cfg, "threads")
     # env
@@ -222,10 +222,11 @@ def check_evaluate_config(cfg: Mapping) -> None:
     Raises:
         ValueError: the first offending key, with the expected range and the value received.
     """
-    from anm_torchrl.networks import list_networks
+    from anm_torchrl.networks import check_network_name
 
     _choice(cfg, "env", EVALUATE_ENVS)
-    _choice(cfg, "network", (None, *list_networks()))
+    if _get(cfg, "network") is not None:
+        check_network_name(_get(cfg, "network"))
     if _get(cfg, "env") == "gym_anm" and _get(cfg, "network") not in (None, "anm6_easy"):
         raise ValueError(f"env=gym_anm runs gym-anm's ANM6Easy only; got network={_get(cfg, 'network')!r}")
     _int(cfg, "seed", low=0)

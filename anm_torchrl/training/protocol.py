@@ -287,7 +287,11 @@ def run_recipe(cfg: DictConfig) -> dict:
 
     from anm_torchrl.training.algorithms import check_algorithm_config
 
+    from anm_torchrl.networks.user import network_argument
+
     run_dir = Path.cwd()
+    # a network file's path is relative to where the command was typed, not to the run directory
+    cfg.network = network_argument(cfg.network, hydra.utils.get_original_cwd())
     try:
         check_algorithm_config(cfg)
     except ValueError as err:

@@ -1,0 +1,147 @@
+"""A user's network by name and by file: ``register_network`` from a gym-anm dict, ``save_network`` /
+``load_network_file`` (the ``.npz`` format a recipe takes as ``network=path``), the errors that name what is wrong,
+and a PPO run on a network file given by a relative path."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from anm_torchrl import networks as N
+from anm_torchrl.grid.identity import network_key
+
+ROOT = Path(__file__).resolve().parents[1]
+NAN = np.nan
+
+
+def feeder() -> tuple[dict, np.ndarray, np.ndarray]:
+    """A 4-bus radial feeder (33 kV, 10 MVA base): two loads, a PV unit with capability corners, a storage unit
+    with SOC_MIN > 0; 8-step profiles (MW)."""
+    bus = [[0, 0, 33, 1.0, 1.0], [1, 1, 33, 1.1, 0.9], [2, 1, 33, 1.1, 0.9], [3, 1, 33, 1.1, 0.9]]
+    branch = [[0, 1, 0.01, 0.03, 0.0, 20, NAN, NAN], [1, 2, 0.02, 0.04, 0.0, 15, NAN, NAN],
+              [1, 3, 0.02, 0.05, 0.0, 15, NAN, NAN]]
+    dev = [[0, 0, 0, NAN, 50, -50, 50, -50, NAN, NAN, NAN, NAN, NAN, NAN, NAN],
+           [1, 2, -1, 0.2, NAN, -4, NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN],
+           [2, 3, -1, 0.3, NAN, -3, NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN, NAN],
+           [3, 3, 2, NAN, 5, 0, 3, -3, 4, NAN, 2, -2, NAN, NAN, NAN],
+           [4, 2, 3, NAN, 2, -2, 2, -2, NAN, NAN, NAN, NAN, 8, 1, 0.95]]
+    t = np.arange(8)
+    load_p = -np.stack([2 + np.sin(t), 1.5 + 0.5 * np.cos(t)], 1)
+    gen_p_max = (4 * np.clip(np.sin(np.pi * t / 7), 0, None)).reshape(-1, 1)
+    return {"baseMVA": 10, "bus": bus, "device": dev, "branch": branch}, load_p, gen_p_max
+
+
+@pytest.fixture
+def registered():
+    net, load_p, gen_p_max = feeder()
+    case = N.register_network("test_feeder", net, load_p, gen_p_max, source="tests")
+    yield case
+    N.unregister_network("test_feeder")
+
+
+def test_register_network_by_name(registered):
+    """A registered name is listed and builds the same simulator as the dict it came from."""
+    from anm_torchrl.training.factory import make_env
+
+    net, load_p, gen_p_max = feeder()
+    assert "test_feeder" in N.list_networks() and registered.source == "tests"
+    by_name, by_dict = N.simulator("test_feeder"), N.simulator(net, load_p, gen_p_max)
+    assert network_key(by_name) == network_key(by_dict)
+    env = make_env("none", network="test_feeder", num_envs=3, seed=0)
+    td = env.rollout(4, break_when_any_done=False)
+    assert td["next", "reward"].shape == (3, 4, 1) and bool(td["next", "reward"].isfinite().all())
+
+
+def test_register_network_refuses_bad_names_and_networks(registered):
+    net, load_p, gen_p_max = feeder()
+    with pytest.raises(ValueError, match="already registered"):
+        N.register_network("test_feeder", net, load_p, gen_p_max)
+    with pytest.raises(ValueError, match="built-in network"):
+        N.register_network("case33bw", net, load_p, gen_p_max)
+    with pytest.raises(ValueError, match="letters, digits"):
+        N.register_network("my feeder/1", net, load_p, gen_p_max)
+    bad = {**net, "branch": [list(r) for r in net["branch"]]}
+    bad["branch"][1][3] = -0.04
+    with pytest.raises(ValueError, match=r"'branch', branch \(1, 2\), column BR_X"):
+        N.register_network("other", bad, load_p, gen_p_max)
+    with pytest.raises(ValueError, match="gen_p_max"):
+        N.register_network("other", net, load_p, gen_p_max[:, :0])
+    assert "other" not in N.list_networks()  # nothing registered on a refusal
+
+
+def test_network_file_round_trip(tmp_path):
+    """save_network then get_network(path): the same tables, profiles, constants and simulator identity."""
+    net, load_p, gen_p_max = feeder()
+    path = N.save_network(tmp_path / "feeder.npz", net, load_p, gen_p_max, gamma=0.99, source="tests")
+    case = N.get_network(str(path))
+    assert case.name == "feeder" and case.gamma == 0.99 and case.delta_t == 0.25 and case.source == "tests"
+    np.testing.assert_array_equal(case.load_p, load_p)
+    assert network_key(N.simulator(str(path))) == network_key(N.simulator(net, load_p, gen_p_max, gamma=0.99))
+    assert not [p for p in tmp_path.iterdir() if p.name != "feeder.npz"]  # no temporary file left
+
+
+def test_network_file_errors_name_the_file_and_the_fault(tmp_path):
+    net, load_p, gen_p_max = feeder()
+    with pytest.raises(ValueError, match="does not exist"):
+        N.get_network(str(tmp_path / "missing.npz"))
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not an archive")
+    with pytest.raises(ValueError, match="junk.npz is not a readable network file"):
+        N.get_network(str(junk))
+    other = tmp_path / "other.npz"
+    np.savez(other, a=np.zeros(3))
+    with pytest.raises(ValueError, match="other.npz is not an anm_torchrl network file"):
+        N.get_network(str(other))
+    good = N.save_network(tmp_path / "good.npz", net, load_p, gen_p_max)
+    with np.load(good) as z:
+        entries = dict(z)
+    entries["device"] = entries["device"].copy()
+    entries["device"][4, 12] = NAN  # storage without SOC_MAX
+    tampered = tmp_path / "tampered.npz"
+    np.savez(tampered, **entries)
+    with pytest.raises(ValueError, match=r"tampered.npz: .*'device', device 4, column SOC_MAX"):
+        N.get_network(str(tampered))
+    with pytest.raises(ValueError, match=r"ends with \.npz"):
+        N.save_network(tmp_path / "feeder.json", net, load_p, gen_p_max)
+    bad = {**net, "baseMVA": -1}
+    with pytest.raises(ValueError, match="baseMVA"):
+        N.save_network(tmp_path / "bad.npz", bad, load_p, gen_p_max)
+    assert not (tmp_path / "bad.npz").exists()  # a refused network writes nothing
+
+
+def test_check_network_name():
+    N.check_network_name("case33bw")
+    with pytest.raises(ValueError, match="unknown network 'case34bw'; registered: .*anm6_easy"):
+        N.check_network_name("case34bw")
+    with pytest.raises(ValueError, match="no such network file 'nowhere/feeder.npz'"):
+        N.check_network_name("nowhere/feeder.npz")
+
+
+def test_ppo_recipe_takes_a_network_file(tmp_path):
+    """``python recipes/ppo.py network=my_feeder.npz`` (relative to where it is typed; the run directory is
+    elsewhere): trains and tests on that network, and evaluate.py takes the checkpoint's network."""
+    net, load_p, gen_p_max = feeder()
+    N.save_network(tmp_path / "my_feeder.npz", net, load_p, gen_p_max)
+    run_dir = tmp_path / "runs" / "r"
+    tiny = ["env.num_envs=4", "collector.frames_per_batch=32", "collector.total_frames=64", "eval.max_steps=8",
+            "eval.num_episodes=2", "eval.test_episodes=2", "loss.mini_batch_size=16", "loss.ppo_epochs=1",
+            "logger.progress=false"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    proc = subprocess.run([sys.executable, str(ROOT / "recipes" / "ppo.py"), *tiny, "network=my_feeder.npz",
+                           f"hydra.run.dir={run_dir}"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["config"]["network"] == str(tmp_path / "my_feeder.npz") and summary["frames"] == 64
+    assert all(math.isfinite(summary["test"][c]["discounted_return"]) for c in ("best", "last"))
+    bad = subprocess.run([sys.executable, str(ROOT / "recipes" / "ppo.py"), "network=nothing.npz",
+                          f"hydra.run.dir={tmp_path / 'runs' / 'bad'}"], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode != 0 and "no such network file" in bad.stderr and "Traceback" not in bad.stderr
