@@ -60,7 +60,7 @@ def test_default_configs_pass():
     ("eval.test_seed=1", "eval.seed (validation states) and eval.test_seed (test states) must differ"),
     ("eval.render_interval=-1", "eval.render_interval must be an integer >= 0, got -1"),
     ("collector.frames_per_batch=16383", "must be a positive multiple of env.num_envs (256)"),
-    ("network=nowhere", "network must be one of anm6_easy, case33bw"),
+    ("network=nowhere", "network: unknown network 'nowhere'; registered: ['anm6_easy', 'case33bw'"),
     ("eval.render_interval=2 logger.backend=csv", "eval.render_interval > 0 logs figures to TensorBoard"),
 ])
 def test_ppo_config_ranges(override, message):
@@ -74,7 +74,7 @@ def test_ppo_config_ranges(override, message):
     ("steps", 0, "steps must be an integer >= 1, got 0"),
     ("episodes", 0, "episodes must be an integer >= 1 or null, got 0"),
     ("env", "gym", "env must be one of anm6, gym_anm; got 'gym'"),
-    ("network", "nowhere", "network must be one of null, anm6_easy, case33bw"),
+    ("network", "nowhere", "network: unknown network 'nowhere'; registered: ['anm6_easy', 'case33bw'"),
 ])
 def test_evaluate_config_ranges(key, value, message):
     cfg = OmegaConf.load(CONF.parent / "conf_evaluate" / "evaluate.yaml")
