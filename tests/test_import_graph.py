@@ -15,7 +15,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "anm_torchrl"
 
 # floors, bottom first: a module may import its own floor's and lower floors' modules only
 LAYERS = [
-    ("artifacts", "paths", "_extras", "console", "provenance"),
+    ("artifacts", "paths", "_extras", "console", "provenance", "_version"),
     ("grid",),
     ("networks",),
     ("envs",),
@@ -41,10 +41,7 @@ KNOWN_CIRCLES = [
      "anm_torchrl.surrogates.pinn.loop", "anm_torchrl.surrogates.pinn.refine", "anm_torchrl.surrogates.pinn.train"],
 ]
 KNOWN_UPWARD = [
-    ("anm_torchrl.data.storage", "anm_torchrl"),
     ("anm_torchrl.surrogates.pinn.evaluate", "anm_torchrl.baselines.simple"),
-    ("anm_torchrl.surrogates.regressors.io", "anm_torchrl"),
-    ("anm_torchrl.surrogates.terminal", "anm_torchrl"),
 ]
 
 

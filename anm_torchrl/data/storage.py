@@ -42,7 +42,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-import anm_torchrl
+from anm_torchrl._version import __version__
 from anm_torchrl.artifacts import ArtifactError, atomic_folder, exclusive_lock, verify_manifest, write_manifest
 from anm_torchrl.data.registry import available_datasets
 from anm_torchrl.grid.identity import network_key, simulator_fingerprint
@@ -156,7 +156,7 @@ def save_dataset(td: TensorDictBase, path: str | os.PathLike, meta: dict[str, An
             raise ValueError(f"dataset metadata needs {key!r}")
     if td.batch_size != torch.Size([int(meta["size"])]):
         raise ValueError(f"dataset has batch size {tuple(td.batch_size)}, metadata says size {meta['size']}")
-    full = {"layout": LAYOUT, "layout_version": LAYOUT_VERSION, "package_version": anm_torchrl.__version__,
+    full = {"layout": LAYOUT, "layout_version": LAYOUT_VERSION, "package_version": __version__,
             **meta, "fields": field_layout(td), "checksum": checksum(td)}
     with exclusive_lock(path) if lock else contextlib.nullcontext():
         with atomic_folder(path, overwrite=overwrite) as tmp:

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-import anm_torchrl
+from anm_torchrl._version import __version__
 from anm_torchrl._extras import require
 from anm_torchrl.artifacts import ArtifactError, atomic_folder, verify_manifest, write_manifest
 from anm_torchrl.grid.simulator import GridSimulator
@@ -181,7 +181,7 @@ class TerminalClassifier:
         if self.booster is None and self.constant is None:
             raise RuntimeError("cannot save an unfitted TerminalClassifier")
         meta = {
-            "format": FORMAT, "format_version": FORMAT_VERSION, "package_version": anm_torchrl.__version__,
+            "format": FORMAT, "format_version": FORMAT_VERSION, "package_version": __version__,
             "layout": layout_of(self.sim, self.featurizer), "foresight": self.featurizer.foresight,
             "params": self.params, "num_boost_round": self.num_boost_round,
             "early_stopping_rounds": self.early_stopping_rounds, "threshold_rule": self.threshold_rule,

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-import anm_torchrl
+from anm_torchrl._version import __version__
 from anm_torchrl.artifacts import atomic_folder, verify_manifest, write_manifest
 from anm_torchrl.data.storage import simulator_settings
 from anm_torchrl.grid.identity import network_key
@@ -41,7 +41,7 @@ def save_surrogate(sur: RegressorSurrogate, path: str | os.PathLike, extra: dict
             copied), e.g. ``metrics.json``, ``config.yaml``, ``tb``.
     """
     meta = {**sur.meta, **(extra or {}), "format": FORMAT, "format_version": FORMAT_VERSION, "kind": sur.kind,
-            "package_version": anm_torchrl.__version__, "layout": sur.layout(),
+            "package_version": __version__, "layout": sur.layout(),
             "foresight": sur.featurizer.foresight, "clip": sur.clip, "simulator": simulator_settings(sur.sim),
             "scalers": {k: getattr(sur, k).cpu().tolist() for k in ("x_mean", "x_std", "y_mean", "y_std")}}
     with atomic_folder(path, overwrite=overwrite) as tmp:
