@@ -18,8 +18,10 @@ Compiled on first use (cached on disk by numba); ``available()`` says whether nu
 
 from __future__ import annotations
 
+import logging
 import math
 import os
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -31,6 +33,7 @@ from anm_torchrl.grid.jit import available
 from anm_torchrl.grid.jit import njit as _njit
 from anm_torchrl.grid.transition import Transition
 
+log = logging.getLogger(__name__)
 PARALLEL_MIN_BATCH = 1024  # below this, splitting the batch over threads costs more than it saves
 SLICES_PER_THREAD = 8
 _POOL: dict[int, tuple[int, ThreadPoolExecutor]] = {}  # pid -> (threads, pool): a forked child makes its own
@@ -514,6 +517,26 @@ def _transition(c, soc, p_load, p_pot_raw, setpoints, out):
     _env_steps(c, soc, p_load, p_pot_raw, setpoints, out, scratch)
 
 
+def _on_disk_cache_present() -> bool:
+    """Whether numba's on-disk cache holds an index for the transition kernel (False: the first call compiles)."""
+    try:
+        return os.path.exists(_transition._cache._cache_file._index_path)
+    except AttributeError:  # another numba layout: say nothing about the cache, only time the first call
+        return True
+
+
+def _first_call(run) -> None:
+    """Run the first transition of the process, saying what it does: loading the compiled kernels from numba's
+    on-disk cache (about a second), or compiling them (about a minute on 2 cores, once per install)."""
+    cold = not _on_disk_cache_present()
+    if cold:
+        log.warning("numba: compiling the transition kernels (first use of this install; about a minute on 2 cores, "
+                    "cached on disk afterwards)")
+    start = time.perf_counter()
+    run()
+    log.info("numba: transition kernels %s in %.1f s", "compiled" if cold else "loaded", time.perf_counter() - start)
+
+
 def _pool(threads: int) -> ThreadPoolExecutor:
     """This process's thread pool with ``threads`` workers (re-created after a fork or a thread-count change)."""
     pid = os.getpid()
@@ -582,7 +605,9 @@ class CompiledTransition:
             _transition(c, *(x[lo:hi] for x in inputs), tuple(o[lo:hi] for o in outs))
 
         threads = torch.get_num_threads()
-        if threads > 1 and n >= PARALLEL_MIN_BATCH:
+        if not _transition.signatures:  # the process's first call: load or compile, and say which
+            _first_call(lambda: run(0, n))
+        elif threads > 1 and n >= PARALLEL_MIN_BATCH:
             # more slices than threads: a slice holding the rare 100-iteration envs does not hold up the rest
             bounds = np.linspace(0, n, SLICES_PER_THREAD * threads + 1).astype(int)
             for job in [_pool(threads).submit(run, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]:
