@@ -216,6 +216,39 @@ def check_sac_config(cfg: Mapping) -> None:
     _check_adam(cfg)
 
 
+def check_make_dataset_config(cfg: Mapping) -> None:
+    """Check ``recipes/conf/make_dataset.yaml`` (``recipes/make_dataset.py``) before any sample is drawn.
+
+    Raises:
+        ValueError: the first offending key, with the expected range and the value received.
+    """
+    from anm_torchrl.data.registry import available_datasets
+    from anm_torchrl.networks import list_networks
+
+    _choice(cfg, "network", tuple(list_networks()))
+    _choice(cfg, "dataset", tuple(available_datasets()))
+    _int(cfg, "size")
+    _int(cfg, "seed", low=0)
+    _int(cfg, "threads")
+    fractions = _get(cfg, "fractions")
+    if isinstance(fractions, (str, bytes)) or not hasattr(fractions, "__iter__") or len(list(fractions)) != 3 or any(
+            isinstance(f, bool) or not isinstance(f, (int, float)) or not math.isfinite(f) or f < 0
+            for f in fractions) or not math.isclose(sum(fractions), 1.0, abs_tol=1e-6):
+        raise ValueError(f"fractions must be three non-negative numbers (train, validation, test) summing to 1, "
+                         f"got {list(fractions) if hasattr(fractions, '__iter__') else fractions!r}")
+    if _get(cfg, "dataset") == "generative":
+        _int(cfg, "generative.chunk")
+    if _get(cfg, "dataset") == "agent":
+        _int(cfg, "agent.num_envs")
+        _int(cfg, "agent.waypoint_every")
+        _int(cfg, "agent.max_episode_steps")
+        if not isinstance(_get(cfg, "agent.random_every"), bool):
+            raise ValueError(f"agent.random_every must be true or false, got {_get(cfg, 'agent.random_every')!r}")
+        from anm_torchrl.data.agent import WAYPOINT_DISTS
+
+        _choice(cfg, "agent.waypoints", tuple(WAYPOINT_DISTS))
+
+
 def check_evaluate_config(cfg: Mapping) -> None:
     """Check the ranges of ``recipes/conf_evaluate/evaluate.yaml`` (``recipes/evaluate.py``).
 
