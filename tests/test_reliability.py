@@ -65,3 +65,120 @@ def test_dataset_generators_refuse_bad_options(kind, options, key):
 
     with pytest.raises(ValueError, match=f"{key} must be an integer >= 1, got 0"):
         generate(kind, 10, 0, sim=simulator("anm6_easy"), **options)
+
+
+# ------------------------------------------------------------------------------ bugs 1, 2: full disk, locks
+def _small_dataset():
+    from anm_torchrl.data import generate
+    from anm_torchrl.networks import simulator
+
+    return generate("generative", 30, 0, sim=simulator("anm6_easy"))
+
+
+def _enospc(*args, **kwargs):
+    import errno
+
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def _siblings(path: Path) -> list[str]:
+    return sorted(p.name for p in path.parent.iterdir() if p.name != path.name)
+
+
+@pytest.mark.parametrize("where", ["fallocate", "free_space", "metadata"])
+def test_full_disk_during_save_leaves_nothing_behind(where, tmp_path, monkeypatch):
+    """Bug 1: a full disk while a dataset is written raises a clear ENOSPC error naming the path and the space
+    needed/free; no temporary folder or lock stays behind and the previous dataset is intact (before: SIGBUS in
+    the memory-mapped writes, rc 135, lock and temporary folder left holding the space)."""
+    import errno
+    import os
+    import shutil
+
+    from anm_torchrl.artifacts import DiskFullError
+    from anm_torchrl.data import load_dataset, save_dataset
+
+    td, meta = _small_dataset()
+    path = tmp_path / "ds"
+    save_dataset(td, path, meta)
+    before = load_dataset(path)[1]["checksum"]
+    if where == "fallocate":
+        monkeypatch.setattr(os, "posix_fallocate", _enospc)
+    elif where == "free_space":
+        usage = shutil.disk_usage(tmp_path)
+        monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=100))
+    else:
+        monkeypatch.setattr(Path, "write_text", _enospc)
+    with pytest.raises(DiskFullError, match=f"no space left .* to write {path}.*free; nothing was written") as err:
+        save_dataset(td, path, meta, overwrite=True)
+    assert err.value.errno == errno.ENOSPC
+    if where != "metadata":
+        assert "needs about" in str(err.value)
+    monkeypatch.undo()
+    assert _siblings(path) == []  # no .ds.tmp-*, no .ds.lock
+    assert load_dataset(path)[1]["checksum"] == before
+
+
+def test_full_disk_in_make_dataset_releases_lock(tmp_path, monkeypatch):
+    """Bug 1: make_dataset (lock held around generation and save) leaves no lock and no folder on a full disk."""
+    import os
+
+    from anm_torchrl.artifacts import DiskFullError
+    from anm_torchrl.data import make_dataset
+    from anm_torchrl.networks import simulator
+
+    path = tmp_path / "ds"
+    monkeypatch.setattr(os, "posix_fallocate", _enospc)
+    with pytest.raises(DiskFullError, match=str(path)):
+        make_dataset("generative", 20, 0, path=path, sim=simulator("anm6_easy"))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_lock_write_leaves_no_lock(tmp_path, monkeypatch):
+    """Bug 2: a lock whose write fails (full disk) leaves no empty lock behind, and the path can be written once
+    space is back (before: an empty lock file, then "host None, pid None" on every later write)."""
+    import os
+
+    from anm_torchrl.artifacts import DiskFullError, exclusive_lock
+
+    path = tmp_path / "art"
+    real_write = os.write
+    monkeypatch.setattr(os, "write", _enospc)
+    with pytest.raises(DiskFullError, match="lock"):
+        with exclusive_lock(path):
+            pass
+    monkeypatch.setattr(os, "write", real_write)
+    assert list(tmp_path.iterdir()) == []
+    with exclusive_lock(path) as lock:
+        assert lock.is_file()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_empty_lock_is_stale_once_old(tmp_path):
+    """Bug 2: an empty (or unreadable) lock left by a failed write of an older version is broken once older than
+    STALE_EMPTY_LOCK_S, and reported clearly while younger (before: "host None, pid None" forever)."""
+    import os
+    import time
+
+    from anm_torchrl.artifacts import STALE_EMPTY_LOCK_S, LockedError, exclusive_lock
+
+    path = tmp_path / "art"
+    lock = tmp_path / ".art.lock"
+    lock.write_bytes(b"")
+    with pytest.raises(LockedError, match="empty or unreadable"):
+        with exclusive_lock(path):
+            pass
+    old = time.time() - STALE_EMPTY_LOCK_S - 5
+    os.utime(lock, (old, old))
+    with exclusive_lock(path):
+        assert lock.read_text().startswith("{")
+    assert not lock.exists()
+
+
+def test_live_lock_still_excludes(tmp_path):
+    """Bug 2: the atomic lock still refuses a second writer, naming the holder."""
+    from anm_torchrl.artifacts import LockedError, exclusive_lock
+
+    with exclusive_lock(tmp_path / "art"):
+        with pytest.raises(LockedError, match="being written by another process .* pid"):
+            with exclusive_lock(tmp_path / "art"):
+                pass

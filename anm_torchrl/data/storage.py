@@ -32,6 +32,7 @@ instead of returning a corrupted or mismatched dataset.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -43,7 +44,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 import anm_torchrl
-from anm_torchrl.artifacts import ArtifactError, atomic_folder, exclusive_lock, verify_manifest, write_manifest
+from anm_torchrl.artifacts import (ArtifactError, DiskFullError, atomic_folder, disk_full_error, exclusive_lock,
+                                  reserve_space, verify_manifest, write_manifest)
 from anm_torchrl.data.registry import available_datasets
 from anm_torchrl.grid.identity import network_key, simulator_fingerprint
 from anm_torchrl.grid.simulator import GridSimulator
@@ -146,9 +148,14 @@ def save_dataset(td: TensorDictBase, path: str | os.PathLike, meta: dict[str, An
     ``meta`` must hold ``kind``, ``size`` and ``seed``; the layout marker, package version, field layout and
     checksum are added here. ``lock=False`` when the caller already holds ``path``'s exclusive lock.
 
+    The data files' blocks are allocated before they are filled through memory maps, so a full disk raises
+    instead of killing the process with SIGBUS.
+
     Raises:
         FileExistsError: ``path`` exists and ``overwrite`` is False.
         LockedError: another process is writing ``path``.
+        OSError: ``ENOSPC``, the disk is full; the message names the path and the space needed and free, and
+            nothing is left behind (no temporary folder, no lock; a previous dataset is intact).
     """
     path = Path(path)
     for key in ("kind", "size", "seed"):
@@ -158,11 +165,18 @@ def save_dataset(td: TensorDictBase, path: str | os.PathLike, meta: dict[str, An
         raise ValueError(f"dataset has batch size {tuple(td.batch_size)}, metadata says size {meta['size']}")
     full = {"layout": LAYOUT, "layout_version": LAYOUT_VERSION, "package_version": anm_torchrl.__version__,
             **meta, "fields": field_layout(td), "checksum": checksum(td)}
-    with exclusive_lock(path) if lock else contextlib.nullcontext():
-        with atomic_folder(path, overwrite=overwrite) as tmp:
-            td.to_tensordict().memmap_(prefix=str(tmp / DATA_DIR))
-            (tmp / META_FILE).write_text(json.dumps(full, indent=2, sort_keys=True))
-            write_manifest(tmp, LAYOUT, {"kind": meta["kind"], "size": int(meta["size"]), "seed": meta["seed"]})
+    sizes = {Path(*k.split(".")).with_suffix(".memmap"): v.numel() * v.element_size() for k, v in _leaves(td)}
+    try:
+        with exclusive_lock(path) if lock else contextlib.nullcontext():
+            with atomic_folder(path, overwrite=overwrite) as tmp:
+                reserve_space({tmp / DATA_DIR / f: n for f, n in sizes.items()}, path)
+                td.to_tensordict().memmap_(prefix=str(tmp / DATA_DIR))
+                (tmp / META_FILE).write_text(json.dumps(full, indent=2, sort_keys=True))
+                write_manifest(tmp, LAYOUT, {"kind": meta["kind"], "size": int(meta["size"]), "seed": meta["seed"]})
+    except OSError as err:
+        if err.errno in (errno.ENOSPC, errno.EDQUOT) and not isinstance(err, DiskFullError):
+            raise disk_full_error(path, sum(sizes.values()), err) from err
+        raise
     return path
 
 
