@@ -182,3 +182,47 @@ def test_live_lock_still_excludes(tmp_path):
         with pytest.raises(LockedError, match="being written by another process .* pid"):
             with exclusive_lock(tmp_path / "art"):
                 pass
+
+
+# ----------------------------------------------------------------------------------------- bug 7: action dtypes
+@pytest.mark.parametrize("backend", ["numba", "torch"])
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.int64])
+def test_real_action_dtypes_are_cast(backend, dtype):
+    """Bug 7: a float16 (bfloat16, int) action is cast exactly to float64 and steps as the float64 action does
+    (before: NotImplementedError float16 inside numba, on both backends)."""
+    from anm_torchrl.envs import ANM6Env
+
+    env = ANM6Env(num_envs=2, seed=0, backend=backend)
+    td = env.reset()
+    a = torch.zeros(2, env.action_spec.shape[-1])
+    want = env.step(td.clone().set("action", a.to(torch.float64)))["next", "state"]
+    got = env.step(td.clone().set("action", a.to(dtype)))["next", "state"]
+    torch.testing.assert_close(got, want, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.bool, torch.complex64])
+def test_non_real_action_dtypes_are_refused(dtype):
+    """Bug 7: a bool or complex action is refused naming its dtype (before: bool accepted as 0/1 MW)."""
+    from anm_torchrl.envs import ANM6Env
+
+    env = ANM6Env(num_envs=2, seed=0)
+    td = env.reset()
+    with pytest.raises(TypeError, match=f"action dtype {dtype} is not supported"):
+        env.step(td.set("action", torch.zeros(2, env.action_spec.shape[-1], dtype=dtype)))
+
+
+def test_gym_adapter_action_dtypes():
+    """Bug 7: the gymnasium adapters cast float16/int actions and refuse bool/complex/object ones, naming the
+    dtype (before: bool silently 0/1 MW)."""
+    import numpy as np
+
+    from anm_torchrl.gym.env import ANMGymEnv
+
+    env = ANMGymEnv()
+    env.reset(seed=0)
+    n = env.action_space.shape[0]
+    env.step(np.zeros(n, dtype=np.float16))
+    env.step(np.zeros(n, dtype=np.int32))
+    for dtype in (np.bool_, np.complex128, object):
+        with pytest.raises(TypeError, match="action dtype .* is not supported"):
+            env.step(np.zeros(n, dtype=dtype))
