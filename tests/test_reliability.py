@@ -226,3 +226,47 @@ def test_gym_adapter_action_dtypes():
     for dtype in (np.bool_, np.complex128, object):
         with pytest.raises(TypeError, match="action dtype .* is not supported"):
             env.step(np.zeros(n, dtype=dtype))
+
+
+# ------------------------------------------------------------------------- bugs 4, 6: network validation
+_ = float("nan")
+_DEVICES_1BUS = [[0, 0, 0, _, 200, -200, 200, -200, _, _, _, _, _, _, _],
+                 [1, 0, -1, 0.2, 0, -10, _, _, _, _, _, _, _, _, _]]
+
+
+def _anm6(**changes):
+    from anm_torchrl.networks import anm6_easy as a
+
+    net = {"baseMVA": a.BASE_MVA, "bus": a.BUSES, "branch": a.BRANCHES, "device": a.DEVICES}
+    return {**net, **changes}
+
+
+def test_disconnected_network_names_the_islands():
+    """Bug 4: a network whose buses are not all connected to the slack is refused at validation, naming them
+    (before: accepted, then "2 sampled states did not converge after 100 attempts" at reset)."""
+    from anm_torchrl.networks.validation import validate_network
+
+    branches = [br for br in _anm6()["branch"] if tuple(br[:2]) != (2, 4)]  # bus 4 cut off
+    with pytest.raises(ValueError, match=r"disconnected: bus\(es\) \[4\] are not connected to the slack bus 0"):
+        validate_network(_anm6(branch=branches))
+    branches = [br for br in _anm6()["branch"] if tuple(br[:2]) != (1, 2)]  # buses 2, 4, 5 cut off
+    with pytest.raises(ValueError, match=r"bus\(es\) \[2, 4, 5\]"):
+        validate_network(_anm6(branch=branches))
+    validate_network(_anm6())
+
+
+@pytest.mark.parametrize("branch", [[], "array"])
+def test_empty_branch_table_is_a_table(branch):
+    """Bug 6: an empty table is a valid (0, ncols) array, not "ragged rows"; a one-bus network is then refused
+    deliberately, saying why (before: "must have 8 columns ..., got ragged rows")."""
+    import numpy as np
+
+    from anm_torchrl.networks.validation import _table, validate_network
+
+    branch = np.zeros((0, 8)) if branch == "array" else branch
+    assert _table({"branch": branch}, "branch", tuple("abcdefgh")).shape == (0, 8)
+    net = {"baseMVA": 100.0, "bus": [[0, 0, 33, 1.0, 1.0]], "branch": branch, "device": _DEVICES_1BUS}
+    with pytest.raises(ValueError, match="one-bus network .* is not supported, because the power flow"):
+        validate_network(net)
+    with pytest.raises(ValueError, match="network table 'device' is empty"):
+        validate_network(_anm6(device=[]))
