@@ -270,3 +270,77 @@ def test_empty_branch_table_is_a_table(branch):
         validate_network(net)
     with pytest.raises(ValueError, match="network table 'device' is empty"):
         validate_network(_anm6(device=[]))
+
+
+# ------------------------------------------------------------------------------ bug 3: hook outputs checked
+def _anm6_sim(**kwargs):
+    from anm_torchrl.networks import simulator
+
+    return simulator("anm6_easy", **kwargs)
+
+
+def _valid_init(sim):
+    from anm_torchrl.grid import reset as grid_reset
+
+    def init(n, generator):
+        return grid_reset.random_state(sim, n, generator)[0]
+
+    return init
+
+
+@pytest.mark.parametrize("bad, message", [("soc", r"SoC \(MWh\) must lie in"), ("nan", "non-finite state")])
+def test_init_sampler_output_is_validated(bad, message):
+    """Bug 3: an init= sampler's states go through the state validator, and the error names the sampler
+    (before: reset() returned SoC 500 MWh > SOC_MAX; a NaN was reported as "did not converge")."""
+    from anm_torchrl.envs import ANMEnv
+
+    sim = _anm6_sim()
+    good = _valid_init(sim)
+    soc_col = sim.state_slices()["des_soc"].start
+
+    def broken_init(n, generator):
+        s = good(n, generator).clone()
+        s[:, soc_col] = 500.0 if bad == "soc" else float("nan")
+        return s
+
+    env = ANMEnv(sim=sim, num_envs=2, seed=0, init=broken_init)
+    with pytest.raises(ValueError, match=f"init= reset sampler 'broken_init' returned an invalid state: {message}"):
+        env.reset()
+    ANMEnv(sim=sim, num_envs=2, seed=0, init=good).reset()
+
+
+def test_next_vars_hook_nan_is_an_error():
+    """Bug 3: a next_vars hook returning NaN raises naming the hook (before: every step terminal at -20,000,
+    no error)."""
+    import numpy as np
+
+    from anm_torchrl.envs import ANMEnv
+    from anm_torchrl.networks import anm6_easy as a
+
+    sim = _anm6_sim()
+    n_load, n_gen = sim.n_load, sim.n_gen
+
+    def nan_vars(state):
+        n = state.shape[0]
+        return (torch.full((n, n_load), float("nan"), dtype=state.dtype), torch.zeros(n, n_gen, dtype=state.dtype),
+                torch.zeros(n, 1, dtype=state.dtype))
+
+    net = {"baseMVA": a.BASE_MVA, "bus": a.BUSES, "branch": a.BRANCHES, "device": a.DEVICES}
+    load_p = np.full((4, n_load), -1.0)
+    gen_p_max = np.full((4, n_gen), 1.0)
+    env = ANMEnv(net, load_p, gen_p_max, num_envs=2, seed=0, next_vars=nan_vars)
+    td = env.reset()
+    with pytest.raises(ValueError, match="next_vars hook 'nan_vars' returned non-finite load P at"):
+        env.step(td.set("action", torch.zeros(2, env.action_spec.shape[-1])))
+
+
+def test_reset_mask_must_be_bool():
+    """Extra: a float '_reset' mask raises a clear error naming dtype and shape (before: a raw TypeError)."""
+    from tensordict import TensorDict
+
+    from anm_torchrl.envs import ANMEnv
+
+    env = ANMEnv(sim=_anm6_sim(), num_envs=2, seed=0)
+    env.reset()
+    with pytest.raises(ValueError, match="'_reset' must be a bool mask of 2 entries .* got torch.float32"):
+        env._reset(TensorDict({"_reset": torch.ones(2, 1)}, [2]))
