@@ -344,3 +344,17 @@ def test_reset_mask_must_be_bool():
     env.reset()
     with pytest.raises(ValueError, match="'_reset' must be a bool mask of 2 entries .* got torch.float32"):
         env._reset(TensorDict({"_reset": torch.ones(2, 1)}, [2]))
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"num_envs": 2.7}, "num_envs must be an integer >= 1, got 2.7"),
+    ({"num_envs": 0}, "num_envs must be an integer >= 1, got 0"),
+    ({"seed": "abc"}, "seed must be an integer or None, got 'abc'"),
+    ({"max_steps": 0}, "max_steps must be an integer >= 1 or None, got 0")])
+def test_make_env_arguments_checked(kwargs, message):
+    """Extra: make_env refuses a fractional num_envs (before: truncated silently) and a non-integer seed (before:
+    a raw error from torch) with a line naming the argument."""
+    from anm_torchrl.training.factory import make_env
+
+    with pytest.raises(ValueError, match=message):
+        make_env(**kwargs)
