@@ -1,6 +1,6 @@
 """Trust on disk: every saver and loader of the package goes through this module.
 
-Four guarantees:
+Five guarantees:
 
 1. **Atomic writes.** :func:`atomic_write` (one file) and :func:`atomic_folder` (a folder) write into a sibling
    temporary path and rename it into place, so a killed save leaves either the previous artifact or the new one,
@@ -12,8 +12,12 @@ Four guarantees:
    format version) that :func:`verify_manifest` checks *before* anything in the folder is deserialised, so a
    crafted pickle is never unpickled.
 3. **Clear errors.** Every failure is an :class:`ArtifactError` (a ``ValueError``) naming the file and what failed.
-4. **Exclusive writers.** :func:`exclusive_lock` creates a lock file with ``O_CREAT | O_EXCL``: two writers of
-   one path (e.g. two ``make_dataset`` runs) cannot both write; the second fails with the holder's pid and host.
+4. **Exclusive writers.** :func:`exclusive_lock` creates a lock file atomically with its content (written and
+   synced in a temporary file, then hard-linked into place): two writers of one path (e.g. two ``make_dataset``
+   runs) cannot both write; the second fails with the holder's pid and host. A lock is never seen empty.
+5. **Full disks are errors, not crashes.** :func:`reserve_space` allocates the blocks of files that are then
+   filled through memory maps (a full disk there is a SIGBUS, not an exception); every saver that meets
+   ``ENOSPC`` raises :class:`DiskFullError` naming the path and the space needed and free, leaving nothing behind.
 
 Temporary and lock names (siblings of the artifact ``<dir>/<name>``)::
 
@@ -33,6 +37,7 @@ import logging
 import os
 import shutil
 import socket
+import sys
 import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping
@@ -165,8 +170,9 @@ def atomic_write(path: str | os.PathLike, data: bytes | Callable[[Path], Any]) -
             os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~_UMASK)  # the usual mode: some writers (safetensors) create files 0600
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         _remove(tmp)
+        _raise_if_disk_full(err, path)
         raise
     return path
 
@@ -201,6 +207,7 @@ def atomic_folder(path: str | os.PathLike, overwrite: bool = False) -> Iterator[
         if old is not None and not path.exists():
             os.rename(old, path)  # put the previous folder back
             old = None
+        _raise_if_disk_full(sys.exc_info()[1], path)
         raise
     finally:
         if old is not None:
@@ -224,6 +231,13 @@ def disk_full_error(path: str | os.PathLike, needed: int | None = None, err: OSE
     return DiskFullError(errno.ENOSPC, f"no space left on the device of {probe} to write {path}{cause}: {need}"
                                  f"{_mb(free)} free; nothing was written (temporary files and lock removed, any "
                                  f"previous version is intact)")
+
+
+def _raise_if_disk_full(err: BaseException | None, path: Path) -> None:
+    """Re-raise an ``ENOSPC``/``EDQUOT`` ``OSError`` of a save of ``path`` as :class:`DiskFullError`."""
+    if isinstance(err, OSError) and not isinstance(err, DiskFullError) and err.errno in (errno.ENOSPC,
+                                                                                         errno.EDQUOT):
+        raise disk_full_error(path, err=err) from err
 
 
 def reserve_space(files: Mapping[str | os.PathLike, int], artifact: str | os.PathLike) -> None:

@@ -133,6 +133,23 @@ def test_full_disk_in_make_dataset_releases_lock(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_full_disk_in_atomic_write_is_disk_full_error(tmp_path, monkeypatch):
+    """Bug 1: every atomic save (here a safetensors file) turns ENOSPC into DiskFullError naming the path, keeps the
+    previous file and leaves no temporary."""
+    import os
+
+    from anm_torchrl.artifacts import DiskFullError, load_tensors, save_tensors
+
+    path = tmp_path / "w.safetensors"
+    save_tensors(path, {"w": torch.ones(3)}, {}, kind="test")
+    monkeypatch.setattr(os, "fsync", _enospc)
+    with pytest.raises(DiskFullError, match=f"to write {path}"):
+        save_tensors(path, {"w": torch.zeros(3)}, {}, kind="test")
+    monkeypatch.undo()
+    assert [p.name for p in tmp_path.iterdir()] == ["w.safetensors"]
+    assert load_tensors(path, kind="test")[0]["w"].tolist() == [1.0, 1.0, 1.0]
+
+
 def test_failed_lock_write_leaves_no_lock(tmp_path, monkeypatch):
     """Bug 2: a lock whose write fails (full disk) leaves no empty lock behind, and the path can be written once
     space is back (before: an empty lock file, then "host None, pid None" on every later write)."""
