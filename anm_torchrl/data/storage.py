@@ -174,8 +174,9 @@ def save_dataset(td: TensorDictBase, path: str | os.PathLike, meta: dict[str, An
                 (tmp / META_FILE).write_text(json.dumps(full, indent=2, sort_keys=True))
                 write_manifest(tmp, LAYOUT, {"kind": meta["kind"], "size": int(meta["size"]), "seed": meta["seed"]})
     except OSError as err:
-        if err.errno in (errno.ENOSPC, errno.EDQUOT) and not isinstance(err, DiskFullError):
-            raise disk_full_error(path, sum(sizes.values()), err) from err
+        if err.errno in (errno.ENOSPC, errno.EDQUOT):  # named for the dataset, free space measured after cleanup
+            cause = err.__cause__ if isinstance(err, DiskFullError) else err
+            raise disk_full_error(path, sum(sizes.values()), cause if isinstance(cause, OSError) else None) from err
         raise
     return path
 
