@@ -375,3 +375,14 @@ def test_make_env_arguments_checked(kwargs, message):
 
     with pytest.raises(ValueError, match=message):
         make_env(**kwargs)
+
+
+@pytest.mark.parametrize("fractions", [(0.5, 0.5, 0.5), (0.8, 0.2), (1.2, -0.1, -0.1), (True, 0, 0), 5])
+def test_split_fractions_are_never_renormalised(fractions):
+    """Bug 5: the library's split refuses fractions that do not sum to 1 (before: [0.5, 0.5, 0.5] silently
+    became thirds); the recipe's check is this same function."""
+    from anm_torchrl.data.storage import split_codes
+
+    with pytest.raises(ValueError, match="fractions must be three non-negative numbers .* summing to 1"):
+        split_codes(10, fractions)
+    assert split_codes(10, [0.8, 0.1, 0.1]).bincount().tolist() == [8, 1, 1]

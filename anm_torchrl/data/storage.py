@@ -35,7 +35,9 @@ import contextlib
 import errno
 import hashlib
 import json
+import math
 import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -88,15 +90,28 @@ def simulator_settings(sim: GridSimulator) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------------------- splits
+def check_fractions(fractions, name: str = "fractions") -> tuple[float, float, float]:
+    """``fractions`` as three non-negative finite floats (train, validation, test) summing to 1 (within 1e-6);
+    a ``ValueError`` naming ``name`` otherwise (they are never renormalised silently)."""
+    try:
+        f = tuple(float(x) for x in fractions if not isinstance(x, (bool, str, bytes)))
+        ok = len(f) == len(list(fractions)) == 3
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or any(not math.isfinite(x) or x < 0 for x in f) or not math.isclose(sum(f), 1.0, abs_tol=1e-6):
+        shown = list(fractions) if isinstance(fractions, Iterable) and not isinstance(fractions, str) else fractions
+        raise ValueError(f"{name} must be three non-negative numbers (train, validation, test) summing to 1, "
+                         f"got {shown!r}")
+    return f
+
+
 def split_codes(n_units: int, fractions=DEFAULT_FRACTIONS, generator: torch.Generator | None = None) -> torch.Tensor:
     """Assign ``n_units`` units (rows or trajectories) to train/val/test, (n_units,) int8, seeded permutation.
 
     Each split gets at least one unit when ``n_units >= 3``.
     """
-    f = torch.tensor([float(x) for x in fractions], dtype=torch.float64)
-    if f.numel() != 3 or (f < 0).any() or f.sum() <= 0:
-        raise ValueError(f"split fractions must be three non-negative numbers, got {list(fractions)}")
-    f = f / f.sum()
+    f = torch.tensor(check_fractions(fractions), dtype=torch.float64)
+    f = f / f.sum()  # round-off only: the sum is 1 within 1e-6
     n_val, n_test = int(round(f[1].item() * n_units)), int(round(f[2].item() * n_units))
     if n_units >= 3:
         n_val, n_test = max(n_val, 1 if f[1] > 0 else 0), max(n_test, 1 if f[2] > 0 else 0)

@@ -223,6 +223,7 @@ def check_make_dataset_config(cfg: Mapping) -> None:
         ValueError: the first offending key, with the expected range and the value received.
     """
     from anm_torchrl.data.registry import available_datasets
+    from anm_torchrl.data.storage import check_fractions
     from anm_torchrl.networks import list_networks
 
     _choice(cfg, "network", tuple(list_networks()))
@@ -230,12 +231,7 @@ def check_make_dataset_config(cfg: Mapping) -> None:
     _int(cfg, "size")
     _int(cfg, "seed", low=0)
     _int(cfg, "threads")
-    fractions = _get(cfg, "fractions")
-    if isinstance(fractions, (str, bytes)) or not hasattr(fractions, "__iter__") or len(list(fractions)) != 3 or any(
-            isinstance(f, bool) or not isinstance(f, (int, float)) or not math.isfinite(f) or f < 0
-            for f in fractions) or not math.isclose(sum(fractions), 1.0, abs_tol=1e-6):
-        raise ValueError(f"fractions must be three non-negative numbers (train, validation, test) summing to 1, "
-                         f"got {list(fractions) if hasattr(fractions, '__iter__') else fractions!r}")
+    check_fractions(_get(cfg, "fractions"))
     if _get(cfg, "dataset") == "generative":
         _int(cfg, "generative.chunk")
     if _get(cfg, "dataset") == "agent":
