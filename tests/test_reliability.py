@@ -272,6 +272,17 @@ def test_disconnected_network_names_the_islands():
     validate_network(_anm6())
 
 
+def test_disconnected_network_fails_at_build_not_reset():
+    """Bug 4: building a simulator (hence an env) of a disconnected network fails at once, naming the islands."""
+    import numpy as np
+
+    from anm_torchrl.networks import simulator
+
+    branches = [br for br in _anm6()["branch"] if tuple(br[:2]) != (2, 5)]
+    with pytest.raises(ValueError, match=r"bus\(es\) \[5\] are not connected"):
+        simulator(_anm6(branch=branches), np.full((4, 3), -1.0), np.full((4, 2), 1.0))
+
+
 @pytest.mark.parametrize("branch", [[], "array"])
 def test_empty_branch_table_is_a_table(branch):
     """Bug 6: an empty table is a valid (0, ncols) array, not "ragged rows"; a one-bus network is then refused
