@@ -1,6 +1,6 @@
 """Trust on disk: every saver and loader of the package goes through this module.
 
-Four guarantees:
+Five guarantees:
 
 1. **Atomic writes.** :func:`atomic_write` (one file) and :func:`atomic_folder` (a folder) write into a sibling
    temporary path and rename it into place, so a killed save leaves either the previous artifact or the new one,
@@ -12,8 +12,12 @@ Four guarantees:
    format version) that :func:`verify_manifest` checks *before* anything in the folder is deserialised, so a
    crafted pickle is never unpickled.
 3. **Clear errors.** Every failure is an :class:`ArtifactError` (a ``ValueError``) naming the file and what failed.
-4. **Exclusive writers.** :func:`exclusive_lock` creates a lock file with ``O_CREAT | O_EXCL``: two writers of
-   one path (e.g. two ``make_dataset`` runs) cannot both write; the second fails with the holder's pid and host.
+4. **Exclusive writers.** :func:`exclusive_lock` creates a lock file atomically with its content (written and
+   synced in a temporary file, then hard-linked into place): two writers of one path (e.g. two ``make_dataset``
+   runs) cannot both write; the second fails with the holder's pid and host. A lock is never seen empty.
+5. **Full disks are errors, not crashes.** :func:`reserve_space` allocates the blocks of files that are then
+   filled through memory maps (a full disk there is a SIGBUS, not an exception); every saver that meets
+   ``ENOSPC`` raises :class:`DiskFullError` naming the path and the space needed and free, leaving nothing behind.
 
 Temporary and lock names (siblings of the artifact ``<dir>/<name>``)::
 
@@ -25,6 +29,7 @@ Temporary and lock names (siblings of the artifact ``<dir>/<name>``)::
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import hashlib
 import json
@@ -32,6 +37,8 @@ import logging
 import os
 import shutil
 import socket
+import sys
+import time
 import uuid
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
@@ -54,6 +61,11 @@ class ArtifactError(ValueError):
 
 class LockedError(FileExistsError):
     """Another writer holds the lock of an artifact path."""
+
+
+class DiskFullError(OSError):
+    """The disk cannot hold an artifact (``errno.ENOSPC``); the message names the path and the space needed and
+    free."""
 
 
 # ------------------------------------------------------------------------------------------------- hashing
@@ -158,8 +170,9 @@ def atomic_write(path: str | os.PathLike, data: bytes | Callable[[Path], Any]) -
             os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~_UMASK)  # the usual mode: some writers (safetensors) create files 0600
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         _remove(tmp)
+        _raise_if_disk_full(err, path)
         raise
     return path
 
@@ -194,10 +207,75 @@ def atomic_folder(path: str | os.PathLike, overwrite: bool = False) -> Iterator[
         if old is not None and not path.exists():
             os.rename(old, path)  # put the previous folder back
             old = None
+        _raise_if_disk_full(sys.exc_info()[1], path)
         raise
     finally:
         if old is not None:
             _remove(old)
+
+
+# ------------------------------------------------------------------------------------------- disk space
+def _mb(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB"
+
+
+def disk_full_error(path: str | os.PathLike, needed: int | None = None, err: OSError | None = None,
+                    ) -> DiskFullError:
+    """The :class:`DiskFullError` (``ENOSPC``) every saver raises on a full disk: it names ``path``, the bytes
+    needed (when known) and the bytes free, and says that nothing was left behind."""
+    path = Path(path)
+    probe = next((p for p in (path, *path.parents) if p.exists()), Path("."))
+    free = shutil.disk_usage(probe).free
+    need = f"needs about {_mb(needed)}, " if needed is not None else ""
+    cause = f" ({err.strerror or err})" if err is not None else ""
+    return DiskFullError(errno.ENOSPC, f"no space left on the device of {probe} to write {path}{cause}: {need}"
+                                 f"{_mb(free)} free; nothing was written (temporary files and lock removed, any "
+                                 f"previous version is intact)")
+
+
+def _raise_if_disk_full(err: BaseException | None, path: Path) -> None:
+    """Re-raise an ``ENOSPC``/``EDQUOT`` ``OSError`` of a save of ``path`` as :class:`DiskFullError`."""
+    if isinstance(err, OSError) and not isinstance(err, DiskFullError) and err.errno in (errno.ENOSPC,
+                                                                                         errno.EDQUOT):
+        raise disk_full_error(path, err=err) from err
+
+
+def reserve_space(files: Mapping[str | os.PathLike, int], artifact: str | os.PathLike) -> None:
+    """Allocate the blocks of the files a memory map will fill (``posix_fallocate``), after checking free space.
+
+    A write through a memory map into a sparse file on a full disk kills the process with SIGBUS (no exception,
+    no cleanup); with its blocks allocated first, a full disk is an ``OSError`` here instead.
+
+    Args:
+        files: path -> size in bytes of each file to create (parents are created; size-0 files are skipped).
+        artifact: the artifact being written, named in the error.
+
+    Raises:
+        OSError: ``ENOSPC`` (:func:`disk_full_error`) when the disk cannot hold them.
+    """
+    files = {Path(f): int(n) for f, n in files.items() if int(n) > 0}
+    if not files:
+        return
+    total = sum(files.values())
+    first = next(iter(files))
+    first.parent.mkdir(parents=True, exist_ok=True)
+    if shutil.disk_usage(first.parent).free < total:
+        raise disk_full_error(artifact, total)
+    for f, n in files.items():
+        f.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(f, os.O_WRONLY | os.O_CREAT, 0o666)
+        try:
+            if hasattr(os, "posix_fallocate"):
+                os.posix_fallocate(fd, 0, n)
+            else:  # no fallocate (macOS): write the zeros, so the blocks exist
+                for start in range(0, n, _CHUNK):
+                    os.write(fd, bytes(min(_CHUNK, n - start)))
+        except OSError as err:
+            if err.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise disk_full_error(artifact, total, err) from err
+            raise
+        finally:
+            os.close(fd)
 
 
 # --------------------------------------------------------------------------------------------- safetensors
@@ -349,42 +427,98 @@ def _lock_path(path: Path) -> Path:
 
 def _read_lock(lock: Path) -> dict[str, Any]:
     try:
-        return json.loads(lock.read_text())
+        holder = json.loads(lock.read_text())
     except (OSError, ValueError):
         return {}
+    return holder if isinstance(holder, dict) else {}
+
+
+STALE_EMPTY_LOCK_S = 10.0  # an empty or unreadable lock older than this is the debris of a failed lock write
+
+
+def _write_lock(lock: Path, content: bytes) -> bool:
+    """Create ``lock`` holding ``content``, atomically: the content is written and synced in a temporary file that
+    is then hard-linked to ``lock`` (``os.link`` fails if ``lock`` exists), so a lock is never seen empty or half
+    written. Returns False if ``lock`` exists; on any failure (a full disk) nothing is left behind."""
+    tmp = _tmp_name(lock, "tmp")
+    try:
+        fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        try:
+            os.write(fd, content)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        try:
+            os.link(tmp, lock)
+        except FileExistsError:
+            return False
+        except OSError as err:  # file systems without hard links: exclusive create, then write (not atomic)
+            if err.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK):
+                raise
+            try:
+                fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                return False
+            try:
+                os.write(fd, content)
+                os.fsync(fd)
+            except BaseException:
+                os.close(fd)
+                lock.unlink()
+                raise
+            os.close(fd)
+        return True
+    except OSError as err:
+        if err.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise disk_full_error(lock, len(content), err) from err
+        raise
+    finally:
+        _remove(tmp)
+
+
+def _is_stale(lock: Path, holder: dict[str, Any]) -> bool:
+    """A lock of a killed writer on this host, or an empty/unreadable one older than :data:`STALE_EMPTY_LOCK_S`."""
+    if holder.get("host") == _HOST and isinstance(holder.get("pid"), int):
+        return not _pid_alive(holder["pid"])
+    if not {"host", "pid"} <= set(holder):
+        try:
+            age = time.time() - lock.stat().st_mtime
+        except FileNotFoundError:
+            return False
+        return age > STALE_EMPTY_LOCK_S
+    return False
 
 
 @contextlib.contextmanager
 def exclusive_lock(path: str | os.PathLike) -> Iterator[Path]:
-    """Hold the exclusive write lock of ``path`` (a sibling ``.<name>.lock`` created with ``O_CREAT | O_EXCL``).
+    """Hold the exclusive write lock of ``path`` (a sibling ``.<name>.lock``, created atomically with its content).
 
-    A lock left by a killed writer on this host (its pid no longer exists) is broken, under a second exclusive
-    lock so that two processes cannot both break it.
+    A lock left by a killed writer on this host (its pid no longer exists), or an empty or unreadable lock older
+    than :data:`STALE_EMPTY_LOCK_S` seconds (left by a failed lock write of an earlier version), is broken, under
+    a second exclusive lock so that two processes cannot both break it.
 
     Raises:
         LockedError: another live writer (or one on another host) holds the lock; the message names it.
+        DiskFullError: the lock cannot be written (nothing is left behind).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     lock = _lock_path(path)
+    clean_stale(lock)
     me = json.dumps({"host": _HOST, "pid": os.getpid()}).encode()
     for attempt in range(2):
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            holder = _read_lock(lock)
-            stale = holder.get("host") == _HOST and isinstance(holder.get("pid"), int) \
-                and not _pid_alive(holder["pid"])
-            if attempt == 0 and stale and _break_stale(lock, holder):
-                continue
-            raise LockedError(f"{path} is being written by another process (lock {lock}: host "
-                              f"{holder.get('host')!r}, pid {holder.get('pid')}); wait for it, or remove the lock "
-                              f"file if no such process runs") from None
-        try:
-            os.write(fd, me)
-        finally:
-            os.close(fd)
-        break
+        if _write_lock(lock, me):
+            break
+        holder = _read_lock(lock)
+        if attempt == 0 and _is_stale(lock, holder) and _break_stale(lock, holder):
+            continue
+        if not {"host", "pid"} <= set(holder):
+            raise LockedError(f"{path} is locked by {lock}, which is empty or unreadable (a lock write that did not "
+                              f"finish, or one in progress); it is treated as stale once older than "
+                              f"{STALE_EMPTY_LOCK_S:.0f} s: retry then, or remove it if no writer runs") from None
+        raise LockedError(f"{path} is being written by another process (lock {lock}: host "
+                          f"{holder.get('host')!r}, pid {holder.get('pid')}); wait for it, or remove the lock "
+                          f"file if no such process runs") from None
     try:
         yield lock
     finally:
@@ -404,7 +538,8 @@ def _break_stale(lock: Path, holder: dict[str, Any]) -> bool:
     try:
         if _read_lock(lock) == holder:
             lock.unlink()
-            log.warning("removed the stale lock %s of a killed writer (pid %s)", lock, holder.get("pid"))
+            log.warning("removed the stale lock %s (%s)", lock, f"a killed writer, pid {holder['pid']}"
+                        if "pid" in holder else "empty or unreadable: a lock write that did not finish")
             return True
         return False
     finally:

@@ -28,12 +28,12 @@ log = logging.getLogger("make_dataset")
 
 def run(cfg: DictConfig) -> str:
     """Generate and write the dataset described by ``cfg``; returns its folder."""
-    from anm_torchrl.data import available_datasets, make_dataset
+    from anm_torchrl.data import make_dataset
     from anm_torchrl.networks import simulator as network_simulator
+    from anm_torchrl.training.config_checks import check_make_dataset_config
 
+    check_make_dataset_config(cfg)  # every range before any work: one line naming the key
     torch.set_num_threads(int(cfg.threads))
-    if cfg.dataset not in available_datasets():
-        raise ValueError(f"dataset must be one of {list(available_datasets())}, got {cfg.dataset!r}")
     options = dict(cfg[cfg.dataset]) if cfg.get(cfg.dataset) is not None else {}
     start = time.perf_counter()
     sim = network_simulator(cfg.network)

@@ -129,6 +129,9 @@ def generate_agent(size: int, seed: int = 0, *, sim: GridSimulator, num_envs: in
     """
     if size < 1:
         raise ValueError(f"size must be >= 1, got {size}")
+    for name, value in (("num_envs", num_envs), ("max_episode_steps", max_episode_steps)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
     num_envs = int(min(num_envs, size))
     gen = torch.Generator(device=sim.net.dev.device).manual_seed(int(seed))
     a_low, a_high = sim.action_bounds()

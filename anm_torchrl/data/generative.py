@@ -57,6 +57,8 @@ def generate_generative(size: int, seed: int = 0, *, sim: GridSimulator, chunk: 
     """
     if size < 1:
         raise ValueError(f"size must be >= 1, got {size}")
+    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
+        raise ValueError(f"chunk must be an integer >= 1, got {chunk!r}")
     dev, b = sim.net.dev, sim.net.base_mva
     a_low, a_high = sim.action_bounds()
     des = dev[sim.des_idx]

@@ -32,9 +32,12 @@ instead of returning a corrupted or mismatched dataset.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
+import math
 import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +46,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from anm_torchrl._version import __version__
-from anm_torchrl.artifacts import ArtifactError, atomic_folder, exclusive_lock, verify_manifest, write_manifest
+from anm_torchrl.artifacts import (ArtifactError, DiskFullError, atomic_folder, disk_full_error, exclusive_lock,
+                                  reserve_space, verify_manifest, write_manifest)
 from anm_torchrl.data.registry import available_datasets
 from anm_torchrl.grid.identity import network_key, simulator_fingerprint
 from anm_torchrl.grid.simulator import GridSimulator
@@ -86,15 +90,28 @@ def simulator_settings(sim: GridSimulator) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------------------- splits
+def check_fractions(fractions, name: str = "fractions") -> tuple[float, float, float]:
+    """``fractions`` as three non-negative finite floats (train, validation, test) summing to 1 (within 1e-6);
+    a ``ValueError`` naming ``name`` otherwise (they are never renormalised silently)."""
+    try:
+        f = tuple(float(x) for x in fractions if not isinstance(x, (bool, str, bytes)))
+        ok = len(f) == len(list(fractions)) == 3
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or any(not math.isfinite(x) or x < 0 for x in f) or not math.isclose(sum(f), 1.0, abs_tol=1e-6):
+        shown = list(fractions) if isinstance(fractions, Iterable) and not isinstance(fractions, str) else fractions
+        raise ValueError(f"{name} must be three non-negative numbers (train, validation, test) summing to 1, "
+                         f"got {shown!r}")
+    return f
+
+
 def split_codes(n_units: int, fractions=DEFAULT_FRACTIONS, generator: torch.Generator | None = None) -> torch.Tensor:
     """Assign ``n_units`` units (rows or trajectories) to train/val/test, (n_units,) int8, seeded permutation.
 
     Each split gets at least one unit when ``n_units >= 3``.
     """
-    f = torch.tensor([float(x) for x in fractions], dtype=torch.float64)
-    if f.numel() != 3 or (f < 0).any() or f.sum() <= 0:
-        raise ValueError(f"split fractions must be three non-negative numbers, got {list(fractions)}")
-    f = f / f.sum()
+    f = torch.tensor(check_fractions(fractions), dtype=torch.float64)
+    f = f / f.sum()  # round-off only: the sum is 1 within 1e-6
     n_val, n_test = int(round(f[1].item() * n_units)), int(round(f[2].item() * n_units))
     if n_units >= 3:
         n_val, n_test = max(n_val, 1 if f[1] > 0 else 0), max(n_test, 1 if f[2] > 0 else 0)
@@ -146,9 +163,14 @@ def save_dataset(td: TensorDictBase, path: str | os.PathLike, meta: dict[str, An
     ``meta`` must hold ``kind``, ``size`` and ``seed``; the layout marker, package version, field layout and
     checksum are added here. ``lock=False`` when the caller already holds ``path``'s exclusive lock.
 
+    The data files' blocks are allocated before they are filled through memory maps, so a full disk raises
+    instead of killing the process with SIGBUS.
+
     Raises:
         FileExistsError: ``path`` exists and ``overwrite`` is False.
         LockedError: another process is writing ``path``.
+        OSError: ``ENOSPC``, the disk is full; the message names the path and the space needed and free, and
+            nothing is left behind (no temporary folder, no lock; a previous dataset is intact).
     """
     path = Path(path)
     for key in ("kind", "size", "seed"):
@@ -158,11 +180,19 @@ def save_dataset(td: TensorDictBase, path: str | os.PathLike, meta: dict[str, An
         raise ValueError(f"dataset has batch size {tuple(td.batch_size)}, metadata says size {meta['size']}")
     full = {"layout": LAYOUT, "layout_version": LAYOUT_VERSION, "package_version": __version__,
             **meta, "fields": field_layout(td), "checksum": checksum(td)}
-    with exclusive_lock(path) if lock else contextlib.nullcontext():
-        with atomic_folder(path, overwrite=overwrite) as tmp:
-            td.to_tensordict().memmap_(prefix=str(tmp / DATA_DIR))
-            (tmp / META_FILE).write_text(json.dumps(full, indent=2, sort_keys=True))
-            write_manifest(tmp, LAYOUT, {"kind": meta["kind"], "size": int(meta["size"]), "seed": meta["seed"]})
+    sizes = {Path(*k.split(".")).with_suffix(".memmap"): v.numel() * v.element_size() for k, v in _leaves(td)}
+    try:
+        with exclusive_lock(path) if lock else contextlib.nullcontext():
+            with atomic_folder(path, overwrite=overwrite) as tmp:
+                reserve_space({tmp / DATA_DIR / f: n for f, n in sizes.items()}, path)
+                td.to_tensordict().memmap_(prefix=str(tmp / DATA_DIR))
+                (tmp / META_FILE).write_text(json.dumps(full, indent=2, sort_keys=True))
+                write_manifest(tmp, LAYOUT, {"kind": meta["kind"], "size": int(meta["size"]), "seed": meta["seed"]})
+    except OSError as err:
+        if err.errno in (errno.ENOSPC, errno.EDQUOT):  # named for the dataset, free space measured after cleanup
+            cause = err.__cause__ if isinstance(err, DiskFullError) else err
+            raise disk_full_error(path, sum(sizes.values()), cause if isinstance(cause, OSError) else None) from err
+        raise
     return path
 
 

@@ -140,7 +140,11 @@ class ANMEnv(EnvBase):
         n = self.batch_size[0]
         mask = None
         if tensordict is not None and "_reset" in tensordict.keys():
-            mask = tensordict.get("_reset").reshape(n)
+            mask = tensordict.get("_reset")
+            if mask.dtype != torch.bool or mask.numel() != n:
+                raise ValueError(f"'_reset' must be a bool mask of {n} entries (shape ({n}, 1)), got {mask.dtype} "
+                                 f"{tuple(mask.shape)}")
+            mask = mask.reshape(n)
         terminated = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
         if kwargs.get("set_state"):
             if tensordict is None or "state" not in tensordict.keys():
@@ -152,6 +156,7 @@ class ANMEnv(EnvBase):
         else:
             rows = n if mask is None else int(mask.sum())
             state_rows, tr_rows = self._sample(rows)
+            self.sim.check_state(state_rows)  # every reset passes the one state validator (as set_state, step)
             if mask is None:
                 state, tr = state_rows, tr_rows
             else:  # values of rows not reset are discarded by TorchRL; only the masked rows are solved

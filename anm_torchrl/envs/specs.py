@@ -104,16 +104,42 @@ class ActionBox:
         return cls(low, high, acc_low, acc_high, arrays)
 
 
+def check_action_dtype(dtype: torch.dtype | np.dtype | type) -> None:
+    """Refuse an action dtype that is not a real number: bool (0/1 MW by accident), complex, object, strings.
+
+    Floats (float16, bfloat16, float32, float64) and integers are cast exactly to float64 by the callers.
+
+    Raises:
+        TypeError: naming the dtype.
+    """
+    if isinstance(dtype, torch.dtype):
+        ok = dtype in (torch.float16, torch.bfloat16, torch.float32, torch.float64, torch.uint8, torch.int8,
+                              torch.int16, torch.int32, torch.int64)
+    else:
+        dt = np.dtype(dtype)
+        ok = dt.kind in "iu" or (dt.kind == "f" and dt.itemsize <= 8)
+    if not ok:
+        raise TypeError(f"action dtype {dtype} is not supported: actions are real numbers in MW/MVAr (float16, "
+                        f"float32, float64 or integers, cast to float64); bool, complex, object and string "
+                        f"actions are refused")
+
+
 def check_action(action: torch.Tensor, box: ActionBox, clip: bool) -> torch.Tensor:
     """Validate a batch of actions (N, A); return it as float64 inside ``box`` (clipped to it if ``clip``).
 
+    Any float or integer dtype is cast to float64 first (:func:`check_action_dtype`).
+
     Raises:
+        TypeError: a bool, complex or other non-real dtype.
         ValueError: wrong trailing shape, NaN/inf entries (always), or entries outside the (float32-rounded) box
             unless ``clip`` — the message names the env indices and action entries involved.
     """
     low, high = box.low, box.high
+    check_action_dtype(action.dtype)
     if action.ndim != 2 or action.shape[-1] != low.shape[-1]:
         raise ValueError(f"action must have shape (num_envs, {low.shape[-1]}), got {tuple(action.shape)}")
+    if action.dtype not in (torch.float32, torch.float64):  # exact: the compiled pass reads these two only
+        action = action.to(torch.float64)
     if box.arrays is not None and fastchecks.usable(action):  # one compiled pass; on failure the checks below
         out = fastchecks.clamp_action(action, *box.arrays, clip)  # name what is wrong
         if out is not None:

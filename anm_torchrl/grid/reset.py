@@ -83,12 +83,23 @@ def reset_from_states(sim: GridSimulator, state: torch.Tensor) -> Transition:
 def reset_with(sim: GridSimulator, init, n: int, generator: torch.Generator | None = None, max_attempts: int = 100
                ) -> tuple[torch.Tensor, Transition]:
     """``n`` initial states from a user sampler ``init(n, generator) -> (n, state_dim)`` MW…, each passed
-    through :func:`reset_from_states`; rows whose power flow fails are re-drawn (gym-anm: 100 attempts)."""
+    through :func:`reset_from_states`; rows whose power flow fails are re-drawn (gym-anm: 100 attempts).
+
+    Raises:
+        ValueError: the sampler returned a batch of the wrong shape, or a state the state validator
+            (:meth:`GridSimulator.check_state`: finite entries, SoC within its bounds, time index) refuses;
+            the message names the ``init`` sampler.
+    """
 
     def draw(k: int) -> tuple[torch.Tensor, Transition]:
         s = torch.as_tensor(init(k, generator), dtype=sim.net.dev.dtype, device=sim.net.dev.device)
         if tuple(s.shape) != (k, sim.state_dim):
             raise ValueError(f"init must return a ({k}, {sim.state_dim}) state batch, got {tuple(s.shape)}")
+        try:
+            sim.check_state(s)
+        except ValueError as err:
+            raise ValueError(f"the init= reset sampler {getattr(init, '__name__', init)!r} returned an invalid "
+                             f"state: {err}") from None
         tr = reset_from_states(sim, s)
         return sim.build_state(tr, s[:, sim.state_slices()["aux"]]), tr
 

@@ -21,7 +21,7 @@ from anm_torchrl.grid.backends import torch as torch_backend
 from anm_torchrl.grid.constants import TransitionConstants, build_constants
 from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STORAGE, Network
 from anm_torchrl.grid.reward import terminal_reward
-from anm_torchrl.grid.state import check_state, state_sizes, state_slices
+from anm_torchrl.grid.state import _pairs, check_state, state_sizes, state_slices
 from anm_torchrl.grid.transition import Transition
 
 __all__ = ["GridSimulator", "Transition"]
@@ -232,6 +232,12 @@ class GridSimulator:
             for name, x, k in (("load P", p_load, self.n_load), ("potentials", p_pot, self.n_gen), ("aux", aux, 1)):
                 if tuple(x.shape) != (n, k):
                     raise ValueError(f"next_vars_hook must return {name} of shape ({n}, {k}), got {tuple(x.shape)}")
+                bad = ~torch.isfinite(x)
+                if bad.any():
+                    envs, entries = bad.nonzero(as_tuple=True)
+                    raise ValueError(f"the next_vars hook {getattr(self.next_vars_hook, '__name__', '')!r} returned "
+                                     f"non-finite {name} at (env, entry) {_pairs(envs, entries)}: every exogenous "
+                                     f"variable must be finite (a NaN would make the step terminal silently)")
             return p_load.to(state), p_pot.to(state), aux.to(state)
         t = self._next_index(state)
         b = self.net.base_mva

@@ -13,6 +13,8 @@ from gymnasium import error, spaces
 from tensordict import TensorDict
 from torchrl.envs import EnvBase
 
+from anm_torchrl.envs.specs import check_action_dtype
+
 RENDER_KEYS = ("v_magn", "branch_s")  # the ("grid", ...) entries a rendered frame shows
 
 
@@ -131,9 +133,12 @@ class NumpyBatch:
 
         Raises:
             ValueError: wrong action shape, or an action outside the box (the env's ``action_mode="raise"``).
+            TypeError: a bool, complex, object or string action (floats and integers are cast exactly).
         """
         self._require_reset()
         action = np.asarray(action)
+        check_action_dtype(action.dtype)
+        action = action.astype(np.float64, copy=False)
         expected = (self.num_envs, self.action_space.shape[0])
         if action.shape != expected:
             raise ValueError(f"action must have shape {expected}, got {action.shape}")

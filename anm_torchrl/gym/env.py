@@ -66,7 +66,7 @@ class ANMGymEnv(gymnasium.Env):
         """One transition for ``action`` (A,) MW/MVAr; returns obs, reward, terminated, truncated, ``{}``."""
         if self._terminated:  # gym-anm stays in its terminal state
             return np.zeros(self.observation_space.shape), 0.0, True, False, {}
-        obs, reward, terminated = self._batch.step(np.asarray(action, dtype=np.float64)[None])
+        obs, reward, terminated = self._batch.step(np.asarray(action)[None])  # dtype checked there
         self._terminated = bool(terminated[0])
         self._steps, self._reward = self._steps + 1, float(reward[0])
         return obs[0], self._reward, self._terminated, False, {}

@@ -9,6 +9,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from torchrl.envs import EnvBase
 
+from anm_torchrl.envs.specs import check_action_dtype
 from anm_torchrl.gym.batch import NumpyBatch, make_torchrl_env
 
 AUTORESET_MODES = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)
@@ -92,6 +93,8 @@ class ANMVectorEnv(VectorEnv):
 
     def step(self, actions: np.ndarray):
         """Step every env with ``actions`` (N, A) MW/MVAr; returns obs, rewards, terminated, truncated, infos."""
+        actions = np.asarray(actions)
+        check_action_dtype(actions.dtype)  # bool/complex/object refused, not cast to 0/1 MW
         actions = np.array(actions, dtype=np.float64)  # a copy: rows that reset get a valid dummy action
         resetting = self._needs_reset.copy()
         if resetting.any():  # NEXT_STEP: these envs ignore their action and start a new episode

@@ -3,7 +3,10 @@
 :func:`validate_network` rejects at least everything gym-anm 2.0.1 rejects (``simulator/check_network.py``,
 the ``Bus``, ``TransmissionLine`` and device classes), plus what gym-anm accepts but cannot simulate (a NaN
 capability line that makes its cvxpy projection fail, a slack bus that is not bus 0, bus ids that are not
-0..n_bus-1: gym-anm's power flow silently treats bus 0 as the slack and sizes its Y-bus by the largest id).
+0..n_bus-1: gym-anm's power flow silently treats bus 0 as the slack and sizes its Y-bus by the largest id;
+buses not connected to the slack bus, whose power flow cannot converge). Empty tables are (0, ncols) arrays;
+an empty bus or device table is refused as empty, and a one-bus network deliberately (the power flow needs a
+non-slack bus).
 Every error is a ``ValueError`` naming the table, the row (bus / device / branch id) and the column.
 
 The normalized dict has float64 tables sorted as gym-anm orders them (buses and devices by id, branches as
@@ -45,6 +48,8 @@ def _table(net: Mapping, key: str, cols: tuple[str, ...]) -> np.ndarray:
         arr = np.array([[np.nan if v is None else float(v) for v in row] for row in rows], dtype=np.float64)
     except (TypeError, ValueError) as err:
         raise ValueError(f"network table {key!r} must hold numbers or None: {err}") from None
+    if arr.ndim == 1 and arr.size == 0:  # no rows: a valid empty table (e.g. the branches of a one-bus network)
+        arr = arr.reshape(0, len(cols))
     if arr.ndim != 2 or arr.shape[1] != len(cols):
         got = arr.shape[1] if arr.ndim == 2 else "ragged rows"
         raise ValueError(f"network table {key!r} must have {len(cols)} columns {list(cols)}, got {got}")
@@ -221,6 +226,26 @@ def _check_branches(br: np.ndarray, n_bus: int) -> np.ndarray:
     return br
 
 
+def _check_connected(br: np.ndarray, n_bus: int) -> None:
+    """Every bus is reached from the slack bus 0 through the branches (an island has no voltage reference: its
+    power flow never converges, and every reset would be re-drawn until it gives up)."""
+    adjacent: list[list[int]] = [[] for _ in range(n_bus)]
+    for f, t in br[:, :2].astype(int).tolist():
+        adjacent[f].append(t)
+        adjacent[t].append(f)
+    seen, todo = {0}, [0]
+    while todo:
+        for b in adjacent[todo.pop()]:
+            if b not in seen:
+                seen.add(b)
+                todo.append(b)
+    islands = sorted(set(range(n_bus)) - seen)
+    if islands:
+        raise _fail("branch", "rows", "F_BUS/T_BUS", f"the network is disconnected: bus(es) {islands} are not "
+                    f"connected to the slack bus 0 by any path of branches (an island has no voltage reference; "
+                    f"its power flow cannot converge)")
+
+
 def validate_network(network: Mapping) -> dict:
     """Check a gym-anm network dict and return it normalized (see the module docstring).
 
@@ -247,6 +272,11 @@ def validate_network(network: Mapping) -> dict:
     bus = _check_buses(_table(network, "bus", BUS_COLS))
     dev = _check_devices(_table(network, "device", DEV_COLS), bus.shape[0])
     br = _check_branches(_table(network, "branch", BRANCH_COLS), bus.shape[0])
+    if bus.shape[0] < 2:
+        raise ValueError("network table 'bus' has a single bus: a one-bus network (no branches) is not supported, "
+                         "because the power flow (both backends) solves for the non-slack buses and needs at least "
+                         "one; add a bus joined to the slack bus 0 by a branch")
+    _check_connected(br, bus.shape[0])
     return {"baseMVA": base, "bus": bus, "device": dev, "branch": br}
 
 

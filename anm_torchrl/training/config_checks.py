@@ -216,6 +216,35 @@ def check_sac_config(cfg: Mapping) -> None:
     _check_adam(cfg)
 
 
+def check_make_dataset_config(cfg: Mapping) -> None:
+    """Check ``recipes/conf/make_dataset.yaml`` (``recipes/make_dataset.py``) before any sample is drawn.
+
+    Raises:
+        ValueError: the first offending key, with the expected range and the value received.
+    """
+    from anm_torchrl.data.registry import available_datasets
+    from anm_torchrl.data.storage import check_fractions
+    from anm_torchrl.networks import list_networks
+
+    _choice(cfg, "network", tuple(list_networks()))
+    _choice(cfg, "dataset", tuple(available_datasets()))
+    _int(cfg, "size")
+    _int(cfg, "seed", low=0)
+    _int(cfg, "threads")
+    check_fractions(_get(cfg, "fractions"))
+    if _get(cfg, "dataset") == "generative":
+        _int(cfg, "generative.chunk")
+    if _get(cfg, "dataset") == "agent":
+        _int(cfg, "agent.num_envs")
+        _int(cfg, "agent.waypoint_every")
+        _int(cfg, "agent.max_episode_steps")
+        if not isinstance(_get(cfg, "agent.random_every"), bool):
+            raise ValueError(f"agent.random_every must be true or false, got {_get(cfg, 'agent.random_every')!r}")
+        from anm_torchrl.data.agent import WAYPOINT_DISTS
+
+        _choice(cfg, "agent.waypoints", tuple(WAYPOINT_DISTS))
+
+
 def check_evaluate_config(cfg: Mapping) -> None:
     """Check the ranges of ``recipes/conf_evaluate/evaluate.yaml`` (``recipes/evaluate.py``).
 
