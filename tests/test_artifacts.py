@@ -141,7 +141,7 @@ def test_crafted_pickle_is_never_unpickled(tmp_path, monkeypatch):
     with pytest.raises(A.ArtifactError, match=r"model\.pkl is corrupted"):
         _load_pickle_folder(d)
     assert not (tmp_path / "PWNED").exists()
-    pickle.loads((d / "model.pkl").read_bytes())  # the crafted file does run code when unpickled unchecked
+    pickle.loads((d / "model.pkl").read_bytes()).close()  # the crafted file does run code when unpickled unchecked
     assert (tmp_path / "PWNED").exists()
 
 
@@ -229,5 +229,6 @@ def test_two_processes_one_fails(tmp_path):
     finally:
         child.send_signal(signal.SIGKILL)
         child.wait()
+        child.stdout.close()
     with A.exclusive_lock(tmp_path / "data"):  # the holder is dead: its lock is stale
         assert json.loads((tmp_path / ".data.lock").read_text())["pid"] == os.getpid()
