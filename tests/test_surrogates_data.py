@@ -248,7 +248,11 @@ def test_save_load_roundtrip_identical(data, kind, tmp_path):
 def test_wrong_or_missing_model_files_fail_clearly(trained, tmp_path):
     import shutil
 
-    from anm_torchrl.surrogates.regressors import load_dt, load_xgb
+    from functools import partial
+
+    from anm_torchrl.surrogates.regressors import load_regressor_surrogate
+
+    load_dt, load_xgb = partial(load_regressor_surrogate, "dt"), partial(load_regressor_surrogate, "xgb")
 
     cmd = "python recipes/train_surrogate.py surrogate=xgb surrogate.dataset=agent"
     with pytest.raises(FileNotFoundError, match=cmd):
@@ -309,7 +313,11 @@ def test_skops_refuses_untrusted_types(trained, tmp_path):
 
     import skops.io as sio
 
-    from anm_torchrl.surrogates.regressors import load_lr
+    from functools import partial
+
+    from anm_torchrl.surrogates.regressors import load_regressor_surrogate
+
+    load_lr = partial(load_regressor_surrogate, "lr")
 
     bad = tmp_path / "lr_evil"
     shutil.copytree(surrogate_dir("lr", "generative"), bad)

@@ -14,19 +14,40 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 from tensordict.nn import TensorDictModuleBase
 
-_REGISTRY: dict[str, str | Callable[..., TensorDictModuleBase]] = {
-    "pinn": "anm_torchrl.surrogates.pinn.chain:load_pinn",
-    "lr": "anm_torchrl.surrogates.regressors.loaders:load_lr",
-    "dt": "anm_torchrl.surrogates.regressors.loaders:load_dt",
-    "rf": "anm_torchrl.surrogates.regressors.loaders:load_rf",
-    "xgb": "anm_torchrl.surrogates.regressors.loaders:load_xgb",
-    "dnn": "anm_torchrl.surrogates.regressors.loaders:load_dnn",
+@dataclass(frozen=True)
+class SurrogateKind:
+    """One registered surrogate: what ``surrogate=<name>`` stands for.
+
+    Attributes:
+        name: the name users pass.
+        family: ``"physics"`` (trained from physics alone) or ``"data"`` (trained on a dataset).
+        loader: a callable or ``"module:function"`` following the loader contract above.
+        loader_kwargs: bound keyword arguments of the loader (e.g. the regressor ``kind`` of the shared
+            data-driven loader).
+    """
+
+    name: str
+    family: str
+    loader: str | Callable[..., TensorDictModuleBase]
+    loader_kwargs: dict = field(default_factory=dict)
+
+    def load(self, **kwargs) -> TensorDictModuleBase:
+        loader = self.loader
+        if isinstance(loader, str):
+            module, func = loader.split(":")
+            loader = getattr(importlib.import_module(module), func)
+        return loader(**self.loader_kwargs, **kwargs)
+
+
+_REGRESSOR_LOADER = "anm_torchrl.surrogates.regressors.loaders:load_regressor_surrogate"
+_REGISTRY: dict[str, SurrogateKind] = {
+    "pinn": SurrogateKind("pinn", "physics", "anm_torchrl.surrogates.pinn.chain:load_pinn"),
+    **{k: SurrogateKind(k, "data", _REGRESSOR_LOADER, {"kind": k}) for k in ("lr", "dt", "rf", "xgb", "dnn")},
 }
-#: Family of each entry: ``"physics"`` (trained from physics alone) or ``"data"`` (trained on a dataset).
-_FAMILY: dict[str, str] = {"pinn": "physics", "lr": "data", "dt": "data", "rf": "data", "xgb": "data", "dnn": "data"}
 FAMILIES = ("physics", "data")
 
 
@@ -35,19 +56,31 @@ def register_surrogate(name: str, loader: str | Callable[..., TensorDictModuleBa
     ``name`` in ``family`` (``"physics"`` or ``"data"``); replaces an existing entry."""
     if family not in FAMILIES:
         raise ValueError(f"family must be one of {FAMILIES}, got {family!r}")
-    _REGISTRY[name], _FAMILY[name] = loader, family
+    _REGISTRY[name] = SurrogateKind(name, family, loader)
+
+
+def surrogate_kind(name: str) -> SurrogateKind:
+    """The registered :class:`SurrogateKind` ``name``.
+
+    Raises:
+        ValueError: ``name`` is not registered (the message lists the registered names).
+    """
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown surrogate {name!r}; registered: {available_surrogates()} "
+                         "(plus 'none' for the true simulator and 'gym_anm' for the original package)")
+    return _REGISTRY[name]
 
 
 def available_surrogates(family: str | None = None) -> list[str]:
     """Registered surrogate names, sorted; only those of ``family`` (``"physics"``, ``"data"``) when given."""
     if family is not None and family not in FAMILIES:
         raise ValueError(f"family must be one of {FAMILIES}, got {family!r}")
-    return sorted(n for n in _REGISTRY if family is None or _FAMILY[n] == family)
+    return sorted(n for n, k in _REGISTRY.items() if family is None or k.family == family)
 
 
 def data_driven_surrogates() -> tuple[str, ...]:
     """The data-driven surrogates in registration order (``lr``, ``dt``, ``rf``, ``xgb``, ``dnn``)."""
-    return tuple(n for n in _REGISTRY if _FAMILY[n] == "data")
+    return tuple(n for n, k in _REGISTRY.items() if k.family == "data")
 
 
 def load_surrogate(name: str, sim=None, device=None, **kwargs) -> TensorDictModuleBase:
@@ -63,11 +96,4 @@ def load_surrogate(name: str, sim=None, device=None, **kwargs) -> TensorDictModu
     Raises:
         ValueError: ``name`` is not registered (the message lists the registered names).
     """
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown surrogate {name!r}; registered: {available_surrogates()} "
-                         "(plus 'none' for the true simulator and 'gym_anm' for the original package)")
-    loader = _REGISTRY[name]
-    if isinstance(loader, str):
-        module, func = loader.split(":")
-        loader = getattr(importlib.import_module(module), func)
-    return loader(sim=sim, device=device, **kwargs)
+    return surrogate_kind(name).load(sim=sim, device=device, **kwargs)

@@ -16,12 +16,10 @@ batched ``predict`` of the regressor and one of the classifier per env step), :m
 from anm_torchrl.surrogates.regressors.defaults import (DATASETS, DEFAULT_PARAMS, FORMAT, FORMAT_VERSION, KINDS,
                                                         META_FILE, MODEL_FILES, train_command)
 from anm_torchrl.surrogates.regressors.fit import fit_regressor, regression_rows, targets_of
-from anm_torchrl.surrogates.regressors.loaders import (load_dnn, load_dt, load_lr, load_regressor_surrogate, load_rf,
-                                                       load_xgb)
+from anm_torchrl.surrogates.regressors.loaders import load_regressor_surrogate
 from anm_torchrl.surrogates.regressors.metrics import evaluate_surrogate, regression_metrics
 from anm_torchrl.surrogates.regressors.module import RegressorSurrogate
 
 __all__ = ["DATASETS", "DEFAULT_PARAMS", "FORMAT", "FORMAT_VERSION", "KINDS", "META_FILE", "MODEL_FILES",
-           "RegressorSurrogate", "evaluate_surrogate", "fit_regressor", "load_dnn", "load_dt", "load_lr",
-           "load_regressor_surrogate", "load_rf", "load_xgb", "regression_metrics", "regression_rows",
-           "targets_of", "train_command"]
+           "RegressorSurrogate", "evaluate_surrogate", "fit_regressor", "load_regressor_surrogate",
+           "regression_metrics", "regression_rows", "targets_of", "train_command"]

@@ -61,28 +61,3 @@ def load_regressor_surrogate(kind: str, sim: GridSimulator | None = None, device
         raise ModelFileError(f"{p} holds a surrogate trained on the {stored!r} dataset, dataset={dataset!r} was asked "
                              f"for; pass dataset={stored!r} or train one: {train_command(kind, dataset, sim)}")
     return sur
-
-
-def load_lr(**kw) -> RegressorSurrogate:
-    """The Linear Regression surrogate (see :func:`load_regressor_surrogate`)."""
-    return load_regressor_surrogate("lr", **kw)
-
-
-def load_dt(**kw) -> RegressorSurrogate:
-    """The Decision Tree surrogate (see :func:`load_regressor_surrogate`)."""
-    return load_regressor_surrogate("dt", **kw)
-
-
-def load_rf(**kw) -> RegressorSurrogate:
-    """The Random Forest surrogate (see :func:`load_regressor_surrogate`)."""
-    return load_regressor_surrogate("rf", **kw)
-
-
-def load_xgb(**kw) -> RegressorSurrogate:
-    """The XGBoost surrogate (see :func:`load_regressor_surrogate`)."""
-    return load_regressor_surrogate("xgb", **kw)
-
-
-def load_dnn(**kw) -> RegressorSurrogate:
-    """The DNN surrogate (see :func:`load_regressor_surrogate`)."""
-    return load_regressor_surrogate("dnn", **kw)
