@@ -216,6 +216,29 @@ def check_sac_config(cfg: Mapping) -> None:
     _check_adam(cfg)
 
 
+def check_shac_config(cfg: Mapping) -> None:
+    """Check ``recipes/conf/shac.yaml`` (``recipes/shac.py``): the shared keys and SHAC's model (with
+    ``model.dynamics``), horizon, TD(λ) critic and optimisers.
+
+    Raises:
+        ValueError: the first offending key, with the expected range and the value received.
+    """
+    check_protocol_config(cfg)
+    _check_model(cfg)
+    _choice(cfg, "model.dynamics", ("exact", "pinn"))
+    _int(cfg, "loss.horizon")
+    _in_range(cfg, "loss.gamma", 0, 1, True, False)
+    _in_range(cfg, "loss.td_lambda", 0, 1, False, False)
+    _in_range(cfg, "loss.target_tau", 0, 1, True, False)
+    _int(cfg, "loss.critic_epochs")
+    _int(cfg, "loss.critic_batch_size")
+    _in_range(cfg, "optim.actor_lr", 0, math.inf, True, True)
+    _in_range(cfg, "optim.critic_lr", 0, math.inf, True, True)
+    _in_range(cfg, "optim.eps", 0, math.inf, True, True)
+    _in_range(cfg, "optim.weight_decay", 0, math.inf, False, True)
+    _in_range(cfg, "optim.max_grad_norm", 0, math.inf, True, True)
+
+
 def check_evaluate_config(cfg: Mapping) -> None:
     """Check the ranges of ``recipes/conf_evaluate/evaluate.yaml`` (``recipes/evaluate.py``).
 
