@@ -81,6 +81,14 @@ def newton_raphson(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL,
         tol: stopping tolerance on ||F||_inf (p.u.).
         max_iter: iteration cap.
     """
+    x, converged, n_iter, diff = newton_iterates(y_bus, s_bus, tol, max_iter)
+    return PowerFlowResult(v=_voltages(x, s_bus.shape[1]), converged=converged, n_iter=n_iter, mismatch_inf=diff)
+
+
+def newton_iterates(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL, max_iter: int = MAX_ITER
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`newton_raphson`'s iteration: the unknowns ``x`` (N, 2n-2) = [θ_1.., |V|_1..] (rad, p.u.) it stopped
+    at, ``converged`` (N,) bool, ``n_iter`` (N,) long and ``||F||_inf`` (N,) p.u."""
     n_env, n = s_bus.shape
     real = torch.float64 if s_bus.dtype == torch.complex128 else torch.float32
     x = torch.cat([torch.zeros(n_env, n - 1, dtype=real, device=s_bus.device),
@@ -115,4 +123,4 @@ def newton_raphson(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL,
             x[idx[stop]], diff[idx[stop]], n_iter[idx[stop]] = xa[stop], da[stop], it
             idx, xa, va, sia, fa, sa = idx[going], xa[going], va[going], sia[going], fa[going], sa[going]
     converged = ~torch.isnan(diff) & (diff <= tol)
-    return PowerFlowResult(v=_voltages(x, n), converged=converged, n_iter=n_iter, mismatch_inf=diff)
+    return x, converged, n_iter, diff

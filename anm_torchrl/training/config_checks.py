@@ -224,9 +224,9 @@ def check_make_dataset_config(cfg: Mapping) -> None:
     """
     from anm_torchrl.data.registry import available_datasets
     from anm_torchrl.data.storage import check_fractions
-    from anm_torchrl.networks import list_networks
+    from anm_torchrl.networks import check_network_name
 
-    _choice(cfg, "network", tuple(list_networks()))
+    check_network_name(_get(cfg, "network"))
     _choice(cfg, "dataset", tuple(available_datasets()))
     _int(cfg, "size")
     _int(cfg, "seed", low=0)
@@ -243,6 +243,29 @@ def check_make_dataset_config(cfg: Mapping) -> None:
         from anm_torchrl.data.agent import WAYPOINT_DISTS
 
         _choice(cfg, "agent.waypoints", tuple(WAYPOINT_DISTS))
+
+
+def check_shac_config(cfg: Mapping) -> None:
+    """Check ``recipes/conf/shac.yaml`` (``recipes/shac.py``): the shared keys and SHAC's model (with
+    ``model.dynamics``), horizon, TD(λ) critic and optimisers.
+
+    Raises:
+        ValueError: the first offending key, with the expected range and the value received.
+    """
+    check_protocol_config(cfg)
+    _check_model(cfg)
+    _choice(cfg, "model.dynamics", ("exact", "pinn"))
+    _int(cfg, "loss.horizon")
+    _in_range(cfg, "loss.gamma", 0, 1, True, False)
+    _in_range(cfg, "loss.td_lambda", 0, 1, False, False)
+    _in_range(cfg, "loss.target_tau", 0, 1, True, False)
+    _int(cfg, "loss.critic_epochs")
+    _int(cfg, "loss.critic_batch_size")
+    _in_range(cfg, "optim.actor_lr", 0, math.inf, True, True)
+    _in_range(cfg, "optim.critic_lr", 0, math.inf, True, True)
+    _in_range(cfg, "optim.eps", 0, math.inf, True, True)
+    _in_range(cfg, "optim.weight_decay", 0, math.inf, False, True)
+    _in_range(cfg, "optim.max_grad_norm", 0, math.inf, True, True)
 
 
 def check_evaluate_config(cfg: Mapping) -> None:

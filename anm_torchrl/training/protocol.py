@@ -231,7 +231,12 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a train
         interrupted = True
         log.warning("test evaluation interrupted (Ctrl-C): summary.json has no test figures")
 
-    summary = {"algorithm": algorithm_cls.name, "best_eval": best, "final_eval": last_eval, "frames": frames,
+    # the budget counts training-env frames; an algorithm that trains on a model (SHAC) counts model transitions
+    # instead (budget_unit) and reports the true-env frames it used for training (env_frames) as "frames"
+    unit = getattr(algorithm_cls, "budget_unit", "frames")
+    unit_keys = {} if unit == "frames" else {"budget_unit": unit, unit: frames}
+    summary = {"algorithm": algorithm_cls.name, "best_eval": best, "final_eval": last_eval,
+               "frames": frames if unit == "frames" else int(getattr(algo, "env_frames", 0)), **unit_keys,
                "updates": update, "stopped_early": stopped_early, "out_of_time": out_of_time,
                "interrupted": interrupted, "wall_time": wall_before + time.perf_counter() - t_start,
                "run_dir": str(run_dir),

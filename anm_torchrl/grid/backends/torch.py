@@ -16,10 +16,12 @@ from anm_torchrl.grid.reward import clipped_reward, curtailment, energy_loss, pe
 from anm_torchrl.grid.transition import Transition
 
 
-def transition(sim, soc: torch.Tensor, p_load: torch.Tensor, p_pot: torch.Tensor, setpoints: torch.Tensor
-               ) -> Transition:
+def transition(sim, soc: torch.Tensor, p_load: torch.Tensor, p_pot: torch.Tensor, setpoints: torch.Tensor,
+               power_flow=newton_raphson) -> Transition:
     """One batched transition of ``sim`` (a :class:`~anm_torchrl.grid.simulator.GridSimulator`): the arguments of
-    :meth:`~anm_torchrl.grid.simulator.GridSimulator.apply` (p.u.)."""
+    :meth:`~anm_torchrl.grid.simulator.GridSimulator.apply` (p.u.). ``power_flow(y_bus, s_bus)`` returns a
+    :class:`~anm_torchrl.grid.powerflow.PowerFlowResult` (:mod:`anm_torchrl.grid.implicit` gives a differentiable
+    one)."""
     net, ng, nd = sim.net, sim.n_gen, sim.n_des
     n_env = setpoints.shape[0]
     p_dev = setpoints.new_zeros(n_env, net.n_dev)
@@ -35,10 +37,11 @@ def transition(sim, soc: torch.Tensor, p_load: torch.Tensor, p_pot: torch.Tensor
     des = sim.project_storage(des_target, soc)
     p_dev[:, sim.des_idx], q_dev[:, sim.des_idx] = des[..., 0], des[..., 1]
     soc_next = sim.soc_update(soc, des[..., 0])
-    return solve(sim, p_dev, q_dev, p_pot, soc_next)
+    return solve(sim, p_dev, q_dev, p_pot, soc_next, power_flow)
 
 
-def solve(sim, p_dev: torch.Tensor, q_dev: torch.Tensor, p_pot: torch.Tensor, soc: torch.Tensor) -> Transition:
+def solve(sim, p_dev: torch.Tensor, q_dev: torch.Tensor, p_pot: torch.Tensor, soc: torch.Tensor,
+          power_flow=newton_raphson) -> Transition:
     """Power flow, slack injection, branch flows and reward for device injections (N, n_dev) p.u. (written in
     place: the slack's entries), clipped potentials (N, n_gen) p.u. and SoC (N, n_des) p.u.·h."""
     net, slack = sim.net, sim.slack_ids[0]
@@ -46,7 +49,7 @@ def solve(sim, p_dev: torch.Tensor, q_dev: torch.Tensor, p_pot: torch.Tensor, so
     p_dev[:, slack] = 0.0
     q_dev[:, slack] = 0.0
     s_bus = torch.complex(p_dev @ net.incidence, q_dev @ net.incidence)
-    pf = newton_raphson(net.y_bus, s_bus)
+    pf = power_flow(net.y_bus, s_bus)
     # 5. slack injection and branch flows from the (possibly non-converged) voltages.
     s_slack = power_injection(pf.v, net.y_bus)[:, 0]
     inf = torch.full_like(s_slack.real, float("inf"))

@@ -28,6 +28,8 @@ class AlgorithmEntry:
 ALGORITHMS = {
     "ppo": AlgorithmEntry("anm_torchrl.training.algorithms.ppo:PPO", "anm_torchrl.training.config_checks:check_ppo_config"),
     "sac": AlgorithmEntry("anm_torchrl.training.algorithms.sac:SAC", "anm_torchrl.training.config_checks:check_sac_config"),
+    "shac": AlgorithmEntry("anm_torchrl.training.algorithms.shac:SHAC",
+                           "anm_torchrl.training.config_checks:check_shac_config"),
 }
 
 

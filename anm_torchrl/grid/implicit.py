@@ -1,0 +1,57 @@
+"""The AC power flow as a differentiable function of the bus injections, by the implicit function theorem.
+
+At a converged solution ``F(x, s) = 0`` (``F`` = [Re, Im] of the non-slack mismatch, ``x`` = [θ_1.., |V|_1..])
+with ``∂F/∂s = -I``, so ``dx/ds = J⁻¹`` for the polar Jacobian ``J = ∂F/∂x`` at the solution. The forward runs
+:func:`~anm_torchrl.grid.powerflow.newton_iterates` under ``no_grad`` (the same numbers as
+:func:`~anm_torchrl.grid.powerflow.newton_raphson`); the backward is one batched linear solve with ``Jᵀ`` — the
+Newton iterations are never backpropagated. Rows that did not converge get a zero gradient.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from anm_torchrl.grid.powerflow import MAX_ITER, TOL, PowerFlowResult, _jacobian, _voltages, newton_iterates
+from anm_torchrl.grid.residuals import power_injection
+
+
+class ImplicitPowerFlow(torch.autograd.Function):
+    """``x, converged, n_iter, mismatch_inf = ImplicitPowerFlow.apply(p_bus, q_bus, y_bus, tol, max_iter)``.
+
+    p_bus, q_bus: (N, n_bus) real injections p.u. (entry 0, the slack's, is ignored and gets a zero gradient);
+    x: (N, 2n-2) [θ rad, |V| p.u.] of the non-slack buses; the rest as :func:`newton_iterates` (not differentiable).
+    """
+
+    @staticmethod
+    def forward(ctx, p_bus, q_bus, y_bus, tol, max_iter):
+        with torch.no_grad():
+            s_bus = torch.complex(p_bus, q_bus)
+            x, converged, n_iter, diff = newton_iterates(y_bus, s_bus, tol, max_iter)
+            v = _voltages(x, s_bus.shape[1])
+            jac = _jacobian(v, power_injection(v, y_bus), y_bus[1:, 1:].conj())
+        ctx.save_for_backward(jac, converged)
+        ctx.mark_non_differentiable(converged, n_iter, diff)
+        return x, converged, n_iter, diff
+
+    @staticmethod
+    def backward(ctx, grad_x, *_):
+        jac, converged = ctx.saved_tensors
+        k = jac.shape[-1] // 2
+        # dL/ds = J⁻ᵀ dL/dx (F = S_inj(x) - s, so ∂x/∂s = J⁻¹); non-converged or singular rows: 0
+        ok = converged & torch.isfinite(grad_x).all(-1) & torch.isfinite(jac).flatten(1).all(-1)
+        safe_jac = torch.where(ok[:, None, None], jac, torch.eye(2 * k, dtype=jac.dtype, device=jac.device))
+        lam, info = torch.linalg.solve_ex(safe_jac.transpose(-1, -2), torch.where(ok[:, None], grad_x, 0.0)
+                                          .unsqueeze(-1))
+        lam = torch.where((ok & (info == 0))[:, None], lam.squeeze(-1), 0.0)
+        zero = lam.new_zeros(lam.shape[0], 1)
+        grad_p = torch.cat([zero, lam[:, :k]], 1)
+        grad_q = torch.cat([zero, lam[:, k:]], 1)
+        return grad_p, grad_q, None, None, None
+
+
+def implicit_power_flow(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL, max_iter: int = MAX_ITER
+                        ) -> PowerFlowResult:
+    """:func:`~anm_torchrl.grid.powerflow.newton_raphson` (same forward numbers) whose voltages ``v`` (N, n_bus)
+    complex are differentiable w.r.t. ``s_bus`` (N, n_bus) complex p.u. (through its real and imaginary parts)."""
+    x, converged, n_iter, diff = ImplicitPowerFlow.apply(s_bus.real, s_bus.imag, y_bus, tol, max_iter)
+    return PowerFlowResult(v=_voltages(x, s_bus.shape[1]), converged=converged, n_iter=n_iter, mismatch_inf=diff)

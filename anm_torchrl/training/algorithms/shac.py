@@ -1,0 +1,233 @@
+"""SHAC (short-horizon actor-critic, Xu et al., ICLR 2022) behind the training protocol: the actor is trained by
+backpropagating the return of ``loss.horizon``-step rollouts through a differentiable model of the grid, with a
+learned value for the tail; the critic regresses TD(λ) targets of the same rollouts.
+
+Model (``model.dynamics``): ``exact`` — the true transition with its gradients
+(:mod:`anm_torchrl.grid.differentiable`: implicit power-flow gradients, active-constraint projections), float64;
+``pinn`` — the PINN surrogate chain (:func:`anm_torchrl.surrogates.pinn.chain.load_pinn`, its cached model only).
+A terminal step (the power flow does not converge / the chain says collapse) takes gym-anm's terminal reward, ends
+the gradient path of its row, and the row restarts from a fresh initial state of the true env's reset
+distribution (resets are not transitions: no true-env frames).
+
+Budget: ``collector.total_frames`` counts **model** transitions (``budget_unit = "model_frames"``); the summary
+reports them as ``model_frames`` and ``frames`` = true-env transitions used for training (0; the protocol's
+evaluation episodes aside). One iteration = ``env.num_envs`` x ``loss.horizon`` model frames.
+
+Config groups it reads (``recipes/conf/shac.yaml``): ``model`` (PPO's actor/critic family + ``dynamics``), ``env``
+(batch, time limit), ``loss`` (γ, λ, horizon, critic epochs), ``optim``. Logged: ``train/{reward, loss_actor,
+loss_critic, value, terminated, grad_norm, critic_grad_norm, action_scale, model_frames}`` and ``time/{rollout,
+update, fps}``.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDict
+
+from anm_torchrl.training.algorithms.base import Algorithm
+from anm_torchrl.training.algorithms.ppo import model_options
+
+DYNAMICS = ("exact", "pinn")
+
+
+def actor_options(config) -> dict:
+    """``model_options`` without SHAC's ``dynamics`` key (the keyword arguments of ``make_ppo_models``)."""
+    return {k: v for k, v in model_options(config).items() if k != "dynamics"}
+
+
+class ExactModel:
+    """The true transition with gradients: ``(state (N, D) float64, action (N, A) MW) -> (next state (N, D),
+    reward (N,), terminated (N,) bool, observation (N, n_obs) float32)``."""
+
+    def __init__(self, env):
+        from anm_torchrl.grid import differentiable
+
+        self.sim, self.obs_map, self._step = env.sim, env.obs_map, differentiable.step
+
+    def __call__(self, state, action):
+        nxt, tr = self._step(self.sim, state, action.to(state.dtype))
+        term = ~tr.converged
+        return nxt, tr.reward, term, self.obs_map.observe(nxt, tr.v, term)
+
+
+class PINNModel:
+    """The PINN chain as a model (same call as :class:`ExactModel`); its observation must come from the state."""
+
+    def __init__(self, env, cfg):
+        from anm_torchrl.surrogates.pinn.chain import load_pinn
+
+        surrogate = cfg.get("surrogate", {})
+        path = surrogate.get("path") if surrogate.get("name") == "pinn" else None
+        self.chain = load_pinn(env.sim, path=path, train_if_missing=False, progress=False)
+        for p in self.chain.parameters():
+            p.requires_grad_(False)
+        self.obs_map = env.obs_map
+        if self.obs_map.needs_grid:
+            raise ValueError("model.dynamics=pinn needs an observation computed from the state alone")
+
+    def __call__(self, state, action):
+        td = self.chain(TensorDict({"state": state, "action": action.to(state.dtype)}, [state.shape[0]]))
+        term = td["terminated"].reshape(-1)
+        nxt = td["next_state"]
+        return nxt, td["reward"].reshape(-1), term, self.obs_map.observe(nxt, None, term)
+
+
+class SHAC(Algorithm):
+    """Short-horizon actor-critic through a differentiable grid model (see the module docstring)."""
+
+    name = "shac"
+    budget_unit = "model_frames"
+    architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip")
+
+    def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
+                 resume: Mapping[str, Any] | None):
+        from anm_torchrl.training.factory import make_true_env
+        from anm_torchrl.training.models import make_ppo_models
+
+        self.cfg, self.device, self.reward_scale = cfg, device, float(reward_scale)
+        self.env = make_true_env(int(cfg.env.num_envs), device, seed=seed, init=cfg.env.init, network=cfg.network,
+                                 action_mode="clip")
+        self.actor, self.critic, self.normalizer = make_ppo_models(
+            self.env, obs_stats=resume["obs_norm"] if resume else None, **actor_options(cfg))
+        self.actor, self.critic = self.actor.to(device), self.critic.to(device)
+        dyn = str(cfg.model.dynamics)
+        self.model = ExactModel(self.env) if dyn == "exact" else PINNModel(self.env, cfg)
+        adam = dict(eps=float(cfg.optim.eps), weight_decay=float(cfg.optim.weight_decay), betas=(0.7, 0.95))
+        self.actor_optim = torch.optim.Adam(self.actor.parameters(), lr=float(cfg.optim.actor_lr), **adam)
+        self.critic_optim = torch.optim.Adam(self.critic.parameters(), lr=float(cfg.optim.critic_lr), **adam)
+        if resume:
+            self.actor.load_state_dict(resume["actor"])
+            self.critic.load_state_dict(resume["state"]["critic"])
+            self.actor_optim.load_state_dict(resume["state"]["actor_optimizer"])
+            self.critic_optim.load_state_dict(resume["state"]["critic_optimizer"])
+        self.target_critic = copy.deepcopy(self.critic)
+        if resume and "target_critic" in resume["state"]:
+            self.target_critic.load_state_dict(resume["state"]["target_critic"])
+        for p in self.target_critic.parameters():
+            p.requires_grad_(False)
+        self.model_frames = int(resume["frames"]) if resume else 0
+        self.env_frames = 0  # true-env transitions used for training: none (SHAC trains on the model)
+        self.max_steps = None if cfg.env.max_steps is None else int(cfg.env.max_steps)
+        td = self.env.reset()
+        self.state, self.obs = td["state"].to(torch.float64), td["observation"].float()
+        self.steps = torch.zeros(self.state.shape[0], dtype=torch.long, device=self.state.device)
+
+    def _value(self, net, obs: torch.Tensor) -> torch.Tensor:
+        return net.module(obs).squeeze(-1)
+
+    def _fresh(self, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Fresh initial (state, observation) for the ``rows`` (n,) long, from the true env's reset distribution."""
+        td = self.env.reset()
+        return td["state"][: rows.numel()].to(torch.float64), td["observation"][: rows.numel()].float()
+
+    def iterate(self, remaining: int) -> tuple[int, dict[str, float]]:
+        cfg = self.cfg
+        n = self.state.shape[0]
+        horizon = max(1, min(int(cfg.loss.horizon), -(-remaining // n)))
+        gamma, lam = float(cfg.loss.gamma), float(cfg.loss.td_lambda)
+        t0 = time.perf_counter()
+        state, obs, steps = self.state, self.obs, self.steps
+        ret = torch.zeros(n, device=state.device)
+        disc = torch.ones(n, device=state.device)
+        loss = torch.zeros((), device=state.device)
+        buf_obs, buf_rew, buf_next, buf_term, buf_end = [], [], [], [], []
+        n_term, rewards, scales = 0, [], []
+        for t in range(horizon):
+            td = TensorDict({"observation": obs}, [n])
+            dist = self.actor.get_dist(td)  # writes "loc" and "scale" into td
+            action = dist.rsample()
+            nxt, reward, term, next_obs = self.model(state, action)
+            r = (reward * self.reward_scale).float()
+            r = torch.where(term, r.detach(), r)  # the terminal reward is a constant
+            ret = ret + disc * r
+            steps = steps + 1
+            trunc = (steps >= self.max_steps) if self.max_steps is not None else torch.zeros_like(term)
+            last = t == horizon - 1
+            boot = (trunc | last) & ~term  # bootstrap with the value at the cut
+            if bool(boot.any()):
+                v_next = self._value(self.target_critic, next_obs)
+                ret = ret + torch.where(boot, disc * gamma * v_next, 0.0)
+            end = term | trunc | last
+            loss = loss - torch.where(end, ret, 0.0).sum()
+            buf_obs.append(obs.detach()); buf_rew.append(r.detach()); buf_next.append(next_obs.detach())
+            buf_term.append(term); buf_end.append(term | trunc)
+            n_term += int(term.sum()); rewards.append(reward.detach()); scales.append(td.get("scale").detach())
+            ret = torch.where(end, 0.0, ret)
+            disc = torch.where(end, 1.0, disc * gamma)
+            reset = term | trunc
+            if bool(reset.any()):
+                rows = reset.nonzero().squeeze(1)
+                fresh_s, fresh_o = self._fresh(rows)
+                nxt = nxt.clone(); next_obs = next_obs.clone()
+                nxt[rows], next_obs[rows] = fresh_s, fresh_o
+                steps = torch.where(reset, 0, steps)
+            state, obs = nxt, next_obs
+        actor_loss = loss / (horizon * n)
+        self.actor_optim.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.actor.parameters(), float(cfg.optim.max_grad_norm))
+        if torch.isfinite(grad_norm):
+            self.actor_optim.step()
+        t_rollout = time.perf_counter() - t0
+        self.state, self.obs, self.steps = state.detach(), obs.detach(), steps
+
+        # critic: TD(λ) targets from the target critic, backwards over the rollout
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            obs_t, next_t = torch.stack(buf_obs), torch.stack(buf_next)
+            rew_t, term_t, end_t = torch.stack(buf_rew), torch.stack(buf_term), torch.stack(buf_end)
+            v_next = self._value(self.target_critic, next_t)
+            target = torch.zeros_like(rew_t)
+            g = v_next[-1]
+            for t in reversed(range(horizon)):
+                if t == horizon - 1:
+                    g = rew_t[t] + gamma * torch.where(term_t[t], 0.0, v_next[t])
+                else:
+                    mixed = (1 - lam) * v_next[t] + lam * g
+                    g = rew_t[t] + gamma * torch.where(term_t[t], 0.0, torch.where(end_t[t], v_next[t], mixed))
+                target[t] = g
+        flat_obs, flat_target = obs_t.reshape(-1, obs_t.shape[-1]), target.reshape(-1)
+        mini = min(int(cfg.loss.critic_batch_size), flat_obs.shape[0])
+        critic_losses, critic_norms = [], []
+        for _ in range(int(cfg.loss.critic_epochs)):
+            perm = torch.randperm(flat_obs.shape[0], device=flat_obs.device)
+            for start in range(0, flat_obs.shape[0], mini):
+                idx = perm[start:start + mini]
+                c_loss = ((self._value(self.critic, flat_obs[idx]) - flat_target[idx]) ** 2).mean()
+                self.critic_optim.zero_grad(set_to_none=True)
+                c_loss.backward()
+                critic_norms.append(torch.nn.utils.clip_grad_norm_(self.critic.parameters(),
+                                                                   float(cfg.optim.max_grad_norm)))
+                self.critic_optim.step()
+                critic_losses.append(c_loss.detach())
+        with torch.no_grad():
+            tau = float(cfg.loss.target_tau)
+            for p_t, p in zip(self.target_critic.parameters(), self.critic.parameters()):
+                p_t.lerp_(p, tau)
+        t_update = time.perf_counter() - t0
+        frames = horizon * n
+        self.model_frames += frames
+        metrics = {"train/reward": torch.stack(rewards).mean(), "train/loss_actor": actor_loss.detach(),
+                   "train/loss_critic": torch.stack(critic_losses).mean(), "train/value": flat_target.mean(),
+                   "train/terminated": n_term / frames, "train/grad_norm": grad_norm.detach(),
+                   "train/critic_grad_norm": torch.stack(critic_norms).mean(),
+                   "train/action_scale": torch.stack(scales).mean(), "train/model_frames": self.model_frames,
+                   "time/rollout": t_rollout, "time/update": t_update,
+                   "time/fps": frames / max(t_rollout + t_update, 1e-9)}
+        return frames, metrics
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"critic": self.critic.state_dict(), "target_critic": self.target_critic.state_dict(),
+                "actor_optimizer": self.actor_optim.state_dict(), "critic_optimizer": self.critic_optim.state_dict()}
+
+    @staticmethod
+    def build_actor(env, config: Mapping[str, Any], obs_stats: Mapping[str, Any]):
+        from anm_torchrl.training.models import make_ppo_models
+
+        return make_ppo_models(env, obs_stats=obs_stats, **actor_options(config))[0]

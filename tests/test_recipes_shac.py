@@ -1,0 +1,59 @@
+"""Smoke test of recipes/shac.py (model=exact) through the shared training protocol, tiny budget: the run
+directory PPO's runs have, the model-frame budget (true-env training frames 0), finite losses under their tags,
+evaluate.py loading the checkpoint, and SHAC's config errors naming the key."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from tests.test_recipes_ppo import EVAL_KEYS, ROOT, run, scalars
+
+SHAC = ROOT / "recipes" / "shac.py"
+TINY_SHAC = ["env.num_envs=4", "loss.horizon=8", "collector.total_frames=64", "eval.interval=1", "eval.max_steps=10",
+             "eval.num_episodes=2", "eval.test_episodes=2", "model.actor_cells=[16]", "model.critic_cells=[16]",
+             "loss.critic_epochs=2", "loss.critic_batch_size=16", "logger.interval=1", "logger.progress=false"]
+
+
+@pytest.fixture(scope="module")
+def shac_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("shac") / "run"
+    run(SHAC, "model=exact", *TINY_SHAC, f"hydra.run.dir={run_dir}", cwd=run_dir.parent)
+    return run_dir
+
+
+def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
+    from anm_torchrl.training.checkpoint import load_checkpoint
+
+    summary = json.loads((shac_run / "summary.json").read_text())
+    assert summary["algorithm"] == "shac" and summary["updates"] == 2  # 2 x (4 envs x 8 steps)
+    assert summary["budget_unit"] == "model_frames" and summary["model_frames"] == 64 and summary["frames"] == 0
+    assert set(EVAL_KEYS) <= set(summary["best_eval"]) and not summary["interrupted"]
+    assert all(math.isfinite(summary["test"][c]["discounted_return"]) for c in ("best", "last"))
+    last = load_checkpoint(shac_run / "checkpoints" / "last.pt")
+    assert last["algorithm"] == "shac" and {"critic", "target_critic", "actor_optimizer"} <= set(last["state"])
+    tags = scalars(shac_run)
+    for tag in ("train/loss_actor", "train/loss_critic", "train/grad_norm", "train/reward", "train/model_frames",
+                "eval/discounted_return", "test/best/discounted_return", "time/fps"):
+        assert tag in tags, tag
+        assert all(math.isfinite(v) for _, v in tags[tag]), (tag, tags[tag])
+    out = evaluate_recipe.main([f"checkpoint={shac_run / 'checkpoints' / 'best.pt'}", "steps=5", "episodes=2"])
+    assert out["policy"] == "shac" and out["episodes"] == 2 and math.isfinite(out["discounted_return"])
+
+
+@pytest.mark.parametrize("override, message", [
+    ("loss.horizon=0", "loss.horizon must be an integer >= 1, got 0"),
+    ("model.dynamics=mlp", "model.dynamics must be one of exact, pinn; got 'mlp'"),
+])
+def test_shac_config_errors_name_the_key(override, message):
+    from hydra import compose, initialize_config_dir
+
+    from anm_torchrl.training.algorithms import check_algorithm_config
+
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
+        cfg = compose(config_name="shac", overrides=[*TINY_SHAC, override])
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        check_algorithm_config(cfg)
