@@ -397,3 +397,15 @@ def test_split_fractions_are_never_renormalised(fractions):
     with pytest.raises(ValueError, match="fractions must be three non-negative numbers .* summing to 1"):
         split_codes(10, fractions)
     assert split_codes(10, [0.8, 0.1, 0.1]).bincount().tolist() == [8, 1, 1]
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"num_envs": 2.7}, "num_envs must be an integer >= 1, got 2.7"),
+    ({"num_envs": 0}, "num_envs must be an integer >= 1, got 0"),
+    ({"seed": "abc"}, "seed must be an integer, got 'abc'")])
+def test_env_constructor_arguments_checked(kwargs, message):
+    """Extra: the env itself (not only make_env) refuses a fractional num_envs and a non-integer seed."""
+    from anm_torchrl.envs import ANM6Env
+
+    with pytest.raises(ValueError, match=message):
+        ANM6Env(**kwargs)

@@ -10,7 +10,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from anm_torchrl.envs.observation import ObservationMap
-from anm_torchrl.envs.specs import GRID_KEYS, ActionBox, check_action, make_specs
+from anm_torchrl.envs.specs import GRID_KEYS, ActionBox, check_action, check_integer, make_specs
 from anm_torchrl.grid import reset as grid_reset
 from anm_torchrl.grid.identity import transition_key
 from anm_torchrl.grid.simulator import GridSimulator, Transition
@@ -74,9 +74,8 @@ class ANMEnv(EnvBase):
             raise ValueError(f"action_mode must be 'raise' or 'clip', got {action_mode!r}")
         if not callable(init) and init not in INITS:
             raise ValueError(f"init must be one of {INITS} or a callable, got {init!r}")
-        if int(num_envs) < 1:
-            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        super().__init__(batch_size=torch.Size([int(num_envs)]), device=device, allow_done_after_reset=True)
+        num_envs = check_integer("num_envs", num_envs, low=1)  # 2.7 is an error, not 2 envs
+        super().__init__(batch_size=torch.Size([num_envs]), device=device, allow_done_after_reset=True)
         if sim is None:
             if network is None or load_p is None or gen_p_max is None:
                 raise ValueError("ANMEnv needs network=, load_p= and gen_p_max=, or a ready sim=")
@@ -103,7 +102,7 @@ class ANMEnv(EnvBase):
         if seed is None:
             self.rng.seed()
         else:
-            self.rng.manual_seed(int(seed))
+            self.rng.manual_seed(check_integer("seed", seed))
 
     # ------------------------------------------------------------------------------------------------------
     def _output(self, state: torch.Tensor, tr: Transition) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:

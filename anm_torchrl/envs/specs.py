@@ -24,6 +24,7 @@ Surrogates that cannot predict a ``grid`` quantity report NaN for it.
 from __future__ import annotations
 
 import dataclasses
+import operator
 
 import numpy as np
 import torch
@@ -169,3 +170,17 @@ def _f32_outward(bound: torch.Tensor, direction: int) -> torch.Tensor:
     return b32.to(torch.float64)
 
 
+def check_integer(name: str, value, low: int | None = None, optional: bool = False) -> int | None:
+    """``value`` as an int if it is one (Python or NumPy integer, not bool), else a ``ValueError`` naming ``name``."""
+    if value is None and optional:
+        return None
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        out = operator.index(value)
+    except TypeError:
+        out = None
+    if out is None or (low is not None and out < low):
+        expected = "an integer" + (f" >= {low}" if low is not None else "") + (" or None" if optional else "")
+        raise ValueError(f"{name} must be {expected}, got {value!r}") from None
+    return out

@@ -9,6 +9,7 @@ from torchrl.envs import DoubleToFloat, EnvBase, SerialEnv, StepCounter, Transfo
 from anm_torchrl._extras import require
 from anm_torchrl.console import plain_torchrl_console
 from anm_torchrl.envs import ANM6Env, ANMEnv, SurrogateEnv
+from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.paths import artifact_home
@@ -99,24 +100,6 @@ def make_true_env(num_envs: int = 1, device="cpu", seed: int | None = None, acti
                   init=init or "uniform")
 
 
-def _integer(name: str, value, low: int | None = None, optional: bool = False) -> int | None:
-    """``value`` as an int if it is one (Python or NumPy integer, not bool), else a ``ValueError`` naming ``name``."""
-    import operator
-
-    if value is None and optional:
-        return None
-    try:
-        if isinstance(value, bool):
-            raise TypeError
-        out = operator.index(value)
-    except TypeError:
-        out = None
-    if out is None or (low is not None and out < low):
-        expected = "an integer" + (f" >= {low}" if low is not None else "") + (" or None" if optional else "")
-        raise ValueError(f"{name} must be {expected}, got {value!r}") from None
-    return out
-
-
 def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None = None, device="cpu",
              seed: int | None = None, action_mode: str = "raise", init: str | None = None,
              network: str | dict | None = None, load_p=None, gen_p_max=None, **surrogate_kwargs) -> EnvBase:
@@ -140,9 +123,9 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
         load_p, gen_p_max: (T, n_load), (T, n_gen) MW profiles (see :func:`network_arguments`).
         **surrogate_kwargs: passed to the surrogate's loader (e.g. ``dataset="agent"``, ``path=...``).
     """
-    num_envs = _integer("num_envs", num_envs, low=1)  # 2.7 is an error, not 2 envs
-    max_steps = _integer("max_steps", max_steps, low=1, optional=True)
-    seed = _integer("seed", seed, optional=True)
+    num_envs = check_integer("num_envs", num_envs, low=1)  # 2.7 is an error, not 2 envs
+    max_steps = check_integer("max_steps", max_steps, low=1, optional=True)
+    seed = check_integer("seed", seed, optional=True)
     if surrogate in (None, "none", "gym_anm") and surrogate_kwargs:
         raise ValueError(f"surrogate={surrogate!r} takes no surrogate options, got {sorted(surrogate_kwargs)}")
     if surrogate in (None, "none"):
