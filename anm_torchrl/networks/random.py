@@ -84,29 +84,37 @@ def small_random_network(rng: np.random.Generator) -> tuple[dict, np.ndarray, np
     return net, -rng.uniform(0, 10, (12, n_load)), rng.uniform(0, 25, (12, n_gen))
 
 
-def stiff_transformer_network() -> tuple[dict, np.ndarray, np.ndarray]:
+def stiff_transformer_network(scale: float = 3.0) -> tuple[dict, np.ndarray, np.ndarray]:
     """Issue 23's 9-bus network: 132/33 kV transformer (tap 1.03, X = 0.55 p.u., R = 0.01 p.u. on 100 MVA) feeding
-    two 33 kV feeders; 4 loads (12 MW peak in all), a classical generator without capability corners (8 MW),
-    a PV plant and two storage units (SOC_MIN > 0) at the feeders' ends. Profiles T = 96 (MW)."""
+    two 33 kV feeders; 4 loads (12·``scale`` MW peak in all), a classical generator without capability corners
+    (8·``scale`` MW), a PV plant (6 MW, corners) and two storage units (SOC_MIN > 0) at the feeders' ends.
+
+    At the default ``scale`` (36 MW of peak load through the transformer; do-nothing |V| ≥ 0.84 p.u.) the
+    flat-start chord refinement (rule v1) meets no k ≤ 8 while damped Newton (v2) meets k ≤ 4, from the same
+    untrained power-balance network (``tests/test_pinn_refine.py``).
+
+    Returns the dict as given to ``make_env`` (NaN: missing), ``load_p`` (96, 4) and ``gen_p_max`` (96, 2) MW.
+    """
+    c = float(scale)
     bus = [[0, 0, 132, 1.04, 1.04]] + [[i, 1, 33, 1.1, 0.9] for i in range(1, 9)]
     z = 33.0 ** 2 / 100.0  # ohm base at 33 kV, 100 MVA
-    line = lambda f, t, km: [f, t, 0.3 * km / z, 0.35 * km / z, 0.0, 20.0, N_, N_]  # noqa: E731
-    branch = [[0, 1, 0.01, 0.55, 0.0, 40.0, 1.03, 0.0],
+    line = lambda f, t, km: [f, t, 0.3 * km / z, 0.35 * km / z, 0.0, 20.0 * c, N_, N_]  # noqa: E731
+    branch = [[0, 1, 0.01, 0.55, 0.0, 40.0 * c, 1.03, 0.0],
               line(1, 2, 4), line(2, 3, 3), line(3, 4, 5), line(4, 5, 4),  # feeder A: 1-2-3-4-5
               line(1, 6, 5), line(6, 7, 4), line(7, 8, 6)]  # feeder B: 1-6-7-8
+    peaks = c * np.array([4, 3, 3, 2.0])
     dev = [[0, 0, 0, N_, N_, N_, N_, N_, N_, N_, N_, N_, N_, N_, N_],
-           [1, 3, -1, 0.3, 0, -4, *[N_] * 9], [2, 4, -1, 0.25, 0, -3, *[N_] * 9],
-           [3, 6, -1, 0.3, 0, -3, *[N_] * 9], [4, 7, -1, 0.2, 0, -2, *[N_] * 9],
-           [5, 2, 1, N_, 8, 0, 5, -5, *[N_] * 7],  # classical generator, no corners
+           *[[1 + i, b, -1, qp, 0, -pk, *[N_] * 9] for i, (b, qp, pk) in enumerate(zip((3, 4, 6, 7),
+                                                                                    (0.3, 0.25, 0.3, 0.2), peaks))],
+           [5, 2, 1, N_, 8 * c, 0, 5 * c, -5 * c, *[N_] * 7],  # classical generator, no corners
            [6, 8, 2, N_, 6, 0, 3, -3, 4.5, N_, 1.5, -1.5, N_, N_, N_],  # PV with corners
-           [7, 5, 3, N_, 3, -3, 2, -2, *[N_] * 4, 10, 1.0, 0.9],  # storage at feeder A's end
-           [8, 8, 3, N_, 2, -2, 1.5, -1.5, *[N_] * 4, 6, 0.6, 0.92]]  # storage at feeder B's end
-    net = validate_network({"baseMVA": 100, "bus": bus, "device": dev, "branch": branch})
+           [7, 5, 3, N_, 3 * c, -3 * c, 2 * c, -2 * c, *[N_] * 4, 10 * c, 1.0 * c, 0.9],  # storage, feeder A's end
+           [8, 8, 3, N_, 2 * c, -2 * c, 1.5 * c, -1.5 * c, *[N_] * 4, 6 * c, 0.6 * c, 0.92]]  # feeder B's end
+    net = {"baseMVA": 100, "bus": bus, "device": dev, "branch": branch}
+    validate_network(net)
     t = np.arange(T_DAY) * 0.25
-    shape = _residential(t)
-    peaks = np.array([4, 3, 3, 2.0])
-    load_p = -shape[:, None] * peaks
-    gen_p_max = np.stack([np.full(T_DAY, 8.0), 6.0 * _pv(t, np.ones(T_DAY))], 1)
+    load_p = -_residential(t)[:, None] * peaks
+    gen_p_max = np.stack([np.full(T_DAY, 8.0 * c), 6.0 * _pv(t, np.ones(T_DAY))], 1)
     return net, load_p, gen_p_max
 
 
