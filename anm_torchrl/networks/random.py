@@ -188,7 +188,9 @@ def _draw(rng: np.random.Generator, n_bus: int, meshed: bool) -> tuple[dict, np.
     if meshed:  # tie lines between buses of the same voltage level that are not already neighbours
         pairs = {frozenset(b[:2]) for b in branch}
         lv = np.arange(2, 1 + n33) if n33 > 3 else np.arange(1, 1 + n33)
-        for _ in range(int(rng.integers(1, 4))):
+        n_ties, tries = int(rng.integers(1, 4)), 0
+        while tries < n_ties or (len(pairs) == n_bus - 1 and tries < 50):  # a tree has n_bus - 1 branches
+            tries += 1  # n_ties draws; more only while none closed a loop
             a, b = (int(v) for v in rng.choice(lv, 2, replace=False))
             if frozenset((a, b)) not in pairs:
                 pairs.add(frozenset((a, b)))
