@@ -12,8 +12,7 @@ classical generators their PMAX.
 A draw is kept only when it passes :func:`.validation.validate_network` and the exact Newton–Raphson converges
 (1e-5 p.u.) on (a) the do-nothing operating point of every profile row, with every |V| in [0.85, 1.15] p.u.,
 and (b) the four extreme corners of the devices' injection box (every bus at its lowest / highest P with its
-lowest / highest Q: the box a PINN is trained on, :func:`anm_torchrl.surrogates.pinn.power_balance.
-bus_injection_box`); otherwise the next sub-draw of the same seed is tried (``attempt`` in the metadata), so
+lowest / highest Q: the box a PINN is trained on, :func:`anm_torchrl.grid.devices.bus_injection_box`); otherwise the next sub-draw of the same seed is tried (``attempt`` in the metadata), so
 a seed always gives the same network.
 
 :func:`small_random_network` is the backend tests' generator (4–14 buses, 100 MVA; the draws those tests
@@ -261,7 +260,7 @@ def check_power_flow(net: dict, load_p: np.ndarray, gen_p_max: np.ndarray,
     from anm_torchrl.grid.powerflow import newton_raphson
     from anm_torchrl.networks.pf_check import do_nothing_injections
     from anm_torchrl.networks.resolve import simulator
-    from anm_torchrl.surrogates.pinn.power_balance import bus_injection_box
+    from anm_torchrl.grid.devices import bus_injection_box
 
     sim = simulator(net, load_p, gen_p_max)
     net = validate_network(net)
@@ -276,7 +275,7 @@ def check_power_flow(net: dict, load_p: np.ndarray, gen_p_max: np.ndarray,
     vm = pf.v.abs()
     if float(vm.min()) < v_range[0] or float(vm.max()) > v_range[1]:
         return f"do-nothing |V| in [{float(vm.min()):.3f}, {float(vm.max()):.3f}] p.u., outside {v_range}"
-    p_lo, p_hi, q_lo, q_hi = bus_injection_box(sim)
+    p_lo, p_hi, q_lo, q_hi = bus_injection_box(sim.net)
     corners = torch.stack([torch.complex(a, b) for a in (p_lo, p_hi) for b in (q_lo, q_hi)])
     pf = newton_raphson(sim.net.y_bus, corners)
     if not bool(pf.converged.all()):

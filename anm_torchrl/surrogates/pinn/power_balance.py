@@ -31,7 +31,6 @@ import torch
 from torch import nn
 
 from anm_torchrl.grid import devices as dv
-from anm_torchrl.grid.network import LOAD, SLACK
 from anm_torchrl.grid.powerflow import power_flow_jacobian
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.surrogates.pinn.losses import power_balance_residuals
@@ -39,28 +38,10 @@ from anm_torchrl.surrogates.pinn.nets import ResidualMLP, box_normalise
 
 
 def bus_injection_box(sim: GridSimulator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-bus box of the injections the devices can produce: sums of the device bounds (spec §1.6).
-
-    Loads: P ∈ [PMIN, PMAX], Q = (Q/P)·P; generators and storage: their P and Q ranges. The slack device is
-    left out (its injection is an output of the power flow).
-
-    Returns:
-        ``p_low, p_high, q_low, q_high``, each (n_bus,) p.u. For ANM6-Easy (MW/MVAr): bus 3 P [−10, 30],
-        Q [−32, 30]; bus 4 P [−30, 50], Q [−56, 50]; bus 5 P [−80, 50], Q [−56, 50]; buses 0–2: 0.
-    """
-    net = sim.net
-    dev = net.dev
-    kind = net.dev_type
-    p_lo, p_hi = dev[:, dv.PMIN].clone(), dev[:, dv.PMAX].clone()
-    qp = torch.nan_to_num(dev[:, 3])
-    is_load = kind == LOAD
-    q_a, q_b = qp * dev[:, dv.PMIN], qp * dev[:, dv.PMAX]
-    q_lo = torch.where(is_load, torch.minimum(q_a, q_b), dev[:, dv.QMIN])
-    q_hi = torch.where(is_load, torch.maximum(q_a, q_b), dev[:, dv.QMAX])
-    other = kind != SLACK  # the slack's bounds may be ±inf (gym-anm's default): zeroed, never multiplied by 0
-    p_lo, p_hi, q_lo, q_hi = (torch.where(other, x, torch.zeros_like(x)) for x in (p_lo, p_hi, q_lo, q_hi))
-    keep = other.to(dev.dtype).unsqueeze(1) * net.incidence  # (n_dev, n_bus)
-    return p_lo @ keep, p_hi @ keep, q_lo @ keep, q_hi @ keep
+    """Per-bus box of the injections the devices can produce (:func:`anm_torchrl.grid.devices.bus_injection_box`
+    of ``sim``'s network): ``p_low, p_high, q_low, q_high``, each (n_bus,) p.u. For ANM6-Easy (MW/MVAr): bus 3
+    P [−10, 30], Q [−32, 30]; bus 4 P [−30, 50], Q [−56, 50]; bus 5 P [−80, 50], Q [−56, 50]; buses 0–2: 0."""
+    return dv.bus_injection_box(sim.net)
 
 
 #: refinement steps after the network: ``newton`` (rule v2) and ``chord`` (rule v1, legacy files)
