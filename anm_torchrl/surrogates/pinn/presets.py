@@ -51,7 +51,9 @@ network, 10,000 steps, 462 CPU s with the KKT-NNs, is worse than the flat start:
 2.3e-2) with a power-flow residual of ~0.6 p.u., above the terminal check's 0.005 p.u.: every transition flagged
 terminal although |V| was within 3.1e-4 p.u. (test). Since then the count is chosen per network from physics alone
 (:mod:`.refine`: the smallest k whose 0.99 quantile of the residual on 4,096 Sobol points of the injection box is
-≤ 0.0025 p.u.). Box quantiles after k = 1, 2, 3 steps (p.u., the trained models) and, on the validation transitions
+≤ 0.0025 p.u.). The figures below were measured with rule v1's flat-start chord steps; since rule v2 (2026-12-03) the
+steps are damped Newton steps at the estimate, which converge where the chord diverged (issue 23's 132/33 kV
+network, X = 0.55 p.u.) and typically need fewer steps; the battery on random networks is in docs/PINN.md. Box quantiles after k = 1, 2, 3 steps (p.u., the trained models) and, on the validation transitions
 above, the chain's residual p99 and the share flagged terminal at k − 1, k and k + 1:
 
 =====================  ===========================  ====  ==============================================
