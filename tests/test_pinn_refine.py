@@ -84,7 +84,8 @@ def test_rule_unmet_is_an_acceptance_failure(monkeypatch):
     report = {"power_balance": {"refine": rec, "val_vmag_mae": 0.0}, "generator": {"val_mae_pu": 0.0},
               "storage": {"devices": 0}}
     failures = tr.check_acceptance(cfg, report)
-    assert len(failures) == 1 and failures[0].startswith("power_balance.refine: no k <= 1 chord steps")
+    assert len(failures) == 1 and failures[0].startswith("power_balance.refine: no k <= 1 Newton steps")
+    assert "lower the device ratings" in failures[0]
 
 
 def test_training_with_auto_stores_the_chosen_k(auto_file, case33):

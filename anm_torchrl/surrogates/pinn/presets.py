@@ -379,9 +379,13 @@ def check_acceptance(cfg: PINNTrainConfig, report: dict[str, Any]) -> list[str]:
     failed = []
     refine = report.get("power_balance", {}).get("refine")
     if refine is not None and not refine.get("met"):
-        failed.append(f"power_balance.refine: no k <= {refine.get('k_max')} chord steps brings the "
+        kind = "Newton" if refine.get("method") == "newton" else "chord"
+        failed.append(f"power_balance.refine: no k <= {refine.get('k_max')} {kind} steps brings the "
                       f"{refine.get('quantile')} quantile of the power-flow residual to {refine.get('margin')} x "
-                      f"{refine.get('threshold_pu')} p.u. (after {refine.get('k')}: {refine.get('residual_q_pu')})")
+                      f"{refine.get('threshold_pu')} p.u. (after {refine.get('k')}: {refine.get('residual_q_pu')}); "
+                      "more than 1 % of the devices' injection box may have no power flow (lower the device "
+                      "ratings, or strengthen the lines/transformer), or train the power balance longer "
+                      "(power_balance.max_steps)")
     for module, bars in cfg.acceptance.items():
         if report.get(module, {}).get("devices") == 0:  # no device of this kind on the network: nothing to check
             continue
