@@ -55,6 +55,20 @@ def battery_case(seed: int):
     return generate(seed, n_bus=n_bus, meshed=(seed // len(SIZE_CLASSES)) % 2 == 1)
 
 
+#: the seed standing for issue 23's network (:func:`anm_torchrl.networks.random.stiff_transformer_network`)
+ISSUE23 = -1
+
+
+def issue23_case():
+    """Issue 23's 9-bus network as a battery case (seed :data:`ISSUE23`)."""
+    from anm_torchrl.networks.random import RandomCase, stiff_transformer_network
+
+    net, load_p, gen_p_max = stiff_transformer_network()
+    return RandomCase(net, load_p, gen_p_max, {
+        "seed": ISSUE23, "attempt": 0, "n_bus": 9, "topology": "radial (issue 23)", "base_mva": 100.0,
+        "transformer": {"x_pu": 0.55, "tap": 1.03, "shift_deg": 0.0, "rating_mva": 120.0}, "n_branch": 8})
+
+
 def terminal_agreement(m: dict[str, Any]) -> float:
     """Share of transitions whose PINN ``terminated`` equals the simulator's non-convergence, from
     :func:`.evaluate.evaluate_pinn`'s rates and precision: 1 − (FP + FN) / n."""
@@ -117,14 +131,15 @@ def diagnose(entry: dict[str, Any]) -> list[str]:
 
 def measure(seed: int, model_dir: Path, n_random: int = 4000, overrides: dict[str, Any] | None = None,
             eval_seed: int = 12345) -> dict[str, Any]:
-    """One battery entry (module docstring); never raises: a build error is recorded with its traceback."""
+    """One battery entry (module docstring; ``seed`` :data:`ISSUE23`: issue 23's network); never raises: a build
+    error is recorded with its traceback."""
     from anm_torchrl.networks import simulator
     from anm_torchrl.surrogates.pinn import cache
     from anm_torchrl.surrogates.pinn import train as tr
     from anm_torchrl.surrogates.pinn.chain import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn, random_transitions
 
-    case = battery_case(seed)
+    case = issue23_case() if seed == ISSUE23 else battery_case(seed)
     entry: dict[str, Any] = {"seed": seed, "size_class": size_class(case.meta["n_bus"]), **case.meta}
     try:
         sim = simulator(case.network, case.load_p, case.gen_p_max)
@@ -202,7 +217,7 @@ def markdown(record: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """CLI (module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--seeds", type=int, nargs="+", required=True)
+    ap.add_argument("--seeds", type=int, nargs="+", required=True, help=f"{ISSUE23}: issue 23's 9-bus network")
     ap.add_argument("--out", required=True, help="folder of battery.json / battery.md (models under models/)")
     ap.add_argument("--n-random", type=int, default=4000, help="random transitions per network")
     ap.add_argument("--pb-steps", type=int, help="power_balance.max_steps (default: the preset's)")
