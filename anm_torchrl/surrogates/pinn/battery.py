@@ -244,7 +244,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         e["command"] = command
         entries[seed] = e
         log.info("seed %d: %s buses, passed %s %s", seed, e["n_bus"], e["passed"], e["why"])
-        record = {"description": __doc__.split("\n")[0], "targets": TARGETS, "command": command,
+        commands = " && ".join(dict.fromkeys(x["command"] for x in entries.values()))
+        record = {"description": __doc__.split("\n")[0], "targets": TARGETS, "command": commands,
                   "created": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                   "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "torch": torch.__version__,
                               "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
