@@ -17,7 +17,7 @@ a seed always gives the same network.
 
 :func:`small_random_network` is the backend tests' generator (4–14 buses, 100 MVA; the draws those tests
 were written against). :func:`stiff_transformer_network` is the 9-bus network of issue 23 (132/33 kV, tap 1.03,
-X = 0.55 p.u. on 100 MVA) on which the flat-start chord refinement of the PINN diverged.
+X = 0.55 p.u. on 100 MVA) on which the flat-start chord refinement of the PINN failed its rule.
 """
 
 from __future__ import annotations

@@ -134,7 +134,7 @@ MODULES = ("generator", "storage", "power_balance")
 PRESET_PACKAGE = "anm_torchrl.surrogates.conf"
 #: the preset that ``default`` stands for on every network other than ANM6-Easy (:func:`network_preset_name`)
 FEEDER_DEFAULT = "feeder"
-#: ``refine_steps`` value asking for the chord-step count to be chosen after training (:mod:`.refine`)
+#: ``refine_steps`` value asking for the refinement-step count to be chosen after training (:mod:`.refine`)
 REFINE_AUTO = "auto"
 
 
@@ -163,7 +163,7 @@ class ModuleTrainConfig:
         robust, robust_scale: power balance only: residual penalty (``squared``, ``pseudo_huber``, ``cauchy``) and
             its scale (p.u.), see :func:`.losses.power_balance_losses`.
         v_scale, ang_scale: power balance only: output scaling (p.u., rad per unit output).
-        refine_steps: power balance only: chord-Newton steps after the network, at inference and in the
+        refine_steps: power balance only: refinement steps after the network (damped Newton, rule v2), at inference and in the
             validation errors, not in the training loss (:class:`.power_balance.PowerBalanceNet`; 0: none);
             ``auto``: the smallest k meeting the physics rule of :mod:`.refine`, chosen after training and stored
             in the model file.
@@ -372,7 +372,7 @@ def module_seed(cfg: PINNTrainConfig, name: str) -> int:
 
 
 def check_acceptance(cfg: PINNTrainConfig, report: dict[str, Any]) -> list[str]:
-    """The failed acceptance criteria of a training ``report`` (empty: accepted). No bar: one failure. A chord-step
+    """The failed acceptance criteria of a training ``report`` (empty: accepted). No bar: one failure. A refinement-step
     count chosen by :mod:`.refine` that does not meet its rule is a failure too."""
     if not cfg.acceptance:
         return [f"preset {cfg.preset!r} has no acceptance bar"]
