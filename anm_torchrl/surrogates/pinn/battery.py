@@ -31,6 +31,7 @@ import logging
 import math
 import os
 import platform
+import statistics
 import sys
 import time
 import traceback
@@ -195,7 +196,7 @@ def summary(record: dict[str, Any]) -> str:
         ks = sorted({e["refine_steps"] for e in ok})
         lines.append(f"| {lo}–{hi} | {len(rows) - n_mesh} / {n_mesh} | {sum(e['passed'] for e in rows)} / {len(rows)} | "
                      f"{100 * max(e['pq_rel_mae_max'] for e in ok):.3f} | {max(e['vmag_mae_pu'] for e in ok):.2e} | "
-                     f"{100 * min(e['terminal_agreement'] for e in ok):.2f} | {t[len(t) // 2]:.0f} / {t[-1]:.0f} | "
+                     f"{100 * min(e['terminal_agreement'] for e in ok):.2f} | {statistics.median(t):.0f} / {t[-1]:.0f} | "
                      f"{ks[0]}–{ks[-1]} |")
     return "\n".join(lines) + "\n"
 
