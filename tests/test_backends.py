@@ -15,47 +15,12 @@ import pytest
 import torch
 
 from anm_torchrl.grid.simulator import GridSimulator
-from anm_torchrl.networks.validation import validate_network
+from anm_torchrl.networks.random import small_random_network as random_network
 
 pytest.importorskip("numba")
 torch.set_num_threads(1)
 TOL = 1e-9
 N_ = np.nan
-
-
-def random_network(rng: np.random.Generator) -> tuple[dict, np.ndarray, np.ndarray]:
-    """A random valid gym-anm network dict and its profiles (T = 12)."""
-    n_bus = int(rng.integers(4, 15))
-    bus = [[0, 0, 132, 1.0, 1.0]] + [[i, 1, 33, 1.1, 0.9] for i in range(1, n_bus)]
-    branch = []
-    for i in range(1, n_bus):  # a random tree, then maybe a loop
-        f = int(rng.integers(0, i))
-        tap, shift = (rng.uniform(0.95, 1.05), rng.uniform(0, 10)) if rng.random() < 0.2 else (N_, N_)
-        branch.append([f, i, rng.uniform(0.005, 0.04), rng.uniform(0.01, 0.08), rng.choice([0, 0.002]),
-                       rng.choice([N_, 30.0]), tap, shift])
-    if n_bus > 4 and rng.random() < 0.5:
-        a, b = sorted(rng.choice(np.arange(1, n_bus), 2, replace=False))
-        if not any({r[0], r[1]} == {a, b} for r in branch):
-            branch.append([a, b, 0.03, 0.06, 0, 20, N_, N_])
-    dev = [[0, 0, 0, N_, 200, -200, 200, -200, N_, N_, N_, N_, N_, N_, N_]]
-    kinds = rng.choice([-1, 1, 2, 3], size=int(rng.integers(1, 2 * n_bus)), p=[0.4, 0.15, 0.25, 0.2])
-    for k in kinds:
-        d, b = len(dev), int(rng.integers(1, n_bus))
-        if k == -1:
-            dev.append([d, b, -1, rng.uniform(0, 0.4), N_, -rng.uniform(2, 10), *[N_] * 9])
-        elif k in (1, 2):
-            pmax, qmax = rng.uniform(5, 20), rng.uniform(3, 10)
-            corner = [0.7 * pmax, N_, 0.5 * qmax, -0.5 * qmax] if rng.random() < 0.5 else [N_] * 4
-            dev.append([d, b, int(k), N_, pmax, 0, qmax, -qmax, *corner, N_, N_, N_])
-        else:
-            pmax, qmax, soc_max = rng.uniform(3, 10), rng.uniform(2, 8), rng.uniform(5, 20)
-            corner = [0.6 * pmax, -0.6 * pmax, 0.5 * qmax, -0.5 * qmax] if rng.random() < 0.5 else [N_] * 4
-            dev.append([d, b, 3, N_, pmax, -pmax, qmax, -qmax, *corner, soc_max, rng.uniform(0, 0.3) * soc_max,
-                        rng.uniform(0.7, 1.0)])
-    net = validate_network({"baseMVA": 100, "bus": bus, "device": dev, "branch": branch})
-    n_load = int((net["device"][:, 2] == -1).sum())
-    n_gen = int(np.isin(net["device"][:, 2], (1, 2)).sum())
-    return net, -rng.uniform(0, 10, (12, n_load)), rng.uniform(0, 25, (12, n_gen))
 
 
 def _loop_without_slack(branch: np.ndarray, n_bus: int) -> bool:

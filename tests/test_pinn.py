@@ -467,11 +467,12 @@ def test_feeder_preset_selection():
                                                                                                     "auto")
 
 
+@pytest.mark.parametrize("method", ["newton", "chord"])
 @pytest.mark.parametrize("network", ["case33bw", "cigre_mv"])
-def test_chord_refinement_converges_to_newton_raphson(network):
-    """``refine_steps``: chord-Newton steps from an untrained network's output contract towards the exact power
-    flow (each step at least 5× closer on these light-load injections; a wrong Jacobian or sign diverges), and
-    ``refine=False`` is the raw network."""
+def test_refinement_converges_to_newton_raphson(network, method):
+    """``refine_steps``: Newton (rule v2) or chord (v1) steps from an untrained network's output contract towards
+    the exact power flow (each step at least 5× closer on these light-load injections; a wrong Jacobian or sign
+    diverges), and ``refine=False`` is the raw network."""
     from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
 
@@ -483,7 +484,7 @@ def test_chord_refinement_converges_to_newton_raphson(network):
     errs = []
     for k in (0, 1, 2):
         torch.manual_seed(0)
-        pb = PowerBalanceNet(sim, hidden=16, depth=2, refine_steps=k)
+        pb = PowerBalanceNet(sim, hidden=16, depth=2, refine_steps=k, refine_method=method)
         with torch.no_grad():
             errs.append(float((pb(p, q)[0] - trn.v.abs())[ok].abs().mean()))
             raw = float((pb(p, q, refine=False)[0] - trn.v.abs())[ok].abs().mean())

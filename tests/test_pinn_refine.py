@@ -84,7 +84,8 @@ def test_rule_unmet_is_an_acceptance_failure(monkeypatch):
     report = {"power_balance": {"refine": rec, "val_vmag_mae": 0.0}, "generator": {"val_mae_pu": 0.0},
               "storage": {"devices": 0}}
     failures = tr.check_acceptance(cfg, report)
-    assert len(failures) == 1 and failures[0].startswith("power_balance.refine: no k <= 1 chord steps")
+    assert len(failures) == 1 and failures[0].startswith("power_balance.refine: no k <= 1 Newton steps")
+    assert "lower the device ratings" in failures[0]
 
 
 def test_training_with_auto_stores_the_chosen_k(auto_file, case33):
@@ -173,3 +174,62 @@ def test_refine_option_is_validated():
         tr.preset("smoke", power_balance={"refine_steps": "al"})
     with pytest.raises(ValueError, match="must be an integer >= 0, got -1"):
         PowerBalanceNet(network_simulator("cigre_mv"), hidden=8, depth=1, refine_steps=-1)
+
+
+def test_newton_refinement_converges_where_the_flat_start_chord_does_not():
+    """Issue 23: on a 9-bus network with a 132/33 kV transformer of tap 1.03 and X = 0.55 p.u. (100 MVA base), the
+    v1 rule's chord steps (Jacobian at the flat start) meet no k <= 8 from an untrained power-balance network,
+    while rule v2's damped Newton steps (Jacobian at the estimate) meet the bar within 4 steps from the same one."""
+    from anm_torchrl.networks.random import stiff_transformer_network
+
+    sim = network_simulator(*stiff_transformer_network())
+    task = None
+    out = {}
+    for method in ("chord", "newton"):
+        torch.manual_seed(0)
+        pb = PowerBalanceNet(sim, hidden=16, depth=2, refine_method=method)
+        task = TASKS["power_balance"](pb, sim)
+        u = torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=5 + refine.SEED_OFFSET).draw(refine.POINTS)
+        out[method] = refine.residual_quantiles(pb, *task.sample(u.double()), k_max=refine.K_MAX)
+    bar = refine.MARGIN * refine._threshold()
+    assert len(out["chord"]) == refine.K_MAX and out["chord"][-1] > bar, out["chord"]
+    assert len(out["newton"]) <= 4 and out["newton"][-1] <= bar, out["newton"]
+    # and the rule itself: v2 on the same network
+    torch.manual_seed(0)
+    pb = PowerBalanceNet(sim, hidden=16, depth=2)
+    rec = refine.choose_refine_steps(pb, sim, seed=5)
+    assert rec["met"] and rec["rule"] == "sobol_box_quantile_v2" and rec["method"] == "newton" and rec["k"] <= 4
+
+
+def test_a_v1_chord_file_still_loads_and_runs_its_chord_steps(auto_file, tmp_path, case33):
+    """A file of rule v1 (no ``refine_method`` field; its record's rule v1) loads and runs chord steps, exactly as
+    it was chosen with; a method that contradicts the record, or an unknown one, is refused naming the file."""
+    file, _ = auto_file
+
+    def as_v1(m):
+        m.pop("refine_method")
+        m["report"]["power_balance"]["refine"]["rule"] = "sobol_box_quantile_v1"
+        m["report"]["power_balance"]["refine"].pop("method")
+
+    old = _rewrite(file, tmp_path / "v1.safetensors", as_v1)
+    modules, _, _ = tr.load_modules(old, case33)
+    pb = modules["power_balance"]
+    assert pb.refine_method == "chord" and pb.refine_steps == tr.read_pinn_file(file)["refine_steps"]
+    p = torch.zeros(3, case33.net.n_bus, dtype=torch.float64)
+    p[:, 1:] = -0.01 * torch.arange(1, 4, dtype=torch.float64).unsqueeze(1)
+    vm, va = pb(p, 0.5 * p)
+    x = torch.cat([va[:, 1:], vm[:, 1:]], -1)
+    with torch.no_grad():
+        raw_vm, raw_va = pb(p, 0.5 * p, refine=False)
+        y = torch.cat([raw_va[:, 1:], raw_vm[:, 1:]], -1)
+        for _ in range(pb.refine_steps):
+            y = y - pb.residual(y, p, 0.5 * p) @ pb._flat_start_inverse_jacobian().T
+    torch.testing.assert_close(x, y, rtol=0, atol=1e-12)
+    assert tr.load_modules(file, case33)[0]["power_balance"].refine_method == "newton"
+    bad = _rewrite(file, tmp_path / "mismatch.safetensors", lambda m: m.update(refine_method="chord"))
+    with pytest.raises(ArtifactError, match=r"mismatch.safetensors: its steps were chosen by rule "
+                                            r"sobol_box_quantile_v2 with newton steps.*retrain it"):
+        tr.load_modules(bad, case33)
+    bad = _rewrite(file, tmp_path / "unknown.safetensors", lambda m: m.update(refine_method="secant"))
+    with pytest.raises(ArtifactError, match="unknown.safetensors: refine_method must be one of"):
+        tr.load_modules(bad, case33)

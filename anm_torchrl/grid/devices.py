@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from anm_torchrl.grid.network import Network
+from anm_torchrl.grid.network import LOAD, SLACK, Network
 from anm_torchrl.grid.residuals import constraint_slack
 
 # Column indices of the device table (gym_anm/simulator/components/constants.py).
@@ -195,3 +195,27 @@ def projection_duals(x_star: torch.Tensor, target: torch.Tensor, g: torch.Tensor
         if rows.size:
             lam[r, rows] = nnls(gn[r, rows].T, rhs[r])[0]
     return torch.as_tensor(lam, dtype=h.dtype, device=h.device).reshape(h.shape)
+
+
+def bus_injection_box(net: Network) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-bus box of the injections the devices can produce: sums of the device bounds (spec §1.6).
+
+    Loads: P ∈ [PMIN, PMAX], Q = (Q/P)·P; generators and storage: their P and Q ranges. The slack device is
+    left out (its injection is an output of the power flow).
+
+    Returns:
+        ``p_low, p_high, q_low, q_high``, each (n_bus,) p.u. For ANM6-Easy (MW/MVAr): bus 3 P [−10, 30],
+        Q [−32, 30]; bus 4 P [−30, 50], Q [−56, 50]; bus 5 P [−80, 50], Q [−56, 50]; buses 0–2: 0.
+    """
+    dev = net.dev
+    kind = net.dev_type
+    p_lo, p_hi = dev[:, PMIN].clone(), dev[:, PMAX].clone()
+    qp = torch.nan_to_num(dev[:, 3])
+    is_load = kind == LOAD
+    q_a, q_b = qp * dev[:, PMIN], qp * dev[:, PMAX]
+    q_lo = torch.where(is_load, torch.minimum(q_a, q_b), dev[:, QMIN])
+    q_hi = torch.where(is_load, torch.maximum(q_a, q_b), dev[:, QMAX])
+    other = kind != SLACK  # the slack's bounds may be ±inf (gym-anm's default): zeroed, never multiplied by 0
+    p_lo, p_hi, q_lo, q_hi = (torch.where(other, x, torch.zeros_like(x)) for x in (p_lo, p_hi, q_lo, q_hi))
+    keep = other.to(dev.dtype).unsqueeze(1) * net.incidence  # (n_dev, n_bus)
+    return p_lo @ keep, p_hi @ keep, q_lo @ keep, q_hi @ keep

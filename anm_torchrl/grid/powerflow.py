@@ -71,6 +71,21 @@ def _jacobian(v: torch.Tensor, s_inj: torch.Tensor, y_conj: torch.Tensor) -> tor
     return jac
 
 
+def power_flow_jacobian(v_magn: torch.Tensor, v_ang: torch.Tensor, y_bus: torch.Tensor) -> torch.Tensor:
+    """Jacobian (N, 2n−2, 2n−2) of the non-slack mismatch ``[ΔP, ΔQ]`` w.r.t. ``[θ_1.., |V|_1..]`` (rad, p.u.).
+
+    Args:
+        v_magn, v_ang: (N, n_bus) bus voltages (p.u., rad), bus 0 the slack.
+        y_bus: (n_bus, n_bus) complex admittance matrix.
+
+    The same Jacobian Newton–Raphson factorises (:func:`_jacobian`); the injections enter the mismatch additively,
+    so it does not depend on them. Built with torch ops (differentiable).
+    """
+    v = torch.polar(v_magn, v_ang)
+    y = y_bus.to(v.dtype)
+    return _jacobian(v, power_injection(v, y), y[1:, 1:].conj())
+
+
 def newton_raphson(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL,
                    max_iter: int = MAX_ITER) -> PowerFlowResult:
     """Solve the AC power flow for a batch of bus injections.

@@ -4,7 +4,9 @@ Tensors ``<module>.<parameter>`` for the three modules; metadata ``config`` (the
 ``report`` (training report), ``network`` (:func:`anm_torchrl.grid.identity.network_key` of the simulator it
 was trained on: loading it on another network raises), ``refine_steps`` (the chord-Newton steps the power balance
 runs with: the config's, or the one :mod:`.refine` chose for ``auto``, with its record in
-``report.power_balance.refine``; checked at load by :func:`.refine.check_record`) and ``torch_version``.
+``report.power_balance.refine``; checked at load by :func:`.refine.check_record`), ``refine_method`` (``newton``,
+rule v2; absent in files written before it, which run their ``chord`` steps as before: :func:`.refine.check_method`)
+and ``torch_version``.
 """
 
 from __future__ import annotations
@@ -57,7 +59,8 @@ def save_pinn(path: str | Path, modules: dict[str, nn.Module], cfg: PINNTrainCon
     sim = sim if sim is not None else network_simulator(ANM6_EASY)
     tensors = {f"{k}.{n}": t for k, m in modules.items() for n, t in m.state_dict().items()}
     meta = {"config": cfg.to_dict(), "report": _plain(report or {}), "network": network_key(sim),
-            "refine_steps": int(modules["power_balance"].refine_steps), "torch_version": str(torch.__version__)}
+            "refine_steps": int(modules["power_balance"].refine_steps),
+            "refine_method": str(modules["power_balance"].refine_method), "torch_version": str(torch.__version__)}
     return save_tensors(resolve_path(path), tensors, meta, KIND)
 
 
@@ -106,14 +109,25 @@ def refine_steps_of(payload: dict[str, Any], cfg: PINNTrainConfig, path: str | P
                         auto_now)
 
 
+def refine_method_of(payload: dict[str, Any], path: str | Path) -> str:
+    """The refinement a read file runs (:func:`.refine.check_method`)."""
+    from anm_torchrl.surrogates.pinn.refine import check_method
+
+    record = ((payload.get("report") or {}).get("power_balance") or {}).get("refine")
+    return check_method(resolve_path(path), payload.get("refine_method"), record)
+
+
 def modules_from_payload(payload: dict[str, Any], cfg: PINNTrainConfig, sim: GridSimulator, path: str | Path,
-                         refine_steps: int) -> dict[str, nn.Module]:
-    """The modules of a read file, built for ``cfg`` on ``sim``'s device with ``refine_steps``, in eval mode.
+                         refine_steps: int, refine_method: str = "newton") -> dict[str, nn.Module]:
+    """The modules of a read file, built for ``cfg`` on ``sim``'s device with ``refine_steps`` of
+    ``refine_method``, in eval mode.
 
     Raises:
         ArtifactError: the weights do not fit the config.
     """
-    modules = build_modules(cfg, sim, refine_steps=refine_steps)
+    modules = build_modules(cfg, sim, refine_steps=0)
+    modules["power_balance"].set_refine_method(refine_method)
+    modules["power_balance"].set_refine_steps(refine_steps)
     for k, m in modules.items():
         try:
             m.load_state_dict(payload["state_dict"][k])
@@ -133,5 +147,6 @@ def load_modules(path: str | Path, sim: GridSimulator) -> tuple[dict[str, nn.Mod
     """
     payload = read_pinn_file(path)
     cfg = config_of(payload, path, sim)
-    modules = modules_from_payload(payload, cfg, sim, path, refine_steps_of(payload, cfg, path))
+    modules = modules_from_payload(payload, cfg, sim, path, refine_steps_of(payload, cfg, path),
+                                   refine_method_of(payload, path))
     return modules, cfg, payload.get("report", {})

@@ -74,7 +74,7 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
         writer: a TensorBoard ``SummaryWriter`` (or None).
         progress: a tqdm bar to advance by one per step (or None).
 
-    A power balance with ``refine_steps: auto`` gets its chord steps from :func:`.refine.choose_refine_steps` after
+    A power balance with ``refine_steps: auto`` gets its refinement (Newton) steps from :func:`.refine.choose_refine_steps` after
     training (report keys ``refine`` and ``refine_steps``); the final validation errors use them.
     """
     task = TASKS[name](module, sim)

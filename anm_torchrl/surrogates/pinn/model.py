@@ -14,7 +14,7 @@ def build_modules(cfg: PINNTrainConfig, sim: GridSimulator, refine_steps: int | 
     """Untrained ``generator`` (:class:`GeneratorKKT`), ``storage`` (:class:`StorageKKT`) and
     ``power_balance`` (:class:`PowerBalanceNet`) networks for ``cfg``, float32, on the simulator's device.
 
-    ``refine_steps``: the power balance's chord steps (None: the config's; its ``auto`` builds 0 until
+    ``refine_steps``: the power balance's refinement steps (None: the config's; its ``auto`` builds 0 until
     :func:`.refine.choose_refine_steps` sets them after training)."""
     g, s, p = cfg.generator, cfg.storage, cfg.power_balance
     if refine_steps is None:

@@ -51,7 +51,9 @@ network, 10,000 steps, 462 CPU s with the KKT-NNs, is worse than the flat start:
 2.3e-2) with a power-flow residual of ~0.6 p.u., above the terminal check's 0.005 p.u.: every transition flagged
 terminal although |V| was within 3.1e-4 p.u. (test). Since then the count is chosen per network from physics alone
 (:mod:`.refine`: the smallest k whose 0.99 quantile of the residual on 4,096 Sobol points of the injection box is
-≤ 0.0025 p.u.). Box quantiles after k = 1, 2, 3 steps (p.u., the trained models) and, on the validation transitions
+≤ 0.0025 p.u.). The figures below were measured with rule v1's flat-start chord steps; since rule v2 (2026-12-03) the
+steps are damped Newton steps at the estimate, which converge where the chord diverged (issue 23's 132/33 kV
+network, X = 0.55 p.u.) and typically need fewer steps; the battery on random networks is in docs/PINN.md. Box quantiles after k = 1, 2, 3 steps (p.u., the trained models) and, on the validation transitions
 above, the chain's residual p99 and the share flagged terminal at k − 1, k and k + 1:
 
 =====================  ===========================  ====  ==============================================
@@ -132,7 +134,7 @@ MODULES = ("generator", "storage", "power_balance")
 PRESET_PACKAGE = "anm_torchrl.surrogates.conf"
 #: the preset that ``default`` stands for on every network other than ANM6-Easy (:func:`network_preset_name`)
 FEEDER_DEFAULT = "feeder"
-#: ``refine_steps`` value asking for the chord-step count to be chosen after training (:mod:`.refine`)
+#: ``refine_steps`` value asking for the refinement-step count to be chosen after training (:mod:`.refine`)
 REFINE_AUTO = "auto"
 
 
@@ -161,7 +163,7 @@ class ModuleTrainConfig:
         robust, robust_scale: power balance only: residual penalty (``squared``, ``pseudo_huber``, ``cauchy``) and
             its scale (p.u.), see :func:`.losses.power_balance_losses`.
         v_scale, ang_scale: power balance only: output scaling (p.u., rad per unit output).
-        refine_steps: power balance only: chord-Newton steps after the network, at inference and in the
+        refine_steps: power balance only: refinement steps after the network (damped Newton, rule v2), at inference and in the
             validation errors, not in the training loss (:class:`.power_balance.PowerBalanceNet`; 0: none);
             ``auto``: the smallest k meeting the physics rule of :mod:`.refine`, chosen after training and stored
             in the model file.
@@ -370,16 +372,20 @@ def module_seed(cfg: PINNTrainConfig, name: str) -> int:
 
 
 def check_acceptance(cfg: PINNTrainConfig, report: dict[str, Any]) -> list[str]:
-    """The failed acceptance criteria of a training ``report`` (empty: accepted). No bar: one failure. A chord-step
+    """The failed acceptance criteria of a training ``report`` (empty: accepted). No bar: one failure. A refinement-step
     count chosen by :mod:`.refine` that does not meet its rule is a failure too."""
     if not cfg.acceptance:
         return [f"preset {cfg.preset!r} has no acceptance bar"]
     failed = []
     refine = report.get("power_balance", {}).get("refine")
     if refine is not None and not refine.get("met"):
-        failed.append(f"power_balance.refine: no k <= {refine.get('k_max')} chord steps brings the "
+        kind = "Newton" if refine.get("method") == "newton" else "chord"
+        failed.append(f"power_balance.refine: no k <= {refine.get('k_max')} {kind} steps brings the "
                       f"{refine.get('quantile')} quantile of the power-flow residual to {refine.get('margin')} x "
-                      f"{refine.get('threshold_pu')} p.u. (after {refine.get('k')}: {refine.get('residual_q_pu')})")
+                      f"{refine.get('threshold_pu')} p.u. (after {refine.get('k')}: {refine.get('residual_q_pu')}); "
+                      "more than 1 % of the devices' injection box may have no power flow (lower the device "
+                      "ratings, or strengthen the lines/transformer), or train the power balance longer "
+                      "(power_balance.max_steps)")
     for module, bars in cfg.acceptance.items():
         if report.get(module, {}).get("devices") == 0:  # no device of this kind on the network: nothing to check
             continue

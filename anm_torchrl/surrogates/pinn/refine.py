@@ -1,4 +1,12 @@
-"""How many chord-Newton steps follow a network's power-balance PINN: chosen per network from physics alone.
+"""How many Newton steps follow a network's power-balance PINN: chosen per network from physics alone.
+
+Rule v2 (:data:`RULE`, ``sobol_box_quantile_v2``): the steps are damped Newton steps with the exact Jacobian at
+the current estimate (:class:`.power_balance.PowerBalanceNet`, ``refine_method="newton"``). Rule v1
+(``sobol_box_quantile_v1``) used chord steps with the flat-start Jacobian, which diverge on networks whose
+operating points are far from the flat start in Jacobian terms (a 132/33 kV transformer with X = 0.55 p.u. on
+100 MVA and tap 1.03: the residual grew each step, no k met the bar, the model was refused). A v1 file still
+loads and runs its chord steps exactly as it was chosen with (:data:`RULE_METHODS`; its ``refine_method`` field is
+absent); ``python -m anm_torchrl.surrogates.pinn.refine`` moves it to v2 (same weights).
 
 A preset with ``power_balance.refine_steps: auto`` (``feeder``) gets, at the end of its power-balance training,
 the smallest k in 1…:data:`K_MAX` whose power-flow residual meets :func:`rule_met` — no simulator label enters:
@@ -7,7 +15,7 @@ the smallest k in 1…:data:`K_MAX` whose power-flow residual meets :func:`rule_
   on, :func:`.power_balance.bus_injection_box`; Sobol seed = training seed + :data:`SEED_OFFSET`, apart from the
   training, held-out and L-BFGS draws);
 * residual: the chain's own terminal statistic (:class:`.chain.SlackAndFlows`), the largest |ΔP|, |ΔQ| (p.u.) at
-  the non-slack buses of the network's output followed by k chord steps;
+  the non-slack buses of the network's output followed by k Newton steps;
 * bar: its :data:`QUANTILE` quantile ≤ :data:`MARGIN` × the terminal check's threshold
   (:data:`.chain.DEFAULT_RESIDUAL_THRESHOLD`, 0.005 p.u.).
 
@@ -46,7 +54,9 @@ from anm_torchrl.surrogates.pinn.presets import REFINE_AUTO as AUTO, module_seed
 
 log = logging.getLogger(__name__)
 
-RULE = "sobol_box_quantile_v1"
+RULE = "sobol_box_quantile_v2"
+#: the refinement each rule's k was chosen with (a file runs its record's method)
+RULE_METHODS = {"sobol_box_quantile_v1": "chord", RULE: "newton"}
 QUANTILE = 0.99
 MARGIN = 0.5
 POINTS = 4096
@@ -68,7 +78,8 @@ def rule_met(residual_q: float, threshold: float | None = None) -> bool:
 
 def residual_quantiles(pb: PowerBalanceNet, p_bus: torch.Tensor, q_bus: torch.Tensor, k_max: int = K_MAX,
                        stop_when_met: bool = True) -> list[float]:
-    """The :data:`QUANTILE` quantile (p.u.) of the per-sample largest |ΔP|, |ΔQ| after k = 1, 2, … chord steps.
+    """The :data:`QUANTILE` quantile (p.u.) of the per-sample largest |ΔP|, |ΔQ| after k = 1, 2, … refinement
+    steps (``pb``'s :attr:`~.PowerBalanceNet.refine_method`).
 
     Args:
         pb: the trained power-balance network (its own ``refine_steps`` is not used).
@@ -84,11 +95,9 @@ def residual_quantiles(pb: PowerBalanceNet, p_bus: torch.Tensor, q_bus: torch.Te
     with torch.no_grad():
         v_magn, v_ang = pb(p64, q64, refine=False)
         x = torch.cat([v_ang[:, 1:], v_magn[:, 1:]], -1)  # [θ, |V|] of the non-slack buses, as PowerBalanceNet
-        chord = pb.chord_matrix()
         r = pb.residual(x, p64, q64)
-        for _ in range(k_max):  # each step's residual is the next step's input: one evaluation per step
-            x = x - r @ chord
-            r = pb.residual(x, p64, q64)
+        for _ in range(k_max):  # each step's residual is the next step's input
+            x, r = pb.refine_step(x, p64, q64, r)
             res = r.abs().amax(-1)
             res = torch.where(torch.isfinite(res), res, torch.full_like(res, math.inf))
             out.append(float(torch.quantile(res, QUANTILE)))
@@ -113,21 +122,22 @@ def choose_refine_steps(pb: PowerBalanceNet, sim: GridSimulator, seed: int) -> d
 
     task = TASKS["power_balance"](pb, sim)
     u = torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=seed + SEED_OFFSET).draw(POINTS).double()
+    pb.set_refine_method(RULE_METHODS[RULE])
     q = residual_quantiles(pb, *task.sample(u), k_max=K_MAX)
     met = rule_met(q[-1])
     k = len(q)
     pb.set_refine_steps(k)
     if not met:
-        log.warning("no chord-step count <= %d brings the %.2f quantile of the power-flow residual below %.2g p.u. "
+        log.warning("no Newton-step count <= %d brings the %.2f quantile of the power-flow residual below %.2g p.u. "
                     "(after %d steps: %.3g p.u.): the model fails its acceptance bar", K_MAX, QUANTILE,
                     MARGIN * _threshold(), k, q[-1])
-    return {"rule": RULE, "k": k, "met": met, "quantile": QUANTILE, "margin": MARGIN, "threshold_pu": _threshold(),
+    return {"rule": RULE, "method": RULE_METHODS[RULE], "k": k, "met": met, "quantile": QUANTILE, "margin": MARGIN, "threshold_pu": _threshold(),
             "points": POINTS, "k_max": K_MAX, "seed": seed + SEED_OFFSET,
             "residual_q_pu": [x if math.isfinite(x) else None for x in q]}
 
 
 def check_record(file: Path | str, config_k: Any, file_k: Any, record: Any, preset_is_auto: bool) -> int:
-    """The chord-step count a saved PINN runs with, after checking that its fields agree (the format check).
+    """The refinement-step count a saved PINN runs with, after checking that its fields agree (the format check).
 
     Args:
         file: the model file (for messages).
@@ -155,12 +165,39 @@ def check_record(file: Path | str, config_k: Any, file_k: Any, record: Any, pres
     if isinstance(file_k, bool) or not isinstance(file_k, int) or not 0 <= file_k <= K_MAX:
         raise bad(f"refine_steps must be an integer in 0..{K_MAX}, got {file_k!r} (corrupted or another version)")
     if config_k == AUTO:
-        if not isinstance(record, dict) or record.get("rule") != RULE or record.get("k") != file_k:
-            raise bad(f"its chord steps were chosen by the rule but the record ({record!r}) is not one of rule {RULE} "
-                      f"with k = refine_steps = {file_k}")
+        if not isinstance(record, dict) or record.get("rule") not in RULE_METHODS or record.get("k") != file_k:
+            raise bad(f"its refinement steps were chosen by the rule but the record ({record!r}) is not one of rule "
+                      f"{RULE} (or {sorted(set(RULE_METHODS) - {RULE})}) with k = refine_steps = {file_k}")
     elif config_k != file_k:
         raise bad(f"its config fixes refine_steps = {config_k!r} but the file says {file_k}")
     return file_k
+
+
+def check_method(file: Path | str, file_method: Any, record: Any) -> str:
+    """The refinement a saved PINN runs (``"newton"`` or ``"chord"``), after checking it against its rule's record.
+
+    Args:
+        file: the model file (for messages).
+        file_method: its top-level ``refine_method`` (None: written before rule v2, whose steps were all chord
+            steps: it runs them, exactly as before).
+        record: its report's ``power_balance.refine`` (None: a fixed k).
+
+    Raises:
+        ArtifactError: an unknown method, or one that is not the method its record's rule chose k with.
+    """
+    from anm_torchrl.artifacts import ArtifactError
+    from anm_torchrl.surrogates.pinn.power_balance import REFINE_METHODS
+
+    method = "chord" if file_method is None else file_method
+    if method not in REFINE_METHODS:
+        raise ArtifactError(f"{file}: refine_method must be one of {REFINE_METHODS}, got {file_method!r} (corrupted "
+                            f"or another version); retrain it")
+    rule = record.get("rule") if isinstance(record, dict) else None
+    if rule in RULE_METHODS and RULE_METHODS[rule] != method:
+        raise ArtifactError(f"{file}: its steps were chosen by rule {rule} with {RULE_METHODS[rule]} steps, but it "
+                            f"names refine_method {method!r}; retrain it, or apply the rule to it with python -m "
+                            f"anm_torchrl.surrogates.pinn.refine --network <name> --path {file}")
+    return method
 
 
 def apply_to_file(path: str | Path, sim: GridSimulator) -> dict[str, Any]:
@@ -172,7 +209,7 @@ def apply_to_file(path: str | Path, sim: GridSimulator) -> dict[str, Any]:
     payload = io.read_pinn_file(path)
     cfg = io.config_of(payload, path, sim)
     cfg.power_balance.refine_steps = AUTO
-    modules = io.modules_from_payload(payload, cfg, sim, path, refine_steps=0)
+    modules = io.modules_from_payload(payload, cfg, sim, path, refine_steps=0, refine_method=RULE_METHODS[RULE])
     report = dict(payload.get("report") or {})
     record = choose_refine_steps(modules["power_balance"], sim, module_seed(cfg, "power_balance"))
     report["power_balance"] = {**report.get("power_balance", {}), "refine": {**record, "applied_after_training": True}}
@@ -184,7 +221,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     """CLI: apply the rule to a saved model (module docstring)."""
     from anm_torchrl.networks import simulator as network_simulator
 
-    ap = argparse.ArgumentParser(description="choose a saved PINN's chord steps by the rule and rewrite the file")
+    ap = argparse.ArgumentParser(description="choose a saved PINN's Newton steps by the rule (v2) and rewrite the file")
     ap.add_argument("--network", required=True, help="the registered network the model was trained on")
     ap.add_argument("--path", required=True, help="the model file (or its folder)")
     args = ap.parse_args(argv)
