@@ -41,7 +41,7 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 
 @hydra.main(config_path="conf", config_name="train_pinn", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
-    from anm_torchrl.networks import simulator as network_simulator
+    from anm_torchrl.networks import check_network_name, simulator as network_simulator
     from anm_torchrl.surrogates.pinn.cache import default_path, train_and_save
     from anm_torchrl.surrogates.pinn.chain import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
@@ -49,13 +49,18 @@ def main(cfg: DictConfig) -> dict:
 
     torch.set_num_threads(int(cfg.threads))
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    sim = network_simulator(cfg.network)
-    file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
-    out: dict = {"path": str(file)}
-    if not cfg.eval_only:
+    try:  # bad input (an unknown network, a preset value out of range) is one line naming it, not a traceback
+        check_network_name(cfg.network)
+        sim = network_simulator(cfg.network)
+        file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
         # ``default`` stands for the network's own default (the feeder preset off ANM6-Easy), with the command
         # line's changes to the composed preset kept
-        train_cfg = from_composed(OmegaConf.to_container(cfg.pinn_preset, resolve=True), sim, seed=int(cfg.seed))
+        train_cfg = (None if cfg.eval_only else
+                     from_composed(OmegaConf.to_container(cfg.pinn_preset, resolve=True), sim, seed=int(cfg.seed)))
+    except (ValueError, TypeError) as err:
+        raise SystemExit(f"train_pinn.py: {err}") from None
+    out: dict = {"path": str(file)}
+    if train_cfg is not None:
         name = train_cfg.preset
         log_dir = Path(to_absolute_path(cfg.log_dir)) if cfg.log_dir is not None else run_dir / "tb"
         log.info("training the %r preset -> %s (TensorBoard: %s)", name, file, log_dir)

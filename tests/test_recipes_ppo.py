@@ -121,9 +121,15 @@ def test_ppo_on_another_network(tmp_path, evaluate_recipe):
     """``python recipes/ppo.py network=case33bw surrogate=none``: trains and evaluates on the 33-bus feeder's true
     env, states from its reset distribution; evaluate.py takes the network from the checkpoint."""
     run_dir = tmp_path / "case33bw"
-    run(PPO, *TINY, "network=case33bw", "surrogate=none", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    run(PPO, *TINY, "network=case33bw", "surrogate=none", "eval.test_max_steps=12", f"hydra.run.dir={run_dir}",
+        cwd=tmp_path)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["frames"] == 64 and summary["config"]["network"] == "case33bw"
+    # case33bw's own defaults (recipes/conf/per_network/ppo.yaml) apply to every key not on the command line
+    defaults = summary["network_defaults"]
+    assert defaults["entry"] == "case33bw" and defaults["applied"]["model.init_action"] == "do_nothing"
+    assert summary["config"]["model"]["init_action"] == "do_nothing" and summary["config"]["env"]["max_steps"] == 200
+    assert defaults["kept"]["env.num_envs"] == 4 and summary["test"]["best"]["steps"] == 12
     assert all(math.isfinite(summary["test"][c]["discounted_return"]) for c in ("best", "last"))
 
     from anm_torchrl.training.checkpoint import load_checkpoint

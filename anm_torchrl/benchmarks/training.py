@@ -80,14 +80,15 @@ def time_algorithm(algorithm: str, network: str, n_envs: int, iterations: int = 
 
 
 def measure(network: str = "anm6_easy", batch_sizes=(256, 1024, 4096), algorithms=("ppo", "sac"),
-            iterations: int = 3) -> dict:
-    """Every row of the table (one dict per (algorithm, N)), measured in this one run."""
+            iterations: int = 3, overrides: tuple[str, ...] = ()) -> dict:
+    """Every row of the table (one dict per (algorithm, N)), measured in this one run; ``overrides`` (Hydra
+    ``key=value``) apply to every algorithm's config."""
     torch.set_num_threads(1)
     rows = []
     for n in batch_sizes:
         env = time_env(network, n)
         for algorithm in algorithms:
-            row = time_algorithm(algorithm, network, n, iterations)
+            row = time_algorithm(algorithm, network, n, iterations, list(overrides))
             rows.append({"algorithm": algorithm, "num_envs": n, "env_fps": env["wall_fps"],
                          "env_cpu_fps": env["cpu_fps"], **row,
                          "loop_over_env": row["loop_fps"] / env["wall_fps"],
@@ -95,13 +96,15 @@ def measure(network: str = "anm6_easy", batch_sizes=(256, 1024, 4096), algorithm
     import os
 
     return {"network": network, "steps_per_env": STEPS, "threads": 1, "iterations": iterations,
-            "load_avg_1min": os.getloadavg()[0], "torch": torch.__version__, "rows": rows}
+            "overrides": list(overrides), "load_avg_1min": os.getloadavg()[0], "torch": torch.__version__, "rows": rows}
 
 
 def markdown(record: dict) -> str:
     """The table of :func:`measure`'s record."""
     lines = [f"Training loop throughput on {record['network']} ({record['steps_per_env']} steps per env per "
-             f"iteration, 1 thread, load {record['load_avg_1min']:.1f}); frames/s of wall time (CPU time)",
+             f"iteration, 1 thread, load {record['load_avg_1min']:.1f}"
+             + (f"; overrides: {' '.join(record['overrides'])}" if record.get("overrides") else "")
+             + "); frames/s of wall time (CPU time)",
              "", "| algorithm | envs | env alone | collect | update | loop | loop / env |",
              "|---|---:|---:|---:|---:|---:|---:|"]
     for r in record["rows"]:

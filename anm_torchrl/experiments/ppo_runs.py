@@ -86,6 +86,7 @@ def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None =
     would otherwise be read back with the new.
     """
     from anm_torchrl.training import protocol
+    from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
 
     run_dir = Path(run_dir).resolve()
     if run_dir.exists():
@@ -99,9 +100,10 @@ def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None =
     t0 = time.perf_counter()
     try:
         cfg = compose_ppo_config(overrides)
+        defaults = apply_network_defaults(cfg, explicit_keys(overrides))  # as the recipe does: same command
         if timeout_s is not None:  # the tighter of the run's own budget and the experiment's
             cfg.collector.max_minutes = min(float(cfg.collector.max_minutes or "inf"), float(timeout_s) / 60)
-        protocol.train(cfg, run_dir)
+        protocol.train(cfg, run_dir, network_defaults=defaults)
     except Exception as err:  # noqa: BLE001 - one failed cell is recorded, the experiment goes on
         rec["error"] = f"{type(err).__name__}: {err}\n" + traceback.format_exc()[-2000:]
     rec["wall_s"] = time.perf_counter() - t0

@@ -45,9 +45,14 @@ def reward_scale_of(cfg: DictConfig, eval_env, val_states) -> dict:
     return info
 
 
-def train(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a training loop, read top to bottom
+def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop, read top to bottom
+          network_defaults: dict | None = None) -> dict:
     """Train ``cfg.algorithm`` as configured by ``cfg`` (a recipe's composed config) into ``run_dir``; returns the
     summary (also written to ``run_dir/summary.json``).
+
+    ``cfg`` is used as given: a recipe first applies the network's entry of ``cfg.per_network``
+    (:func:`~anm_torchrl.training.network_defaults.apply_network_defaults`) and passes what it applied as
+    ``network_defaults`` (written to the summary); a programmatic caller does the same or sets the keys itself.
 
     ``cfg.checkpoint.resume`` is a path (absolute, or relative to the current directory). Every range of ``cfg`` is
     checked first.
@@ -186,7 +191,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a train
                     evals_since_best += 1
                 if render_interval and n_evals % render_interval == 0:
                     log_episode_figure(logger, actor, val_states[:1], cfg, frames)
-                pbar.set_postfix(eval=f"{last_eval['discounted_return']:.1f}", best=f"{best['discounted_return']:.1f}")
+                pbar.set_postfix(eval=f"{last_eval['discounted_return']:.4g}", best=f"{best['discounted_return']:.4g}")
                 log.info("update %d, %d frames, %.0f s: eval/discounted_return %.2f (best %.2f), return %.1f, "
                          "penalty %.1f, terminated %.2f", update, frames, time.perf_counter() - t_start,
                          last_eval["discounted_return"], best["discounted_return"], last_eval["return"],
@@ -242,7 +247,7 @@ def train(cfg: DictConfig, run_dir: str | Path) -> dict:  # noqa: C901 - a train
                "run_dir": str(run_dir),
                "validation": {"seed": int(cfg.eval.seed), "num_episodes": int(cfg.eval.num_episodes),
                               "max_steps": int(cfg.eval.max_steps), "gamma": float(cfg.eval.gamma)},
-               "test": test, "reward_scale": reward_scale,
+               "test": test, "reward_scale": reward_scale, "network_defaults": network_defaults,
                "checkpoints": {name: str(ckpt_dir / f"{name}.pt") if (ckpt_dir / f"{name}.pt").is_file() else None
                                for name in ("best", "last")},
                "config": config}
@@ -292,12 +297,16 @@ def run_recipe(cfg: DictConfig) -> dict:
 
     from anm_torchrl.training.algorithms import check_algorithm_config
 
+    from hydra.core.hydra_config import HydraConfig
+
     from anm_torchrl.networks.user import network_argument
+    from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
 
     run_dir = Path.cwd()
     # a network file's path is relative to where the command was typed, not to the run directory
     cfg.network = network_argument(cfg.network, hydra.utils.get_original_cwd())
     try:
+        defaults = apply_network_defaults(cfg, explicit_keys(HydraConfig.get().overrides.task))
         check_algorithm_config(cfg)
     except ValueError as err:
         remove_hydra_only_dir(run_dir)
@@ -306,7 +315,7 @@ def run_recipe(cfg: DictConfig) -> dict:
         cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
     print(f"run directory: {run_dir}", flush=True)
     try:
-        return train(cfg, run_dir)
+        return train(cfg, run_dir, network_defaults=defaults)
     except KeyboardInterrupt:
         raise SystemExit(130) from None
     finally:

@@ -1,0 +1,97 @@
+"""Per-network defaults of a training recipe: the entry of the run's network in the config's ``per_network`` table
+(``recipes/conf/per_network/<algorithm>.yaml``, the one home), applied over the groups' defaults (ANM6-Easy's)
+to every key the user did not set.
+
+    python recipes/ppo.py network=case33bw                    # case33bw's entry: 64 envs, do-nothing start, ...
+    python recipes/ppo.py network=case33bw env.num_envs=128   # the entry, but 128 envs
+
+A network without an entry (a user's file or registered name, a generated network) gets the ``default`` entry.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+log = logging.getLogger(__name__)
+
+TABLE_KEY = "per_network"
+FALLBACK = "default"
+_MISSING = object()
+
+
+def explicit_keys(overrides: Iterable[str]) -> set[str]:
+    """The config keys a list of Hydra overrides sets (``key=value``, ``+key=value``, ``++key=value``,
+    ``~key``; a group choice ``env=sac`` names its group), e.g. ``HydraConfig.get().overrides.task``."""
+    keys = set()
+    for item in overrides:
+        key = str(item).split("=", 1)[0].lstrip("+~").strip()
+        if key:
+            keys.add(key.split("@", 1)[0])
+    return keys
+
+
+def _flatten(node: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for key, value in node.items():
+        dotted = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(_flatten(value, dotted + "."))
+        else:
+            out[dotted] = value
+    return out
+
+
+def entry_name(table: Mapping[str, Any], network: str) -> str:
+    """The table entry a network gets: its own if the table has one, else ``default``."""
+    return network if network in table and network != FALLBACK else FALLBACK
+
+
+def network_entry(cfg: DictConfig) -> tuple[str, dict[str, Any]]:
+    """``(entry name, {dotted key: value})`` of ``cfg.network`` in ``cfg.per_network``; ``("", {})`` for a config
+    without a table (a recipe that has none).
+
+    Raises:
+        ValueError: the table has no ``default`` entry, or an entry names a key the config does not have.
+    """
+    table = cfg.get(TABLE_KEY)
+    if table is None:
+        return "", {}
+    table = OmegaConf.to_container(table, resolve=True)
+    if FALLBACK not in table:
+        raise ValueError(f"{TABLE_KEY} has no '{FALLBACK}' entry (the one a network without its own gets)")
+    name = entry_name(table, str(cfg.network))
+    values = _flatten(table[name] or {})
+    missing = sorted(k for k in values if OmegaConf.select(cfg, k, default=_MISSING) is _MISSING)
+    if missing:
+        raise ValueError(f"{TABLE_KEY}.{name} sets keys the config does not have: {', '.join(missing)}")
+    return name, values
+
+
+
+def apply_network_defaults(cfg: DictConfig, explicit: Iterable[str] = ()) -> dict[str, Any]:
+    """Set the network's entry (:func:`network_entry`) on ``cfg`` in place, except every key in ``explicit`` or
+    under one of them (``env`` protects ``env.num_envs``).
+
+    Returns:
+        ``{"network", "entry", "applied": {key: value}, "kept": {key: the user's value}}`` (for summary.json).
+    """
+    name, values = network_entry(cfg)
+    explicit = set(explicit)
+
+    def given(key: str) -> bool:
+        parts = key.split(".")
+        return any(".".join(parts[:i]) in explicit for i in range(1, len(parts) + 1))
+
+    applied = {k: v for k, v in values.items() if not given(k)}
+    kept = {k: OmegaConf.select(cfg, k) for k in values if given(k)}
+    with open_dict(cfg):
+        for key, value in applied.items():
+            OmegaConf.update(cfg, key, value, merge=False)
+    if applied:
+        log.info("per-network defaults of %s (%s.%s): %s", cfg.network, TABLE_KEY, name,
+                 ", ".join(f"{k}={v}" for k, v in applied.items()))
+    return {"network": str(cfg.network), "entry": name, "applied": applied, "kept": kept}

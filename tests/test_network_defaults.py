@@ -1,0 +1,80 @@
+"""Per-network defaults (``recipes/conf/per_network/*.yaml``, applied by
+:func:`anm_torchrl.training.network_defaults.apply_network_defaults`): a network's entry sets every key the user
+did not, a network without an entry gets ``default``, ANM6-Easy's entry changes nothing, and a bad table fails
+naming what is wrong."""
+
+from __future__ import annotations
+
+import pytest
+from omegaconf import OmegaConf, open_dict
+
+from recipe_utils import compose
+
+from anm_torchrl.training.config_checks import check_ppo_config, check_sac_config
+from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
+
+
+def test_explicit_keys_of_hydra_overrides():
+    assert explicit_keys(["network=case33bw", "+extra=1", "++env.num_envs=8", "~eval.patience", "env=sac",
+                          "surrogate@x=pinn"]) == {"network", "extra", "env.num_envs", "eval.patience", "env",
+                                                   "surrogate"}
+
+
+def test_entry_applies_except_what_the_user_set():
+    overrides = ["network=case33bw", "env.num_envs=128"]
+    cfg = compose("config", overrides)
+    info = apply_network_defaults(cfg, explicit_keys(overrides))
+    assert info["entry"] == "case33bw" and info["kept"] == {"env.num_envs": 128}
+    assert cfg.env.num_envs == 128 and cfg.env.max_steps == 200 and cfg.model.init_action == "do_nothing"
+    assert cfg.loss.reward_scale == "auto" and cfg.eval.test_episodes == 4
+    assert info["applied"]["collector.frames_per_batch"] == 8192 == cfg.collector.frames_per_batch
+
+
+def test_a_group_choice_protects_its_keys():
+    """``eval=default`` on the command line means the user chose that group as it is: none of its keys change."""
+    overrides = ["network=cigre_mv", "eval=default"]
+    cfg = compose("config", overrides)
+    info = apply_network_defaults(cfg, explicit_keys(overrides))
+    assert not any(k.startswith("eval.") for k in info["applied"]) and cfg.eval.num_episodes == 16
+    assert cfg.model.init_action == "do_nothing"
+
+
+def test_anm6_entry_changes_nothing():
+    cfg = compose("config", [])
+    before = OmegaConf.to_container(cfg)
+    assert apply_network_defaults(cfg)["applied"] == {} and OmegaConf.to_container(cfg) == before
+
+
+@pytest.mark.parametrize("network", ["my_feeder.npz", "my_registered_feeder"])
+def test_a_network_without_entry_gets_default(network):
+    """A user's network (a file or a registered name) gets the ``default`` entry: the feeders' settings."""
+    cfg = compose("config", [])
+    cfg.network = network
+    info = apply_network_defaults(cfg)
+    assert info["entry"] == "default" and cfg.model.init_action == "do_nothing" and cfg.loss.reward_scale == "auto"
+
+
+@pytest.mark.parametrize("config,check", [("config", check_ppo_config), ("sac", check_sac_config)])
+def test_every_entry_is_a_valid_config(config, check):
+    """Each entry, applied, passes the recipe's own checks (a typo in the table would fail here, not in a run).
+    ``default`` is applied for an unregistered name, then checked as ANM6-Easy (the check resolves the name)."""
+    for entry in compose(config, []).per_network:
+        cfg = compose(config, [])
+        cfg.network = "not_in_the_table" if entry == "default" else entry
+        assert apply_network_defaults(cfg)["entry"] == entry
+        if entry == "default":
+            cfg.network = "anm6_easy"
+        check(cfg)
+
+
+def test_bad_tables_name_what_is_wrong():
+    cfg = compose("config", ["network=case33bw"])
+    with open_dict(cfg):
+        cfg.per_network.case33bw.env.num_env = 3  # a typo of num_envs
+    with pytest.raises(ValueError, match=r"per_network.case33bw sets keys the config does not have: env.num_env"):
+        apply_network_defaults(cfg)
+    cfg = compose("config", ["network=case33bw"])
+    with open_dict(cfg):
+        del cfg.per_network["default"]
+    with pytest.raises(ValueError, match="per_network has no 'default' entry"):
+        apply_network_defaults(cfg)
