@@ -142,3 +142,20 @@ def test_recipe_on_case33bw_with_network_settings(tmp_path):
     actor = load_actor(run_dir / "checkpoints" / "best.pt")  # rebuilt from a config with the new keys
     env = make_true_env(1, network="case33bw")
     assert actor(env.reset())["action"].shape == (1, 10)  # case33bw: 3 DG x (P, Q) + 2 storage x (P, Q)
+
+
+def test_time_features_are_continuous_across_midnight():
+    """``model.time_features``: two inputs more (sin, cos of the time of day), equal at aux = 95 -> 0 up to one
+    step of phase (2π/96), and off by default (the input width is the observation's)."""
+    env = make_train_env({"name": "none"}, 2, None, 0, "raise", None, "cpu", 1)
+    _, _, plain = make_ppo_models(env)
+    _, critic, norm = make_ppo_models(env, time_features=True)
+    assert plain.out_features == 18 and norm.out_features == 20 and norm.time_of_day == (17, 96)
+    obs = env.reset()["observation"].clone()
+    obs[0, 17], obs[1, 17] = 95.0, 0.0
+    z = norm(obs)
+    assert torch.allclose(z[0, -2:], z[1, -2:], atol=2 * torch.pi / 96 + 1e-6)
+    assert not torch.allclose(z[0, 17], z[1, 17], atol=1.0)  # the plain index jumps by its whole range
+    assert critic(env.reset())["state_value"].shape == (2, 1)
+    with pytest.raises(ValueError, match="model.time_features must be one of False, True; got 'yes'"):
+        check_ppo_config(compose("config", ["model.time_features=yes"]))

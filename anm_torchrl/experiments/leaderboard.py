@@ -108,13 +108,15 @@ def markdown(record: dict) -> str:
              f"γ = {p['gamma']}; trained rows: `best.pt` (chosen on validation states) evaluated on these states",
              "", "| policy | discounted return | loss / optimum | gain share | true-env frames | wall time | seeds |",
              "|---|---:|---:|---:|---:|---:|---|"]
+    # feeders' returns are O(0.1) (line losses): two decimals would show the optimum and PPO alike
+    dec = 2 if max(abs(r["discounted_return"]) for r in record["rows"]) >= 10 else 4
     for r in record["rows"]:
-        spread = f" ± {r['std_over_seeds']:.2f}" if r.get("std_over_seeds") is not None else ""
+        spread = f" ± {r['std_over_seeds']:.{dec}f}" if r.get("std_over_seeds") is not None else ""
         ratio = f"{r['loss_ratio']:.3f}×" if r["loss_ratio"] is not None else "–"
         frames = f"{r['frames']:,.0f}" if r["frames"] is not None else "–"
         wall = f"{r['wall_s']:,.0f} s" if r["wall_s"] is not None else "–"
         seeds = ", ".join(map(str, r["seeds"])) if r["seeds"] else "–"
-        lines.append(f"| {r['policy']} | {r['discounted_return']:.2f}{spread} | {ratio} | {r['gain_pct']:.1f} % | "
+        lines.append(f"| {r['policy']} | {r['discounted_return']:.{dec}f}{spread} | {ratio} | {r['gain_pct']:.2f} % | "
                      f"{frames} | {wall} | {seeds} |")
     return "\n".join(lines) + "\n"
 

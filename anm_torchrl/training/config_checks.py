@@ -138,6 +138,7 @@ def _check_model(cfg: Mapping) -> None:
     _number(cfg, "model.init_log_std")
     _choice(cfg, "model.init_action", ("center", "do_nothing"))
     _in_range(cfg, "model.init_action_clip", 0, 1, True, True)
+    _choice(cfg, "model.time_features", (False, True))
 
 
 def _check_collector(cfg: Mapping) -> int:

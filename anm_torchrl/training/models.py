@@ -16,6 +16,8 @@ values are clipped to ±``clip``.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from tensordict.nn import AddStateIndependentNormalScale, NormalParamExtractor, TensorDictModule
 from torch import nn
@@ -33,7 +35,8 @@ class ObservationNormalizer(nn.Module):
     The buffers travel in the actor's and critic's ``state_dict``, so a saved policy normalises by itself.
     """
 
-    def __init__(self, loc: torch.Tensor, scale: torch.Tensor, clip: float = 5.0):
+    def __init__(self, loc: torch.Tensor, scale: torch.Tensor, clip: float = 5.0,
+                 time_of_day: tuple[int, int] | None = None):
         super().__init__()
         loc, scale = torch.as_tensor(loc, dtype=torch.float32), torch.as_tensor(scale, dtype=torch.float32)
         if loc.shape != scale.shape or loc.ndim != 1:
@@ -44,9 +47,19 @@ class ObservationNormalizer(nn.Module):
         self.register_buffer("loc", loc)
         self.register_buffer("scale", scale)
         self.clip = float(clip)
+        if time_of_day is not None and not (0 <= int(time_of_day[0]) < loc.shape[0] and int(time_of_day[1]) >= 2):
+            raise ValueError(f"time_of_day must be (index < {loc.shape[0]}, period >= 2), got {time_of_day}")
+        self.time_of_day = None if time_of_day is None else (int(time_of_day[0]), int(time_of_day[1]))
+        self.out_features = int(loc.shape[0]) + (2 if time_of_day is not None else 0)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return ((x - self.loc) / self.scale).clamp(-self.clip, self.clip)
+        z = ((x - self.loc) / self.scale).clamp(-self.clip, self.clip)
+        if self.time_of_day is None:
+            return z
+        index, period = self.time_of_day
+        # the time index wraps (95 -> 0 on ANM6-Easy): as a number, midnight is the farthest apart two steps can be
+        phase = (2 * math.pi / period) * torch.remainder(x[..., index], period)
+        return torch.cat([z, torch.sin(phase)[..., None], torch.cos(phase)[..., None]], -1)
 
     def stats(self) -> dict[str, torch.Tensor]:
         """``{"loc", "scale"}`` copies (for checkpoints)."""
@@ -128,7 +141,30 @@ def _orthogonal_init(mlp: nn.Module, last_gain: float) -> nn.Module:
     return mlp
 
 
-def _specs(env: EnvBase, obs_key: str, activation: str, max_obs_scale, obs_clip, obs_stats):
+def time_of_day_feature(env: EnvBase) -> tuple[int, int]:
+    """``(index, period)`` of the time-of-day input of ``env``'s observation: the position of its ``aux`` entry
+    (gym-anm's time index: ANM6-Easy's 0..95, a feeder's row of its load/generation tables) and the steps per day
+    ``24 / delta_t`` (96 at 15-min steps); the time of day is ``aux mod period``.
+
+    Raises:
+        ValueError: the observation has no ``aux`` entry, or the env has no observation map.
+    """
+    from torchrl.envs import TransformedEnv
+
+    base = env.base_env if isinstance(env, TransformedEnv) else env
+    obs_map = getattr(base, "obs_map", None)
+    if obs_map is None:
+        raise ValueError(f"model.time_features needs an env with an observation map (.obs_map), got "
+                         f"{type(base).__name__}")
+    offset = 0
+    for key, rows, _ in obs_map.entries:
+        if key == "aux":
+            return offset, int(round(24 / float(base.sim.net.delta_t)))
+        offset += int(rows.numel())
+    raise ValueError("model.time_features needs the time index ('aux') in the observation")
+
+
+def _specs(env: EnvBase, obs_key: str, activation: str, max_obs_scale, obs_clip, obs_stats, time_features=False):
     """(obs spec, action spec, normaliser) of ``env``, after checking ``activation``."""
     if activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
@@ -141,14 +177,16 @@ def _specs(env: EnvBase, obs_key: str, activation: str, max_obs_scale, obs_clip,
         loc, scale = observation_stats(obs_spec, max_obs_scale)
     else:
         loc, scale = obs_stats["loc"], obs_stats["scale"]
-    return obs_spec, act_spec, ObservationNormalizer(loc, scale, obs_clip)
+    return obs_spec, act_spec, ObservationNormalizer(loc, scale, obs_clip,
+                                                     time_of_day_feature(env) if time_features else None)
 
 
 def make_actor(env: EnvBase, cells=(64, 64), activation: str = "tanh", max_obs_scale: float | None = 50.0,
                obs_clip: float = 5.0, init_log_std: float = -2.0, obs_stats: dict[str, torch.Tensor] | None = None,
                obs_key: str = "observation", init_action: torch.Tensor | str | None = None,
                init_action_clip: float = 0.98, state_dependent_scale: bool = False,
-               critic_cells=None) -> tuple[ProbabilisticActor, ObservationNormalizer, nn.Module | None]:
+               critic_cells=None, time_features: bool = False,
+               ) -> tuple[ProbabilisticActor, ObservationNormalizer, nn.Module | None]:
     """The bounded ``TanhNormal`` actor of every algorithm, and its observation normaliser.
 
     Args:
@@ -171,6 +209,8 @@ def make_actor(env: EnvBase, cells=(64, 64), activation: str = "tanh", max_obs_s
             too (``NormalParamExtractor``).
         critic_cells: with a value: also an initialised (obs_dim -> 1) MLP of these widths, built right after the
             actor's MLP and before either is initialised (the order of random draws every PPO run has used).
+        time_features: also feed sin/cos of the time of day (:func:`time_of_day_feature`) to every network: two
+            inputs more, continuous across midnight. Reads the observation only (no forecast).
 
     Returns:
         ``ProbabilisticActor`` writing ``"action"`` (…, A) within the action box (a ``TanhNormal`` scaled to
@@ -178,8 +218,9 @@ def make_actor(env: EnvBase, cells=(64, 64), activation: str = "tanh", max_obs_s
         MLP or None.
     """
     init_action = _initial_action(env, init_action)
-    obs_spec, act_spec, normalizer = _specs(env, obs_key, activation, max_obs_scale, obs_clip, obs_stats)
-    obs_dim, act_dim = int(obs_spec.shape[-1]), int(act_spec.shape[-1])
+    obs_spec, act_spec, normalizer = _specs(env, obs_key, activation, max_obs_scale, obs_clip, obs_stats,
+                                            time_features)
+    obs_dim, act_dim = normalizer.out_features, int(act_spec.shape[-1])
     mlp = _mlp(obs_dim, act_dim * (2 if state_dependent_scale else 1), cells, activation)
     value_mlp = None if critic_cells is None else _mlp(obs_dim, 1, critic_cells, activation)
     _orthogonal_init(mlp, 0.01)  # a small last actor layer: the untrained mean is (almost) its bias
@@ -210,12 +251,13 @@ def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), a
                     max_obs_scale: float | None = 50.0, obs_clip: float = 5.0, init_log_std: float = -2.0,
                     obs_stats: dict[str, torch.Tensor] | None = None, obs_key: str = "observation",
                     init_action: torch.Tensor | str | None = None, init_action_clip: float = 0.98,
+                    time_features: bool = False,
                     ) -> tuple[ProbabilisticActor, ValueOperator, ObservationNormalizer]:
     """PPO's actor (:func:`make_actor`, state-independent scale), its value network (``"state_value"``, separate
     weights as SB3's MlpPolicy, the same normaliser) and the normaliser. Arguments as :func:`make_actor`."""
     actor, normalizer, value_mlp = make_actor(env, actor_cells, activation, max_obs_scale, obs_clip, init_log_std,
                                               obs_stats, obs_key, init_action, init_action_clip,
-                                              critic_cells=critic_cells)
+                                              critic_cells=critic_cells, time_features=time_features)
     critic = ValueOperator(nn.Sequential(normalizer, value_mlp), in_keys=[obs_key])
     return actor, critic, normalizer
 
@@ -237,15 +279,17 @@ def make_sac_models(env: EnvBase, actor_cells=(256, 256), critic_cells=(256, 256
                     max_obs_scale: float | None = 50.0, obs_clip: float = 5.0, init_log_std: float = -1.0,
                     obs_stats: dict[str, torch.Tensor] | None = None, obs_key: str = "observation",
                     init_action: torch.Tensor | str | None = None, init_action_clip: float = 0.98,
+                    time_features: bool = False,
                     ) -> tuple[ProbabilisticActor, ValueOperator, ObservationNormalizer]:
     """SAC's actor (:func:`make_actor`, state-dependent scale), one Q network template (``"state_action_value"``
     from the normalised observation and the action scaled to [-1, 1]; ``SACLoss`` makes its twins) and the
     normaliser. Arguments as :func:`make_actor`."""
     actor, normalizer, _ = make_actor(env, actor_cells, activation, max_obs_scale, obs_clip, init_log_std, obs_stats,
-                                      obs_key, init_action, init_action_clip, state_dependent_scale=True)
+                                      obs_key, init_action, init_action_clip, state_dependent_scale=True,
+                                      time_features=time_features)
     act_spec = _unbatched(env.full_action_spec, "action")
     low, high = act_spec.space.low.float(), act_spec.space.high.float()
-    obs_dim, act_dim = int(normalizer.loc.shape[0]), int(low.shape[-1])
+    obs_dim, act_dim = normalizer.out_features, int(low.shape[-1])
     q = _QInput(normalizer, low, high, _orthogonal_init(_mlp(obs_dim + act_dim, 1, critic_cells, activation), 1.0))
     qvalue = ValueOperator(q, in_keys=[obs_key, "action"], out_keys=["state_action_value"])
     return actor, qvalue, normalizer

@@ -92,7 +92,8 @@ class PPO(Algorithm):
     """Clipped PPO with GAE (TorchRL ``ClipPPOLoss``), the PPO recipe's defaults in ``recipes/conf/``."""
 
     name = "ppo"
-    architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip")
+    architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip",
+                         "model.time_features")
 
     def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
                  resume: Mapping[str, Any] | None):

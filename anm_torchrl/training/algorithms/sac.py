@@ -29,7 +29,8 @@ class SAC(Algorithm):
     """Soft actor-critic (TorchRL ``SACLoss``, version 2: no separate value network)."""
 
     name = "sac"
-    architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip")
+    architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip",
+                         "model.time_features")
 
     def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
                  resume: Mapping[str, Any] | None):
