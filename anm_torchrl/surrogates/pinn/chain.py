@@ -75,6 +75,7 @@ from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT
 from anm_torchrl.surrogates.pinn.losses import power_balance_residuals
 from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
+from anm_torchrl.surrogates.pinn.presets import MODULES
 
 log = logging.getLogger(__name__)
 
@@ -313,8 +314,11 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
             raise FileNotFoundError(f"no trained PINN at {file}; train one with: python recipes/train_pinn.py "
                                     f"path={file} (or pass train_if_missing=True)")
         preset = tr.network_preset_name(preset, sim)
-        log.warning("no trained PINN at %s: training the %r preset from physics alone (a few minutes)", file, preset)
-        cache.train_and_save(tr.preset(preset, seed=seed), sim, path=file, overwrite_cache=overwrite_cache,
+        cfg = tr.preset(preset, seed=seed)
+        log.warning("no trained PINN at %s: training the %r preset from physics alone, %d Adam steps in 3 stages "
+                    "(ANM6-Easy's default: 3.5-7 min on a 2-core CPU; the stages are logged at INFO)", file, preset,
+                    sum(getattr(cfg, m).max_steps for m in MODULES))
+        cache.train_and_save(cfg, sim, path=file, overwrite_cache=overwrite_cache,
                              log_dir=log_dir if log_dir is not None else file.parent / "tb", progress=progress)
     modules, _, _ = tr.load_modules(file, sim)
     return build_chain(sim, modules["generator"], modules["storage"], modules["power_balance"], terminal=terminal,

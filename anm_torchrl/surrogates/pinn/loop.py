@@ -198,13 +198,21 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
                    mininterval=1.0,
                    unit="step")
     report: dict[str, Any] = {}
+    budget = {m: getattr(cfg, m).max_steps for m in MODULES}
+    t0 = time.perf_counter()
     try:
-        for name in MODULES:
+        for i, name in enumerate(MODULES, 1):
             if bar is not None:
                 bar.set_postfix_str(name)
+            log.info("PINN stage %d/%d: %s, up to %d Adam steps", i, len(MODULES), name, budget[name])
             report[name] = train_module(name, modules[name], sim, getattr(cfg, name), seed=module_seed(cfg, name),
                                         writer=writer, progress=bar)
-            log.info("%s trained: %s", name, report[name])
+            elapsed, left = time.perf_counter() - t0, sum(budget[m] for m in MODULES[i:])
+            rate = report[name]["steps"] / max(report[name]["adam_time_s"], 1e-9)  # this stage's steps/s
+            log.info("PINN stage %d/%d done: %s, %d steps in %.0f s (%.0f s so far%s)", i, len(MODULES), name,
+                     report[name]["steps"], report[name]["time_s"], elapsed,
+                     f"; at this stage's {rate:.0f} steps/s, up to ~{left / max(rate, 1e-9):.0f} s left" if left else "")
+            log.debug("%s report: %s", name, report[name])
     finally:
         if bar is not None:
             bar.close()
