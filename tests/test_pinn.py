@@ -507,6 +507,19 @@ def test_recipe_smoke(tmp_path):
     assert any((tmp_path / "run" / "tb").iterdir())
 
 
+@pytest.mark.parametrize("arg,message", [
+    ("network=nowhere", "train_pinn.py: network: unknown network 'nowhere'"),
+    ("pinn_preset.power_balance.max_steps=-3", "train_pinn.py: PINN training option 'max_steps' must be an integer"),
+])
+def test_recipe_bad_input_is_one_line(tmp_path, arg, message):
+    """A user's mistake is one line naming it (no traceback), before any training or file is written."""
+    cmd = [sys.executable, str(ROOT / "recipes" / "train_pinn.py"), arg, f"path={tmp_path / 'p.safetensors'}",
+           "progress=false", f"hydra.run.dir={tmp_path / 'run'}"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert res.returncode != 0 and message in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert not (tmp_path / "p.safetensors").exists()
+
+
 def test_training_is_deterministic(sim):
     cfg = tr.preset("smoke", generator={"max_steps": 20}, storage={"max_steps": 20}, power_balance={"max_steps": 20})
     a, _ = tr.train_pinn(cfg, sim)
