@@ -122,7 +122,7 @@ def test_run_ppo_starts_from_an_empty_run_dir(tmp_path: Path, monkeypatch):
     (stale / "summary.json").write_text("{}")
     seen = {}
 
-    def fake_train(cfg, run_dir):
+    def fake_train(cfg, run_dir, network_defaults=None):
         seen["existed"], seen["surrogate"] = stale.exists(), cfg.surrogate.name
         seen["max_minutes"] = cfg.collector.max_minutes
         raise RuntimeError("boom")

@@ -86,7 +86,8 @@ def test_documented_command_options_exist(page, argv):
     assert OmegaConf.select(cfg, "hydra.runtime.choices") is not None
 
 
-RECIPE_GROUPS = {"ppo": {"checkpoint", "collector", "env", "eval", "logger", "loss", "model", "optim", "surrogate"},
+RECIPE_GROUPS = {"ppo": {"checkpoint", "collector", "env", "eval", "logger", "loss", "model", "optim", "per_network",
+                         "surrogate"},
                  "train_pinn": {"pinn_preset"}, "train_surrogate": {"models", "surrogate", "terminal"},
                  "make_dataset": set(), "reproduce": {"preset"}}
 
