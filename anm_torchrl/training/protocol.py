@@ -192,8 +192,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                 if render_interval and n_evals % render_interval == 0:
                     log_episode_figure(logger, actor, val_states[:1], cfg, frames)
                 pbar.set_postfix(eval=f"{last_eval['discounted_return']:.4g}", best=f"{best['discounted_return']:.4g}")
-                log.info("update %d, %d frames, %.0f s: eval/discounted_return %.2f (best %.2f), return %.1f, "
-                         "penalty %.1f, terminated %.2f", update, frames, time.perf_counter() - t_start,
+                log.info("update %d, %d frames, %.0f s: eval/discounted_return %.4g (best %.4g), return %.4g, "
+                         "penalty %.3g, terminated %.2f", update, frames, time.perf_counter() - t_start,
                          last_eval["discounted_return"], best["discounted_return"], last_eval["return"],
                          last_eval["penalty"], last_eval["terminated"])
             train_metrics["time/total_fps"] = frames / (wall_before + time.perf_counter() - t_start)
@@ -257,8 +257,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     if logger is not None and hasattr(logger.experiment, "flush"):
         logger.experiment.flush()
     log.info("done: %d frames in %.0f s, best eval/discounted_return %s, test/best/discounted_return %s", frames,
-             summary["wall_time"], None if best is None else f"{best['discounted_return']:.2f}",
-             f"{test['best']['discounted_return']:.2f}" if "best" in test else None)
+             summary["wall_time"], None if best is None else f"{best['discounted_return']:.4g}",
+             f"{test['best']['discounted_return']:.4g}" if "best" in test else None)
     if interrupted:
         raise KeyboardInterrupt
     return summary
