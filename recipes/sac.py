@@ -2,7 +2,7 @@
 surrogate, and evaluated on the true simulator.
 
     python recipes/sac.py                                   # true simulator, defaults in recipes/conf/sac.yaml
-    python recipes/sac.py network=case33bw loss.reward_scale=auto
+    python recipes/sac.py network=case33bw                  # its entry of recipes/conf/per_network/sac.yaml
     python recipes/sac.py checkpoint.resume=/abs/path/to/checkpoints/last.pt
 
 Layout follows TorchRL's ``sota-implementations/sac/``: Collector -> replay buffer -> SACLoss (twin Q, Polyak
