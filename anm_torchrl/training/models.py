@@ -112,14 +112,19 @@ def _initial_action(env: EnvBase, init_action: torch.Tensor | str | None) -> tor
         return None
     if init_action != "do_nothing":
         raise ValueError(f"init_action must be 'center', 'do_nothing', an action tensor or None; got {init_action!r}")
-    from torchrl.envs import TransformedEnv
-
     from anm_torchrl.baselines.simple import DoNothingPolicy
 
-    sim = getattr(env.base_env if isinstance(env, TransformedEnv) else env, "sim", None)
+    sim = getattr(_base_env(env), "sim", None)
     if sim is None:
         raise ValueError(f"init_action='do_nothing' needs an env with a simulator (.sim), got {type(env).__name__}")
     return DoNothingPolicy(sim).action_value
+
+
+def _base_env(env: EnvBase) -> EnvBase:
+    """The package env under TorchRL's transforms (``TransformedEnv.base_env``), or ``env`` itself."""
+    from torchrl.envs import TransformedEnv
+
+    return env.base_env if isinstance(env, TransformedEnv) else env
 
 
 def _unbatched(spec, key: str):
@@ -149,9 +154,7 @@ def time_of_day_feature(env: EnvBase) -> tuple[int, int]:
     Raises:
         ValueError: the observation has no ``aux`` entry, or the env has no observation map.
     """
-    from torchrl.envs import TransformedEnv
-
-    base = env.base_env if isinstance(env, TransformedEnv) else env
+    base = _base_env(env)
     obs_map = getattr(base, "obs_map", None)
     if obs_map is None:
         raise ValueError(f"model.time_features needs an env with an observation map (.obs_map), got "

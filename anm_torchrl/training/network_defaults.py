@@ -71,7 +71,6 @@ def network_entry(cfg: DictConfig) -> tuple[str, dict[str, Any]]:
     return name, values
 
 
-
 def apply_network_defaults(cfg: DictConfig, explicit: Iterable[str] = ()) -> dict[str, Any]:
     """Set the network's entry (:func:`network_entry`) on ``cfg`` in place, except every key in ``explicit`` or
     under one of them (``env`` protects ``env.num_envs``).

@@ -294,12 +294,10 @@ def run_recipe(cfg: DictConfig) -> dict:
     files then).
     """
     import hydra
-
-    from anm_torchrl.training.algorithms import check_algorithm_config
-
     from hydra.core.hydra_config import HydraConfig
 
     from anm_torchrl.networks.user import network_argument
+    from anm_torchrl.training.algorithms import check_algorithm_config
     from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
 
     run_dir = Path.cwd()
@@ -310,7 +308,7 @@ def run_recipe(cfg: DictConfig) -> dict:
         check_algorithm_config(cfg)
     except ValueError as err:
         remove_hydra_only_dir(run_dir)
-        raise SystemExit(f"{hydra.core.hydra_config.HydraConfig.get().job.name}.py: {err}") from None
+        raise SystemExit(f"{HydraConfig.get().job.name}.py: {err}") from None
     if cfg.checkpoint.resume:  # relative to where the command was typed, not to the run directory
         cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
     print(f"run directory: {run_dir}", flush=True)
