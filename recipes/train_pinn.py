@@ -43,7 +43,7 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 def main(cfg: DictConfig) -> dict:
     from anm_torchrl.networks import check_network_name, simulator as network_simulator
     from anm_torchrl.surrogates.pinn.cache import default_path, train_and_save
-    from anm_torchrl.surrogates.pinn.chain import load_pinn
+    from anm_torchrl.surrogates.pinn.load import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
     from anm_torchrl.surrogates.pinn.train import from_composed, resolve_path
 

@@ -159,7 +159,7 @@ def test_pinn_chain_gradients_vs_exact():
 
     from anm_torchrl.baselines.simple import DoNothingPolicy
     from anm_torchrl.surrogates.pinn.cache import default_path
-    from anm_torchrl.surrogates.pinn.chain import load_pinn
+    from anm_torchrl.surrogates.pinn.load import load_pinn
     from anm_torchrl.training.factory import make_true_env
 
     sim = simulator(ANM6_EASY)

@@ -32,17 +32,16 @@ LAYERS = [
     ("cli", "__init__"),
 ]
 # (importer, imported) arrows that run up on purpose, each with its reason
-ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
-# debts on main that the grid and surrogates branches remove (they are not merged yet); the test fails on any
-# circle or upward arrow not listed here, and on a listed one that is gone (so the list only shrinks)
-KNOWN_CIRCLES = [
-    ["anm_torchrl.surrogates.regressors.io", "anm_torchrl.surrogates.regressors.module"],
-    ["anm_torchrl.surrogates.pinn.cache", "anm_torchrl.surrogates.pinn.chain", "anm_torchrl.surrogates.pinn.io",
-     "anm_torchrl.surrogates.pinn.loop", "anm_torchrl.surrogates.pinn.refine", "anm_torchrl.surrogates.pinn.train"],
-]
-KNOWN_UPWARD = [
-    ("anm_torchrl.surrogates.pinn.evaluate", "anm_torchrl.baselines.simple"),
-]
+ALLOWED_UPWARD: dict[tuple[str, str], str] = {
+    ("anm_torchrl.surrogates.pinn.evaluate", "anm_torchrl.baselines.simple"):
+        "the PINN's expert accuracy set is transitions of the DC-OPF MPC baseline (the paper's protocol); the "
+        "study commands the accuracy records quote live in surrogates/pinn (docs/DESIGN.md, section 2)",
+}
+assert len(ALLOWED_UPWARD) <= 2, "issue 22: at most two upward arrows, each with its reason"
+# debts: the test fails on any circle or upward arrow not listed here, and on a listed one that is gone (so the
+# lists only shrink); both are empty now
+KNOWN_CIRCLES: list[list[str]] = []
+KNOWN_UPWARD: list[tuple[str, str]] = []
 
 
 def module_name(path: Path) -> str:

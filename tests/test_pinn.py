@@ -26,7 +26,8 @@ from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn import cache
 from anm_torchrl.surrogates.pinn import train as tr
-from anm_torchrl.surrogates.pinn.chain import build_chain, load_pinn
+from anm_torchrl.surrogates.pinn.chain import build_chain
+from anm_torchrl.surrogates.pinn.load import load_pinn
 from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn, random_transitions
 from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT, clamp_to_polygon
 from anm_torchrl.surrogates.pinn.losses import kkt_losses, power_balance_losses

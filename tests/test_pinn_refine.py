@@ -16,8 +16,9 @@ import torch
 from anm_torchrl.artifacts import ArtifactError, tensors_sha256
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn import refine
+from anm_torchrl.surrogates.pinn.io import apply_refine_rule
 from anm_torchrl.surrogates.pinn import train as tr
-from anm_torchrl.surrogates.pinn.chain import load_pinn
+from anm_torchrl.surrogates.pinn.load import load_pinn
 from anm_torchrl.surrogates.pinn.losses import power_balance_residuals
 from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
 from anm_torchrl.surrogates.pinn.tasks import TASKS
@@ -141,7 +142,7 @@ def test_bad_or_corrupted_chord_step_fields_are_refused(auto_file, tmp_path, edi
 
 def test_a_model_from_before_the_rule_is_refused_then_migrated(auto_file, tmp_path, case33):
     """A ``feeder`` model saved before the rule (fixed refine_steps 1, no ``refine_steps`` field) is never served
-    with that k: loading it raises and names the command that applies the rule; ``apply_to_file`` rewrites it
+    with that k: loading it raises and names the command that applies the rule; ``io.apply_refine_rule`` rewrites it
     with the rule's k, same weights."""
     file, _ = auto_file
 
@@ -155,9 +156,9 @@ def test_a_model_from_before_the_rule_is_refused_then_migrated(auto_file, tmp_pa
         return edit
 
     old = _rewrite(file, tmp_path / "pinn.safetensors", before_the_rule("feeder", 1))
-    with pytest.raises(ArtifactError, match="trained before the rule with a fixed 1.*pinn.refine --network"):
+    with pytest.raises(ArtifactError, match="trained before the rule with a fixed 1.*cli.pinn_refine --network"):
         tr.load_modules(old, case33)
-    rec = refine.apply_to_file(old, case33)
+    rec = apply_refine_rule(old, case33)
     modules, cfg, report = tr.load_modules(old, case33)
     assert cfg.power_balance.refine_steps == "auto" and modules["power_balance"].refine_steps == rec["k"]
     assert report["power_balance"]["refine"]["applied_after_training"] is True
@@ -191,7 +192,7 @@ def test_newton_refinement_converges_where_the_flat_start_chord_does_not():
         task = TASKS["power_balance"](pb, sim)
         u = torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=5 + refine.SEED_OFFSET).draw(refine.POINTS)
         out[method] = refine.residual_quantiles(pb, *task.sample(u.double()), k_max=refine.K_MAX)
-    bar = refine.MARGIN * refine._threshold()
+    bar = refine.MARGIN * refine.DEFAULT_RESIDUAL_THRESHOLD
     assert len(out["chord"]) == refine.K_MAX and out["chord"][-1] > bar, out["chord"]
     assert len(out["newton"]) <= 4 and out["newton"][-1] <= bar, out["newton"]
     # and the rule itself: v2 on the same network

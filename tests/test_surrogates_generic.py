@@ -22,7 +22,7 @@ from anm_torchrl.surrogates import load_surrogate
 from anm_torchrl.surrogates.features import Featurizer, state_names
 from anm_torchrl.surrogates.pinn import cache
 from anm_torchrl.surrogates.pinn import train as tr
-from anm_torchrl.surrogates.pinn.chain import load_pinn
+from anm_torchrl.surrogates.pinn.load import load_pinn
 
 torch.set_num_threads(1)
 

@@ -45,7 +45,7 @@ class SurrogateKind:
 
 _REGRESSOR_LOADER = "anm_torchrl.surrogates.regressors.loaders:load_regressor_surrogate"
 _REGISTRY: dict[str, SurrogateKind] = {
-    "pinn": SurrogateKind("pinn", "physics", "anm_torchrl.surrogates.pinn.chain:load_pinn"),
+    "pinn": SurrogateKind("pinn", "physics", "anm_torchrl.surrogates.pinn.load:load_pinn"),
     **{k: SurrogateKind(k, "data", _REGRESSOR_LOADER, {"kind": k}) for k in ("lr", "dt", "rf", "xgb", "dnn")},
 }
 FAMILIES = ("physics", "data")

@@ -6,11 +6,13 @@
 * :mod:`.model`, :mod:`.tasks`, :mod:`.loop` — the networks, what each is trained on, the training loop
   (physics alone); :mod:`.train` re-exports them;
 * :mod:`.io` — the saved file (safetensors, hash-checked); :mod:`.cache` — the default cache and its rules;
-* :mod:`.chain` — the ``TensorDictSequential`` surrogate and :func:`load_pinn` (registry name ``"pinn"``);
+* :mod:`.chain` — the ``TensorDictSequential`` surrogate; :mod:`.load` — :func:`load_pinn` (registry name
+  ``"pinn"``), from a file or trained on first use;
 * :mod:`.evaluate` — accuracy against the exact simulator (``python -m anm_torchrl.surrogates.pinn.evaluate``).
 """
 
-from anm_torchrl.surrogates.pinn.chain import build_chain, load_pinn
+from anm_torchrl.surrogates.pinn.chain import build_chain
+from anm_torchrl.surrogates.pinn.load import load_pinn
 from anm_torchrl.surrogates.pinn.train import PINNTrainConfig, preset, save_pinn, train_pinn
 
 __all__ = ["PINNTrainConfig", "build_chain", "load_pinn", "preset", "save_pinn", "train_pinn"]

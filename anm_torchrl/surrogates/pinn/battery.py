@@ -4,7 +4,7 @@ Per seed, a network of :func:`battery_case` (:mod:`anm_torchrl.networks.random`;
 topology follow the seed: ``seed % 3`` → 5–15 / 16–40 / 41–80 buses, ``(seed // 3) % 2`` → radial / meshed),
 then what ``make_env(surrogate="pinn", network=...)`` does: the ``default`` preset for the network (``feeder``
 off ANM6-Easy, :func:`.presets.network_preset_name`) trained by :func:`.cache.train_and_save` (here into
-``--model-dir``, never the user's cache), then the chain of :func:`.chain.load_pinn` (models in ``--model-dir``). Recorded per network:
+``--model-dir``, never the user's cache), then the chain of :func:`.load.load_pinn` (models in ``--model-dir``). Recorded per network:
 
 * ``accepted`` / ``acceptance_failures``: the preset's acceptance bar (:func:`.presets.check_acceptance`);
 * ``pq_rel_mae_max`` / ``pq_rel_mae_mean``: next-state P/Q MAE of the generators and storage units relative to
@@ -137,7 +137,7 @@ def measure(seed: int, model_dir: Path, n_random: int = 4000, overrides: dict[st
     from anm_torchrl.networks import simulator
     from anm_torchrl.surrogates.pinn import cache
     from anm_torchrl.surrogates.pinn import train as tr
-    from anm_torchrl.surrogates.pinn.chain import load_pinn
+    from anm_torchrl.surrogates.pinn.load import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn, random_transitions
 
     case = issue23_case() if seed == ISSUE23 else battery_case(seed)

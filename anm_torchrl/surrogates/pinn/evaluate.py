@@ -268,7 +268,8 @@ def format_table(results: dict[str, dict[str, Any]]) -> str:
 def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
     """CLI: evaluate a saved PINN (trains the default one first if ``--path`` holds none)."""
     from anm_torchrl.networks import simulator as network_simulator
-    from anm_torchrl.surrogates.pinn.chain import DEFAULT_RESIDUAL_THRESHOLD, load_pinn
+    from anm_torchrl.surrogates.pinn.chain import DEFAULT_RESIDUAL_THRESHOLD
+    from anm_torchrl.surrogates.pinn.load import load_pinn
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--path", default=None, help="PINN file or folder (default: the network's cache)")

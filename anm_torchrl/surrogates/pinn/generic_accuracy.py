@@ -51,7 +51,7 @@ import torch
 from anm_torchrl.data.generic import is_anm6
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn import cache
-from anm_torchrl.surrogates.pinn.chain import load_pinn
+from anm_torchrl.surrogates.pinn.load import load_pinn
 from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets
 from anm_torchrl.surrogates.pinn.train import (MODULES, build_modules, check_acceptance, load_modules, module_seed,
                                               network_preset_name, preset, read_pinn_file, save_pinn, train_module)

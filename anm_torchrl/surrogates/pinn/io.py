@@ -23,7 +23,8 @@ from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn.model import build_modules
-from anm_torchrl.surrogates.pinn.presets import MODULES, PINNTrainConfig
+from anm_torchrl.surrogates.pinn.presets import MODULES, PRESETS, REFINE_AUTO, PINNTrainConfig, module_seed, preset
+from anm_torchrl.surrogates.pinn.refine import RULE, RULE_METHODS, check_method, check_record, choose_refine_steps
 
 KIND = "anm_torchrl.pinn"
 FILE_NAME = "pinn.safetensors"
@@ -100,9 +101,6 @@ def config_of(payload: dict[str, Any], path: str | Path, sim: GridSimulator) -> 
 def refine_steps_of(payload: dict[str, Any], cfg: PINNTrainConfig, path: str | Path) -> int:
     """The chord steps a read file runs with (:func:`.refine.check_record`: fields checked against each other and
     against what the file's preset does today)."""
-    from anm_torchrl.surrogates.pinn.presets import PRESETS, REFINE_AUTO, preset
-    from anm_torchrl.surrogates.pinn.refine import check_record
-
     auto_now = cfg.preset in PRESETS and preset(cfg.preset).power_balance.refine_steps == REFINE_AUTO
     record = ((payload.get("report") or {}).get("power_balance") or {}).get("refine")
     return check_record(resolve_path(path), cfg.power_balance.refine_steps, payload.get("refine_steps"), record,
@@ -111,8 +109,6 @@ def refine_steps_of(payload: dict[str, Any], cfg: PINNTrainConfig, path: str | P
 
 def refine_method_of(payload: dict[str, Any], path: str | Path) -> str:
     """The refinement a read file runs (:func:`.refine.check_method`)."""
-    from anm_torchrl.surrogates.pinn.refine import check_method
-
     record = ((payload.get("report") or {}).get("power_balance") or {}).get("refine")
     return check_method(resolve_path(path), payload.get("refine_method"), record)
 
@@ -150,3 +146,18 @@ def load_modules(path: str | Path, sim: GridSimulator) -> tuple[dict[str, nn.Mod
     modules = modules_from_payload(payload, cfg, sim, path, refine_steps_of(payload, cfg, path),
                                    refine_method_of(payload, path))
     return modules, cfg, payload.get("report", {})
+
+
+def apply_refine_rule(path: str | Path, sim: GridSimulator) -> dict[str, Any]:
+    """Apply the refinement rule (:mod:`.refine`, v2) to the model saved at ``path`` (trained on ``sim``'s network)
+    and rewrite it with the chosen k and the rule's record (weights unchanged; the config's
+    ``power_balance.refine_steps`` becomes ``auto``). Returns the record."""
+    payload = read_pinn_file(path)
+    cfg = config_of(payload, path, sim)
+    cfg.power_balance.refine_steps = REFINE_AUTO
+    modules = modules_from_payload(payload, cfg, sim, path, refine_steps=0, refine_method=RULE_METHODS[RULE])
+    report = dict(payload.get("report") or {})
+    record = choose_refine_steps(modules["power_balance"], sim, module_seed(cfg, "power_balance"))
+    report["power_balance"] = {**report.get("power_balance", {}), "refine": {**record, "applied_after_training": True}}
+    save_pinn(path, modules, cfg, report, sim)
+    return record

@@ -6,7 +6,7 @@ the current estimate (:class:`.power_balance.PowerBalanceNet`, ``refine_method="
 operating points are far from the flat start in Jacobian terms (a 132/33 kV transformer with X = 0.55 p.u. on
 100 MVA and tap 1.03: the residual grew each step, no k met the bar, the model was refused). A v1 file still
 loads and runs its chord steps exactly as it was chosen with (:data:`RULE_METHODS`; its ``refine_method`` field is
-absent); ``python -m anm_torchrl.surrogates.pinn.refine`` moves it to v2 (same weights).
+absent); ``python -m anm_torchrl.cli.pinn_refine`` moves it to v2 (same weights).
 
 A preset with ``power_balance.refine_steps: auto`` (``feeder``) gets, at the end of its power-balance training,
 the smallest k in 1…:data:`K_MAX` whose power-flow residual meets :func:`rule_met` — no simulator label enters:
@@ -33,14 +33,13 @@ failure, never a silent k.
 
 The chosen k is stored in the model file (top-level ``refine_steps`` and the training report's
 ``power_balance.refine`` record, :mod:`.io`), and a file is always run with the k it names; :func:`check_record`
-is the format check :func:`.io.load_modules` applies. ``python -m anm_torchrl.surrogates.pinn.refine --network
-<name> --path <file>`` applies the rule to a model trained before it (same weights; the file is rewritten with
-its k and record).
+is the format check :func:`.io.load_modules` applies. ``python -m anm_torchrl.cli.pinn_refine --network <name>
+--path <file>`` (:func:`.io.apply_refine_rule`) applies the rule to a model trained before it (same weights; the
+file is rewritten with its k and record).
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 from pathlib import Path
@@ -49,6 +48,7 @@ from typing import Any
 import torch
 
 from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.surrogates.pinn.chain import DEFAULT_RESIDUAL_THRESHOLD  # the threshold's one home
 from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
 from anm_torchrl.surrogates.pinn.presets import REFINE_AUTO as AUTO, module_seed
 
@@ -64,15 +64,9 @@ K_MAX = 8
 SEED_OFFSET = 30_000
 
 
-def _threshold() -> float:
-    from anm_torchrl.surrogates.pinn.chain import DEFAULT_RESIDUAL_THRESHOLD  # the threshold's one home
-
-    return DEFAULT_RESIDUAL_THRESHOLD
-
-
 def rule_met(residual_q: float, threshold: float | None = None) -> bool:
     """Whether a residual quantile (p.u.) meets the bar ``MARGIN × threshold`` (NaN: not met)."""
-    thr = _threshold() if threshold is None else threshold
+    thr = DEFAULT_RESIDUAL_THRESHOLD if threshold is None else threshold
     return bool(residual_q <= MARGIN * thr)
 
 
@@ -130,8 +124,9 @@ def choose_refine_steps(pb: PowerBalanceNet, sim: GridSimulator, seed: int) -> d
     if not met:
         log.warning("no Newton-step count <= %d brings the %.2f quantile of the power-flow residual below %.2g p.u. "
                     "(after %d steps: %.3g p.u.): the model fails its acceptance bar", K_MAX, QUANTILE,
-                    MARGIN * _threshold(), k, q[-1])
-    return {"rule": RULE, "method": RULE_METHODS[RULE], "k": k, "met": met, "quantile": QUANTILE, "margin": MARGIN, "threshold_pu": _threshold(),
+                    MARGIN * DEFAULT_RESIDUAL_THRESHOLD, k, q[-1])
+    return {"rule": RULE, "method": RULE_METHODS[RULE], "k": k, "met": met, "quantile": QUANTILE, "margin": MARGIN,
+            "threshold_pu": DEFAULT_RESIDUAL_THRESHOLD,
             "points": POINTS, "k_max": K_MAX, "seed": seed + SEED_OFFSET,
             "residual_q_pu": [x if math.isfinite(x) else None for x in q]}
 
@@ -155,7 +150,7 @@ def check_record(file: Path | str, config_k: Any, file_k: Any, record: Any, pres
 
     def bad(why: str) -> ArtifactError:
         return ArtifactError(f"{file}: {why}; retrain it, or apply the rule to it with python -m "
-                             f"anm_torchrl.surrogates.pinn.refine --network <name> --path {file}")
+                             f"anm_torchrl.cli.pinn_refine --network <name> --path {file}")
 
     if file_k is None:
         if preset_is_auto or config_k == AUTO:
@@ -196,41 +191,5 @@ def check_method(file: Path | str, file_method: Any, record: Any) -> str:
     if rule in RULE_METHODS and RULE_METHODS[rule] != method:
         raise ArtifactError(f"{file}: its steps were chosen by rule {rule} with {RULE_METHODS[rule]} steps, but it "
                             f"names refine_method {method!r}; retrain it, or apply the rule to it with python -m "
-                            f"anm_torchrl.surrogates.pinn.refine --network <name> --path {file}")
+                            f"anm_torchrl.cli.pinn_refine --network <name> --path {file}")
     return method
-
-
-def apply_to_file(path: str | Path, sim: GridSimulator) -> dict[str, Any]:
-    """Apply the rule to the model saved at ``path`` (trained on ``sim``'s network) and rewrite it with the chosen
-    k and the rule's record (weights unchanged; the config's ``power_balance.refine_steps`` becomes ``auto``).
-    Returns the record."""
-    from anm_torchrl.surrogates.pinn import io
-
-    payload = io.read_pinn_file(path)
-    cfg = io.config_of(payload, path, sim)
-    cfg.power_balance.refine_steps = AUTO
-    modules = io.modules_from_payload(payload, cfg, sim, path, refine_steps=0, refine_method=RULE_METHODS[RULE])
-    report = dict(payload.get("report") or {})
-    record = choose_refine_steps(modules["power_balance"], sim, module_seed(cfg, "power_balance"))
-    report["power_balance"] = {**report.get("power_balance", {}), "refine": {**record, "applied_after_training": True}}
-    io.save_pinn(path, modules, cfg, report, sim)
-    return record
-
-
-def main(argv: list[str] | None = None) -> dict[str, Any]:
-    """CLI: apply the rule to a saved model (module docstring)."""
-    from anm_torchrl.networks import simulator as network_simulator
-
-    ap = argparse.ArgumentParser(description="choose a saved PINN's Newton steps by the rule (v2) and rewrite the file")
-    ap.add_argument("--network", required=True, help="the registered network the model was trained on")
-    ap.add_argument("--path", required=True, help="the model file (or its folder)")
-    args = ap.parse_args(argv)
-    torch.set_num_threads(1)
-    rec = apply_to_file(args.path, network_simulator(args.network))
-    log.info("%s: k = %d (%s)", args.path, rec["k"], rec)
-    return rec
-
-
-if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO)
-    main()

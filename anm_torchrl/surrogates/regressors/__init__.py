@@ -13,13 +13,16 @@ batched ``predict`` of the regressor and one of the classifier per env step), :m
 :mod:`.io` (atomic, hash-checked folders) and :mod:`.loaders` (the registry's loaders).
 """
 
+from anm_torchrl.surrogates.regressors.backends import BACKENDS, MODEL_FILES
 from anm_torchrl.surrogates.regressors.defaults import (DATASETS, DEFAULT_PARAMS, FORMAT, FORMAT_VERSION, KINDS,
-                                                        META_FILE, MODEL_FILES, train_command)
+                                                        META_FILE, train_command)
 from anm_torchrl.surrogates.regressors.fit import fit_regressor, regression_rows, targets_of
+from anm_torchrl.surrogates.regressors.io import load_surrogate_folder, save_surrogate
 from anm_torchrl.surrogates.regressors.loaders import load_regressor_surrogate
 from anm_torchrl.surrogates.regressors.metrics import evaluate_surrogate, regression_metrics
 from anm_torchrl.surrogates.regressors.module import RegressorSurrogate
 
-__all__ = ["DATASETS", "DEFAULT_PARAMS", "FORMAT", "FORMAT_VERSION", "KINDS", "META_FILE", "MODEL_FILES",
+__all__ = ["BACKENDS", "DATASETS", "DEFAULT_PARAMS", "FORMAT", "FORMAT_VERSION", "KINDS", "META_FILE", "MODEL_FILES",
            "RegressorSurrogate", "evaluate_surrogate", "fit_regressor", "load_regressor_surrogate",
-           "regression_metrics", "regression_rows", "targets_of", "train_command"]
+           "load_surrogate_folder", "regression_metrics", "regression_rows", "save_surrogate", "targets_of",
+           "train_command"]

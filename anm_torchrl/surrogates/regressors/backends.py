@@ -19,7 +19,6 @@ from tqdm.auto import tqdm
 
 from anm_torchrl._extras import require
 from anm_torchrl.artifacts import ArtifactError, load_tensors, save_tensors
-from anm_torchrl.surrogates.regressors.defaults import MODEL_FILES
 from anm_torchrl.surrogates.terminal import ModelFileError, load_booster
 
 DNN_KIND = "anm_torchrl.dnn"
@@ -35,9 +34,13 @@ def clone_fit(estimator, x: np.ndarray, y: np.ndarray):
 
 
 class Backend:
-    """A fitted model mapping standardised features (N, F) float64 to standardised targets (N, T) float64."""
+    """A fitted model mapping standardised features (N, F) float64 to standardised targets (N, T) float64.
+
+    Every subclass has the same ``fit`` and ``load`` signatures (:data:`BACKENDS` dispatches on the kind alone) and
+    names its model file in ``FILE``."""
 
     kind: str
+    FILE: str
 
     def predict(self, x: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
@@ -54,9 +57,12 @@ class SklearnBackend(Backend):
     def __init__(self, kind: str, estimator):
         self.kind, self.estimator = kind, estimator
 
+    FILE = "model.skops"
+
     @classmethod
-    def fit(cls, kind: str, x: np.ndarray, y: np.ndarray, params: dict, n_jobs: int, seed: int,
-            progress: bool) -> tuple["SklearnBackend", dict]:
+    def fit(cls, kind: str, x: torch.Tensor, y: torch.Tensor, xv: torch.Tensor, yv: torch.Tensor, params: dict,
+            n_jobs: int, seed: int, progress: bool, log_dir=None) -> tuple["SklearnBackend", dict]:
+        """Fit on (x, y) (no early stopping: the validation rows and ``log_dir`` are not used)."""
         require("sklearn")
         import joblib
         from sklearn.ensemble import RandomForestRegressor
@@ -64,6 +70,7 @@ class SklearnBackend(Backend):
         from sklearn.multioutput import MultiOutputRegressor
         from sklearn.tree import DecisionTreeRegressor
 
+        x, y = x.numpy(), y.numpy()
         info: dict[str, Any] = {}
         if kind == "lr":
             return cls(kind, LinearRegression(**params).fit(x, y)), info
@@ -99,13 +106,13 @@ class SklearnBackend(Backend):
     def save(self, folder: Path) -> None:
         sio = require("skops.io")
 
-        sio.dump(self.estimator, folder / MODEL_FILES[self.kind])
+        sio.dump(self.estimator, folder / self.FILE)
 
     @classmethod
-    def load(cls, kind: str, folder: Path, n_features: int, n_targets: int) -> "SklearnBackend":
+    def load(cls, kind: str, folder: Path, n_features: int, n_targets: int, n_jobs: int = 1) -> "SklearnBackend":
         sio = require("skops.io")
 
-        f = folder / MODEL_FILES[kind]
+        f = folder / cls.FILE
         if not f.is_file():
             raise ModelFileError(f"{kind} model file {f} is missing")
         try:
@@ -134,15 +141,18 @@ class SklearnBackend(Backend):
 
 class XGBBackend(Backend):
     kind = "xgb"
+    FILE = "model.ubj"
 
     def __init__(self, booster, n_jobs: int):
         self.booster, self.n_jobs = booster, int(n_jobs)
 
     @classmethod
-    def fit(cls, x: np.ndarray, y: np.ndarray, xv: np.ndarray, yv: np.ndarray, params: dict, n_jobs: int,
-            seed: int, progress: bool) -> tuple["XGBBackend", dict]:
+    def fit(cls, kind: str, x: torch.Tensor, y: torch.Tensor, xv: torch.Tensor, yv: torch.Tensor, params: dict,
+            n_jobs: int, seed: int, progress: bool, log_dir=None) -> tuple["XGBBackend", dict]:
+        """Boost on (x, y), early-stopped on (xv, yv) (``log_dir`` not used)."""
         from anm_torchrl.surrogates._xgb import train_booster
 
+        x, y, xv, yv = x.numpy(), y.numpy(), xv.numpy(), yv.numpy()
         p = dict(params)
         rounds, early = int(p.pop("num_boost_round")), p.pop("early_stopping_rounds")
         min_delta = float(p.pop("early_stopping_min_delta", 0.0))
@@ -159,11 +169,11 @@ class XGBBackend(Backend):
         return torch.as_tensor(np.asarray(y, dtype=np.float64).reshape(x.shape[0], -1), device=x.device)
 
     def save(self, folder: Path) -> None:
-        self.booster.save_model(str(folder / MODEL_FILES["xgb"]))
+        self.booster.save_model(str(folder / self.FILE))
 
     @classmethod
-    def load(cls, folder: Path, n_features: int, n_targets: int, n_jobs: int) -> "XGBBackend":
-        f = folder / MODEL_FILES["xgb"]
+    def load(cls, kind: str, folder: Path, n_features: int, n_targets: int, n_jobs: int = 1) -> "XGBBackend":
+        f = folder / cls.FILE
         booster = load_booster(f, "xgb model file")
         booster.set_param({"nthread": int(n_jobs)})
         n_out = np.asarray(booster.inplace_predict(np.zeros((1, booster.num_features())))).reshape(1, -1).shape[1]
@@ -175,14 +185,16 @@ class XGBBackend(Backend):
 
 class DNNBackend(Backend, torch.nn.Module):
     kind = "dnn"
+    FILE = "model.safetensors"
 
     def __init__(self, mlp):
         torch.nn.Module.__init__(self)
         self.mlp = mlp
 
     @classmethod
-    def fit(cls, x: torch.Tensor, y: torch.Tensor, xv: torch.Tensor, yv: torch.Tensor, params: dict, seed: int,
-            progress: bool, log_dir) -> tuple["DNNBackend", dict]:
+    def fit(cls, kind: str, x: torch.Tensor, y: torch.Tensor, xv: torch.Tensor, yv: torch.Tensor, params: dict,
+            n_jobs: int, seed: int, progress: bool, log_dir=None) -> tuple["DNNBackend", dict]:
+        """Train the MLP on (x, y), early-stopped on (xv, yv), TensorBoard in ``log_dir`` (``n_jobs``: torch's)."""
         from anm_torchrl.surrogates.dnn import train_mlp
 
         mlp, info = train_mlp(x, y, xv, yv, params, seed=seed, progress=progress, log_dir=log_dir)
@@ -194,13 +206,13 @@ class DNNBackend(Backend, torch.nn.Module):
             return self.mlp(x.to(dev, torch.float32)).to(x.device, torch.float64)
 
     def save(self, folder: Path) -> None:
-        save_tensors(folder / MODEL_FILES["dnn"], self.mlp.state_dict(), {"arch": self.mlp.arch}, DNN_KIND)
+        save_tensors(folder / self.FILE, self.mlp.state_dict(), {"arch": self.mlp.arch}, DNN_KIND)
 
     @classmethod
-    def load(cls, folder: Path, n_features: int, n_targets: int) -> "DNNBackend":
+    def load(cls, kind: str, folder: Path, n_features: int, n_targets: int, n_jobs: int = 1) -> "DNNBackend":
         from anm_torchrl.surrogates.dnn import MLP
 
-        f = folder / MODEL_FILES["dnn"]
+        f = folder / cls.FILE
         if not f.is_file():
             raise ModelFileError(f"dnn model file {f} is missing")
         tensors, meta = load_tensors(f, DNN_KIND)
@@ -217,10 +229,12 @@ class DNNBackend(Backend, torch.nn.Module):
         return cls(mlp)
 
 
+#: the backend class of each data-driven kind: the one dispatch of fitting, loading and file names
+BACKENDS: dict[str, type[Backend]] = {"lr": SklearnBackend, "dt": SklearnBackend, "rf": SklearnBackend,
+                                      "xgb": XGBBackend, "dnn": DNNBackend}
+MODEL_FILES: dict[str, str] = {kind: b.FILE for kind, b in BACKENDS.items()}
+
+
 def load_backend(kind: str, folder: Path, n_features: int, n_targets: int, n_jobs: int) -> Backend:
     """The fitted model of ``kind`` saved in ``folder`` (already verified against its manifest)."""
-    if kind == "xgb":
-        return XGBBackend.load(folder, n_features, n_targets, n_jobs)
-    if kind == "dnn":
-        return DNNBackend.load(folder, n_features, n_targets)
-    return SklearnBackend.load(kind, folder, n_features, n_targets)
+    return BACKENDS[kind].load(kind, folder, n_features, n_targets, n_jobs)

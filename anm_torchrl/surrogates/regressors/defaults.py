@@ -38,15 +38,14 @@ from typing import Any
 
 from anm_torchrl.data.registry import available_datasets
 from anm_torchrl.surrogates.conf import load_defaults
-from anm_torchrl.surrogates.registry import data_driven_surrogates
+from anm_torchrl.surrogates.regressors.backends import BACKENDS
 
-KINDS: tuple[str, ...] = data_driven_surrogates()
+#: the kinds this module fits and loads (those with a backend; the registry's data-driven entries load them)
+KINDS: tuple[str, ...] = tuple(BACKENDS)
 DATASETS: tuple[str, ...] = available_datasets()
 FORMAT = "anm_torchrl.regressor_surrogate"
 FORMAT_VERSION = 2
 META_FILE = "surrogate.json"
-MODEL_FILES = {"lr": "model.skops", "dt": "model.skops", "rf": "model.skops", "xgb": "model.ubj",
-               "dnn": "model.safetensors"}
 DEFAULT_PARAMS: dict[str, dict[str, Any]] = load_defaults("models/default")
 
 

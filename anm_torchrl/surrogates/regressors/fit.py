@@ -14,7 +14,7 @@ from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.features import Featurizer, target_layout
-from anm_torchrl.surrogates.regressors.backends import DNNBackend, SklearnBackend, XGBBackend
+from anm_torchrl.surrogates.regressors.backends import BACKENDS
 from anm_torchrl.surrogates.regressors.defaults import DEFAULT_PARAMS, KINDS
 from anm_torchrl.surrogates.regressors.module import RegressorSurrogate
 
@@ -57,12 +57,7 @@ def fit_regressor(kind: str, train: TensorDictBase, val: TensorDictBase, sim: Gr
     yv = (targets_of(va, sim) - y_mean) / y_std
     p = {**DEFAULT_PARAMS[kind], **(params or {})}
     start = time.perf_counter()
-    if kind == "xgb":
-        backend, info = XGBBackend.fit(xs.numpy(), ys.numpy(), xv.numpy(), yv.numpy(), p, n_jobs, seed, progress)
-    elif kind == "dnn":
-        backend, info = DNNBackend.fit(xs, ys, xv, yv, p, seed, progress, log_dir)
-    else:
-        backend, info = SklearnBackend.fit(kind, xs.numpy(), ys.numpy(), p, n_jobs, seed, progress)
+    backend, info = BACKENDS[kind].fit(kind, xs, ys, xv, yv, p, n_jobs, seed, progress, log_dir)
     info = {**info, "train_seconds": time.perf_counter() - start, "n_train": int(xs.shape[0]),
             "n_val": int(xv.shape[0])}
     log.info("%s trained in %.1f s on %d rows", kind, info["train_seconds"], xs.shape[0])

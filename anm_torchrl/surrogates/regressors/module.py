@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -90,18 +88,3 @@ class RegressorSurrogate(TensorDictModuleBase):
         return {"state_dim": self.sim.state_dim, "action_dim": self.sim.action_dim, "n_time": self.sim.n_time,
                 "features": list(self.featurizer.names), "targets": list(self.target_names),
                 "target_index": self.target_index.tolist()}
-
-    def save(self, path: str | os.PathLike, extra: dict | None = None, files: dict[str, Any] | None = None,
-             overwrite: bool = True) -> Path:
-        """Write the surrogate into folder ``path`` atomically (see :func:`.io.save_surrogate`)."""
-        from anm_torchrl.surrogates.regressors.io import save_surrogate
-
-        return save_surrogate(self, path, extra=extra, files=files, overwrite=overwrite)
-
-    @classmethod
-    def load(cls, path: str | os.PathLike, kind: str | None = None, device="cpu", sim: GridSimulator | None = None,
-             n_jobs: int = 1) -> "RegressorSurrogate":
-        """Load a surrogate saved by :meth:`save` (see :func:`.io.load_surrogate_folder`)."""
-        from anm_torchrl.surrogates.regressors.io import load_surrogate_folder
-
-        return load_surrogate_folder(path, kind=kind, device=device, sim=sim, n_jobs=n_jobs)

@@ -103,7 +103,7 @@ def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: 
     """Train, save and evaluate surrogate ``name`` on ``dataset``; returns its metrics."""
     from anm_torchrl.data import for_network, split
     from anm_torchrl.paths import surrogate_dir
-    from anm_torchrl.surrogates.regressors import DATASETS, evaluate_surrogate, fit_regressor
+    from anm_torchrl.surrogates.regressors import DATASETS, evaluate_surrogate, fit_regressor, save_surrogate
 
     check_request(name, dataset)
     out = Path(path) if path else for_network(surrogate_dir(name, dataset), sim)
@@ -131,10 +131,11 @@ def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: 
     files = {"metrics.json": json.dumps(metrics, indent=2), "config.yaml": OmegaConf.to_yaml(OmegaConf.create(job_cfg)),
              **({"tb": tb} if tb is not None else {})}
     try:
-        sur.save(out, extra={"dataset": dataset,
-                             "dataset_meta": {k: meta[k] for k in ("kind", "size", "seed", "checksum")},
-                             "metrics": {"in_dataset_r2": metrics["in_dataset"]["r2"],
-                                         "cross_dataset_r2": metrics["cross_dataset"]["r2"]}}, files=files)
+        save_surrogate(sur, out, extra={"dataset": dataset,
+                                          "dataset_meta": {k: meta[k] for k in ("kind", "size", "seed", "checksum")},
+                                          "metrics": {"in_dataset_r2": metrics["in_dataset"]["r2"],
+                                                      "cross_dataset_r2": metrics["cross_dataset"]["r2"]}},
+                      files=files)
     finally:
         if tb is not None:
             shutil.rmtree(tb, ignore_errors=True)

@@ -4,7 +4,7 @@ learned value for the tail; the critic regresses TD(λ) targets of the same roll
 
 Model (``model.dynamics``): ``exact`` — the true transition with its gradients
 (:mod:`anm_torchrl.grid.differentiable`: implicit power-flow gradients, active-constraint projections), float64;
-``pinn`` — the PINN surrogate chain (:func:`anm_torchrl.surrogates.pinn.chain.load_pinn`, its cached model only).
+``pinn`` — the PINN surrogate chain (:func:`anm_torchrl.surrogates.pinn.load.load_pinn`, its cached model only).
 A terminal step (the power flow does not converge / the chain says collapse) takes gym-anm's terminal reward, ends
 the gradient path of its row, and the row restarts from a fresh initial state of the true env's reset
 distribution (resets are not transitions: no true-env frames).
@@ -60,7 +60,7 @@ class PINNModel:
     """The PINN chain as a model (same call as :class:`ExactModel`); its observation must come from the state."""
 
     def __init__(self, env, cfg):
-        from anm_torchrl.surrogates.pinn.chain import load_pinn
+        from anm_torchrl.surrogates.pinn.load import load_pinn
 
         surrogate = cfg.get("surrogate", {})
         path = surrogate.get("path") if surrogate.get("name") == "pinn" else None
