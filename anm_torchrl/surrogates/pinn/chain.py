@@ -80,7 +80,7 @@ from anm_torchrl.surrogates.pinn.presets import MODULES
 log = logging.getLogger(__name__)
 
 P = "pinn"
-DEFAULT_RESIDUAL_THRESHOLD = 0.005  # p.u. (0.5 MW/MVAr); precision/recall in the train.py docstring
+DEFAULT_RESIDUAL_THRESHOLD = 0.005  # p.u. (0.5 MW/MVAr); precision/recall in the module docstring
 DEFAULT_V_RANGE = (0.4, 1.4)  # p.u.; predicted |V| outside is treated as collapse
 TERMINALS = ("physics", "classifier")
 

@@ -4,7 +4,7 @@ What simulator data touched the PINN's design (its weights never see any: ``test
 test_physics_alone`` trains with every exact reference replaced by garbage and gets bit-identical weights):
 
 * the ``default`` preset was chosen by comparing candidate settings' validation errors against the *exact*
-  projection and Newton–Raphson solutions on held-out Sobol points (tables below) — exact solvers, not
+  projection and Newton–Raphson solutions on held-out Sobol points (tables in docs/PINN.md) — exact solvers, not
   simulator transitions, but simulator code;
 * the acceptance bar of a preset (``acceptance``) is checked on the same errors; it decides only whether a
   trained model may replace the default cache, never a weight;
@@ -25,96 +25,12 @@ recipe ``train_pinn.py`` reads too):
   ANM6-Easy keeps ``default`` unchanged): ``default`` with the power-balance residual in units of the feeder's
   largest bus injection (``residual_unit: box``) and chord-Newton steps after the power-balance network
   (:class:`.power_balance.PowerBalanceNet`), as many as the physics rule of :mod:`.refine` picks for the network
-  after training (``refine_steps: auto``: case33bw 1, CIGRE MV 2, the 115-bus SimBench feeder 3); tables below;
+  after training (``refine_steps: auto``: case33bw 1, CIGRE MV 2, the 115-bus SimBench feeder 3); tables in docs/PINN.md;
 * ``quick``: ``default`` with a third of the steps and the box unit (the first feeder measurements);
 * ``smoke``: tiny networks and a few steps, for tests.
 
-Measurements behind ``feeder`` (validation only: 4,000 random transitions, ``evaluate.random_transitions`` seed
-777 — the reported figures use seed 12345 —, the power-balance network fed the simulator's bus injections, |V| MAE
-p.u. against its Newton–Raphson; power-balance training alone, 10,000 steps, one torch thread, CPU seconds, 2-core
-machine shared at load 3–7; ``flat start``: no network, the chord steps from |V| = 1, θ = 0):
-
-=========================================  =======  ===========  ===========  =====
-case33bw (33 buses, 10 MVA base)           raw      + 1 chord    + 2 chords   CPU s
-=========================================  =======  ===========  ===========  =====
-``default`` (residual in p.u.)             2.3e-4   —            —            163
-residual in box units (**feeder**)         2.1e-4   **1.4e-5**   1.4e-6       155
-flat start, no network                     1.2e-2   6.2e-4       4.9e-5       0
-cigre_mv (15 buses, 1 MVA base): box       2.0e-4   **6.2e-6**   3.6e-7       132
-cigre_mv: flat start, no network           1.6e-2   1.1e-3       6.2e-5       0
-=========================================  =======  ===========  ===========  =====
-
-One chord step from the trained network is 40–180× closer to the exact power flow than one from the flat start.
-Until 2026-12-01 ``feeder`` fixed one step (the second was not worth its cost with the first already ≥ 70× under
-the 1e-3 p.u. |V| target); that left the 115-bus SimBench feeder (1 MVA base, stiff lines; its power-balance
-network, 10,000 steps, 462 CPU s with the KKT-NNs, is worse than the flat start: validation |V| MAE 3.8e-2 vs
-2.3e-2) with a power-flow residual of ~0.6 p.u., above the terminal check's 0.005 p.u.: every transition flagged
-terminal although |V| was within 3.1e-4 p.u. (test). Since then the count is chosen per network from physics alone
-(:mod:`.refine`: the smallest k whose 0.99 quantile of the residual on 4,096 Sobol points of the injection box is
-≤ 0.0025 p.u.). The figures below were measured with rule v1's flat-start chord steps; since rule v2 (2026-12-03) the
-steps are damped Newton steps at the estimate, which converge where the chord diverged (issue 23's 132/33 kV
-network, X = 0.55 p.u.) and typically need fewer steps; the battery on random networks is in docs/PINN.md. Box quantiles after k = 1, 2, 3 steps (p.u., the trained models) and, on the validation transitions
-above, the chain's residual p99 and the share flagged terminal at k − 1, k and k + 1:
-
-=====================  ===========================  ====  ==============================================
-network                box q0.99, k = 1 / 2 / 3      k     validation p99 (flagged) at k−1 / k / k+1
-=====================  ===========================  ====  ==============================================
-case33bw               3.3e-4 / — / —               1     — / 1.7e-4 (0 %) / 3.0e-5 (0 %)
-cigre_mv               5.5e-3 / 7.5e-4 / —          2     2.1e-3 (0 %) / 1.9e-4 (0 %) / 1.7e-5 (0 %)
-simbench_mv_semiurb    0.68 / 3.0e-2 / 1.4e-3       3     4.0e-2 (100 %) / 2.3e-3 (0 %) / 1.3e-4 (0 %)
-=====================  ===========================  ====  ==============================================
-
-On every network the validation residual at the chosen k stays below the rule's bar (largest: SimBench, p99
-2.3e-3, max 2.8e-3 p.u.), so no healthy transition is flagged; CIGRE MV's box holds injections harder than its
-transitions (its k = 1 flagged none of them), and the rule spends one more step there.
-
-Measurements behind ``default`` (2-core shared CPU, torch 1 thread; times are wall-clock and noisy, ±30 %).
-Held-out validation set: 4,096 scrambled-Sobol points of the module's input box, errors against the exact
-projection / a 1e-10 Newton–Raphson (converged points). Batch 1024, lr 3e-3 cosine unless noted.
-
-======================================================  =====  ============  ====
-generator KKT-NN (3×128)                                steps  val MAE p.u.  time
-======================================================  =====  ============  ====
-SiLU, squared residuals, raw output (the paper's loss)  3000   2.3e-3        36 s
-LeakyReLU, squared                                      3000   1.3e-3        49 s
-SiLU, squared, primal and complementarity weighted ×10  3000   1.4e-3        50 s
-LeakyReLU, per-device residual norm (``norm=l2``)       3000   6.3e-4        62 s
-+ ``hard_constraints``                                  3000   4.9e-4        56 s
-+ ``gated``                                             4000   2.6e-4        33 s
-+ ``separate_dual`` + ``dual_gate=0.01`` (**default**)  3000   3.3e-6        39 s
-======================================================  =====  ============  ====
-
-Storage KKT-NN (3×128, LeakyReLU, ``norm=l2``): 1.5e-3 (3000 steps) → ``hard_constraints`` 4.7e-4 → ``gated``
-1.6e-5 → + ``separate_dual``/``dual_gate`` 2.3e-6 (**default**, 2000 steps, 16 s). With the dual gate the duals are
-learned too: mean |λ − λ*| 9e-5 (generator) and 8e-5 (storage), λ* the exact multipliers.
-
-===============================================  =====  =======  ========  =======
-power-balance PINN                               steps  |V| MAE  residual  time
-===============================================  =====  =======  ========  =======
-128×3 SiLU, squared residual (paper loss)        2000   3.0e-3   4.7e-3    16 s
-128×3, squared                                   4000   2.1e-3   2.8e-3    34 s
-same + L-BFGS finish, 300 iterations in float64  4000   2.1e-3   2.8e-3    +21 s
-128×3, pseudo-Huber (c = 0.01)                   4000   1.3e-3   2.0e-3    31 s
-128×3, Cauchy (redescending) loss                4000   5.5e-2   2.9e-1    28 s
-256×3, pseudo-Huber                              6000   7.2e-4   1.1e-3    123 s
-256×3, pseudo-Huber, batch 2048                  4000   9.7e-4   1.6e-3    126 s
-128×4, pseudo-Huber, lr 2e-3                     12000  3.6e-4   5.5e-4    58 s
-128×4, pseudo-Huber                              12000  2.7e-4   4.4e-4    76 s
-128×5, pseudo-Huber (**default**)                10000  2.6e-4   4.5e-4    56–67 s
-===============================================  =====  =======  ========  =======
-
-(residual: mean per-sample max |ΔP|, |ΔQ|, p.u.) The squared residual is dominated by the ≈2 % of the box with no
-power-flow solution; the pseudo-Huber penalty fixes that, while a redescending (Cauchy) one never starts
-fitting. L-BFGS made little progress for the same reason. Narrow-and-deep beat wide at equal time.
-
-The ``paper`` preset given more wall-clock than ``default`` (142 s vs 110 s: 43 / 20 / 79 s, i.e. 4,800 / 3,000 /
-12,900 steps, via ``+pinn_preset.<module>.max_time_s``): validation MAE 5.3e-3 (generator), 5.2e-3 (storage), |V|
-MAE 3.5e-3 and residual 9.0e-3 — 13× (power balance) to 2,000× (KKT-NNs) worse.
-On held-out transitions (``evaluate.py``; random / expert): projection MAE 4.8e-3 / 9.9e-3 and 5.2e-3 / 1.8e-3,
-|V| MAE 3.4e-3 / 1.4e-3, residual 8.2e-3 / 6.6e-3, next-state P/Q MAE 0.47 / 0.86 MW; its residual is too large for
-the 0.005 p.u. terminal threshold (89 % flagged). The default preset on the same sets: projection MAE 7.5e-6 /
-1e-14 and 2.2e-6 / 2e-16 p.u., |V| MAE 2.0e-4 / 1.1e-4, residual 3.7e-4 / 2.9e-4, next-state P/Q MAE 0.011 /
-0.007 MW, feasible 100 %, terminal precision 0.97 / recall 0.99 (``python recipes/train_pinn.py``).
+The measurements that chose ``default`` and ``feeder`` (validation errors, times, the rule's box quantiles) are in
+``docs/PINN.md``, section "How the presets were chosen".
 """
 
 from __future__ import annotations

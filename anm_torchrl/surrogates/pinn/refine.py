@@ -26,9 +26,9 @@ was calibrated against the simulator's non-convergence (ANM6-Easy's default mode
 reachable injections, precision 0.97–0.98, recall 0.96–1.00; :mod:`.chain`); it bounds the share of box points
 above the bar at 1 %, and the factor 2 leaves room for what the box does not show (the env's injections are the
 KKT-NN outputs). Measured on the feeders' validation transitions (``evaluate.random_transitions`` seed 777), the
-residual at the chosen k stays below the bar there too (table in :mod:`.presets`). The box also holds injections with no power-flow solution, whose residual cannot
-vanish: where they are more than 1 % of it no k meets the bar, the choice records ``met: false`` at
-:data:`K_MAX` steps and the training fails its acceptance bar (:func:`.presets.check_acceptance`) — a clear
+residual at the chosen k stays below the bar there too (table in ``docs/PINN.md``). The box also holds injections
+with no power-flow solution, whose residual cannot vanish: where they are more than 1 % of it no k meets the bar,
+the choice records ``met: false`` at :data:`K_MAX` steps and the training fails its acceptance bar (:func:`.presets.check_acceptance`) — a clear
 failure, never a silent k.
 
 The chosen k is stored in the model file (top-level ``refine_steps`` and the training report's
