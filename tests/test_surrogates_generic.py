@@ -4,6 +4,9 @@ network guards, not accuracy (that is ``results/pinn/pinn_generic_accuracy.json`
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 
 import pytest
 import torch
@@ -125,9 +128,9 @@ def test_data_driven_surrogates_on_case33bw(case33, tmp_path, monkeypatch):
     td = env.rollout(2, break_when_any_done=False)
     assert td["next", "state"].shape == (4, 2, case33.state_dim)
     with pytest.raises(FileNotFoundError, match="train_surrogate.py network=<its name> surrogate=xgb"):
-        load_surrogate("xgb", sim=case33, dataset="agent")
+        load_surrogate("xgb", sim=case33, dataset="agent", train_if_missing=False)
     with pytest.raises(FileNotFoundError, match="no trained 'xgb'"):  # ANM6-Easy never sees case33bw's model
-        load_surrogate("xgb", sim=network_simulator(ANM6_EASY), dataset="generative")
+        load_surrogate("xgb", sim=network_simulator(ANM6_EASY), dataset="generative", train_if_missing=False)
 
 
 def test_generated_rows_match_the_simulator(case33):
@@ -172,3 +175,34 @@ def test_recipe_trained_surrogate_loads_through_make_env(tmp_path, monkeypatch):
     out = env.step(td)["next"]
     assert out["state"].shape == (1, env.sim.state_dim)
     assert torch.isfinite(out["state"]).all() and torch.isfinite(out["reward"]).all()
+
+
+def test_data_driven_surrogate_trains_on_first_use_on_a_generated_network(tmp_path, monkeypatch):
+    """``make_env("lr", network=<a user's dict>)`` with nothing trained builds the network's dataset, fits the model
+    and its terminal classifier, saves them and runs: the recipe's pipeline, no command to type. The default folder
+    takes only the default dataset size; an explicit ``path`` takes any (2,000 rows here, to stay fast)."""
+    import yaml
+
+    from anm_torchrl.data.defaults import DEFAULT_FRACTIONS, DEFAULT_OPTIONS, DEFAULT_SEED, DEFAULT_SIZE
+    from anm_torchrl.networks import random as rnd
+    from anm_torchrl.training.factory import make_env
+
+    recipe = yaml.safe_load((Path(__file__).resolve().parents[1] / "recipes/conf/make_dataset.yaml").read_text())
+    assert (recipe["size"], recipe["seed"], tuple(recipe["fractions"])) == (DEFAULT_SIZE, DEFAULT_SEED,
+                                                                            DEFAULT_FRACTIONS)
+    assert {k: recipe[k] for k in DEFAULT_OPTIONS} == DEFAULT_OPTIONS  # the mirror of the recipe's defaults
+
+    monkeypatch.setenv("ANM_TORCHRL_HOME", str(tmp_path / "home"))
+    case = rnd.generate(5, n_bus=8)
+    args = dict(network=case.network, load_p=case.load_p, gen_p_max=case.gen_p_max, num_envs=4, seed=0)
+    with pytest.raises(ValueError, match="size=2000 differs from the default 100000 rows"):
+        make_env("lr", size=2000, progress=False, **args)
+    with pytest.raises(FileNotFoundError, match="no trained 'lr'"):
+        make_env("lr", path=tmp_path / "lr", progress=False, **args)  # an explicit path never trains unasked
+    env = make_env("lr", path=tmp_path / "lr", size=2000, train_if_missing=True, progress=False, **args)
+    meta = json.loads((tmp_path / "lr" / "surrogate.json").read_text())
+    assert meta["trained_on_first_use"]["rows"] == 2000 and meta["dataset"] == "generative"
+    td = env.rollout(3, break_when_any_done=False)
+    assert torch.isfinite(td["next", "reward"]).all() and td["next", "state"].shape[:2] == (4, 3)
+    again = make_env("lr", path=tmp_path / "lr", progress=False, **args)  # the saved model, not a second training
+    assert json.loads((tmp_path / "lr" / "surrogate.json").read_text()) == meta and again is not None

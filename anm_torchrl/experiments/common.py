@@ -55,10 +55,17 @@ def label(spec: dict[str, Any] | str) -> str:
 
 
 def options(spec: dict[str, Any] | str) -> dict[str, Any]:
-    """The keyword arguments of ``make_env`` / the loader for a spec (``name`` removed, ``None`` values dropped)."""
+    """The keyword arguments of ``make_env`` / the loader for a spec (``name`` removed, ``None`` values dropped).
+
+    A data-driven surrogate is not trained on first use in an experiment (``train_if_missing=False`` unless the spec
+    says otherwise): a missing model is a row "not available", with its reason, never minutes of hidden training."""
+    from anm_torchrl.surrogates import data_driven_surrogates
+
+    name = spec if isinstance(spec, str) else spec["name"]
+    base = {"train_if_missing": False} if name in data_driven_surrogates() else {}
     if isinstance(spec, str):
-        return {}
-    return {k: v for k, v in spec.items() if k != "name" and v is not None}
+        return base
+    return {**base, **{k: v for k, v in spec.items() if k != "name" and v is not None}}
 
 
 def make_env_or_reason(spec: dict[str, Any] | str, num_envs: int, seed: int = 0, sim=None, **kw):

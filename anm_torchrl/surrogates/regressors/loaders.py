@@ -8,6 +8,7 @@ was trained on; a stored dataset other than ``dataset`` raises (an argument the 
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -23,9 +24,13 @@ from anm_torchrl.surrogates.regressors.io import load_surrogate_folder
 from anm_torchrl.surrogates.regressors.module import RegressorSurrogate
 from anm_torchrl.surrogates.terminal import ModelFileError
 
+log = logging.getLogger(__name__)
+
 
 def load_regressor_surrogate(kind: str, sim: GridSimulator | None = None, device=None, dataset: str = "generative",
-                             path: str | os.PathLike | None = None, n_jobs: int = 1) -> RegressorSurrogate:
+                             path: str | os.PathLike | None = None, n_jobs: int = 1,
+                             train_if_missing: bool | None = None, size: int | None = None,
+                             progress: bool = True) -> RegressorSurrogate:
     """Load trained surrogate ``kind`` for ``dataset`` from ``path`` (default ``surrogate_dir(kind, dataset)``, suffixed
     with the network key on networks other than ANM6-Easy).
 
@@ -35,10 +40,17 @@ def load_regressor_surrogate(kind: str, sim: GridSimulator | None = None, device
         device: torch device (None: ``sim``'s, or the CPU).
         dataset: the dataset it was trained on (``generative``, ``agent``).
         path: the surrogate folder.
-        n_jobs: xgboost prediction threads.
+        n_jobs: xgboost prediction threads (and training threads when trained here).
+        train_if_missing: train it when nothing is saved there (:func:`.first_use.train_default`: the recipe's
+            defaults); default True for the default folder and False for an explicit ``path`` (a mistyped path is
+            an error, not minutes of training).
+        size: dataset rows of that training (default :data:`anm_torchrl.data.defaults.DEFAULT_SIZE`; the default
+            folder takes only the default size, as in the recipe).
+        progress: progress bars while training.
 
     Raises:
-        FileNotFoundError: nothing trained there; the message gives the command that trains it.
+        FileNotFoundError: nothing trained there and training not asked for; the message gives the command.
+        ValueError: a training of fewer rows than the default asked for the default folder.
         ModelFileError / ArtifactError (``ValueError``): a corrupted folder, a model of another kind, dataset,
             state layout or network.
     """
@@ -52,6 +64,18 @@ def load_regressor_surrogate(kind: str, sim: GridSimulator | None = None, device
         raise ValueError(f"device={device!r} differs from the simulator's device {sim.net.dev.device}; pass one")
     default = path is None
     p = for_network(surrogate_dir(kind, dataset), sim) if default else Path(path)
+    train = train_if_missing if train_if_missing is not None else default
+    if not (p / META_FILE).is_file() and train:
+        from anm_torchrl.data.defaults import DEFAULT_SIZE
+        from anm_torchrl.surrogates.regressors.first_use import train_default
+
+        rows = DEFAULT_SIZE if size is None else int(size)
+        if default and rows != DEFAULT_SIZE:
+            raise ValueError(f"size={rows} differs from the default {DEFAULT_SIZE} rows: a model trained on it would "
+                             f"take the default folder {p}; pass path=... for it")
+        log.warning("no trained %r surrogate for the %r dataset at %s: training it now with the recipe's defaults "
+                    "(%d rows, generated first if missing; a few minutes on a 2-core CPU)", kind, dataset, p, rows)
+        train_default(kind, dataset, sim, p, n_jobs=n_jobs, progress=progress, size=rows)
     if not (p / META_FILE).is_file():
         raise FileNotFoundError(f"no trained {kind!r} surrogate for the {dataset!r} dataset at {p}; train it with: "
                                 f"{train_command(kind, dataset, sim, None if default else p)}")
