@@ -112,7 +112,7 @@ def device_ratings(sim: GridSimulator) -> torch.Tensor:
     return rating
 
 
-def _relative_pq(sim: GridSimulator, err: torch.Tensor) -> dict[str, float | None]:
+def relative_pq(sim: GridSimulator, err: torch.Tensor) -> dict[str, float | None]:
     """Next-state P/Q errors of the controllable devices (generators, storage) relative to their ratings.
 
     Args:
@@ -205,7 +205,7 @@ def evaluate_pinn(chain: TensorDictSequential, sim: GridSimulator, state: torch.
         "next_pq_mae_no_slack_mw": float((pq - pq_ref)[both][:, no_slack].abs().mean()),
         "slack_p_mae_mw": float((pq - pq_ref)[both][:, sim.slack_ids[0]].abs().mean()),
         "soc_mae_mwh": _mean((pred_state[:, sl["des_soc"]] - nxt[:, sl["des_soc"]])[both].abs()),
-        **_relative_pq(sim, pq[both] - pq_ref[both]),
+        **relative_pq(sim, pq[both] - pq_ref[both]),
         "reward_mae": float((out.get("reward").reshape(-1) - tr.reward)[both].abs().mean()),
         "terminal_precision": tp / int(term.sum()) if term.any() else float("nan"),  # undefined: nothing flagged
         "terminal_recall": tp / int(true_term.sum()) if true_term.any() else float("nan"),  # no terminal step

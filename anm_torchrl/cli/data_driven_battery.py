@@ -1,0 +1,34 @@
+"""``python -m anm_torchrl.cli.data_driven_battery``: the data-driven surrogates on the PINN battery's random networks
+(:mod:`anm_torchrl.experiments.data_driven_battery`)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+import torch
+
+from anm_torchrl.experiments.data_driven_battery import PINN_RECORD, run
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Parse ``argv``, measure, write the record and its table, print the table."""
+    ap = argparse.ArgumentParser(description="data-driven surrogates built on first use on random networks")
+    ap.add_argument("--seeds", type=int, nargs="+", required=True, help="battery seeds (-1: issue 23's network)")
+    ap.add_argument("--kinds", nargs="+", default=["lr", "dt", "xgb", "dnn"])
+    ap.add_argument("--n-random", type=int, default=4000)
+    ap.add_argument("--n-jobs", type=int, default=2, help="threads of xgboost / forests")
+    ap.add_argument("--pinn-record", default=str(PINN_RECORD))
+    ap.add_argument("--out", required=True, help="path stem of the record (.json) and table (.md)")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    rec = run(args.seeds, args.kinds, args.out, args.n_random, args.n_jobs, args.pinn_record)
+    from anm_torchrl.experiments.data_driven_battery import markdown
+
+    print(markdown(rec))
+    return rec
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO)
+    main()
