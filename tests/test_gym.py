@@ -238,6 +238,26 @@ def test_render_rgb_array_draws_the_last_step():
         ANMGymEnv(render_mode="human")
 
 
+def test_vector_env_renders_one_frame_per_env():
+    """``make_vec(..., render_mode="rgb_array").render()`` is a tuple of one image per env (SyncVectorEnv's
+    convention), each of that env's own state: two grids reset to different states are drawn differently."""
+    from anm_torchrl.gym.vector import ANMVectorEnv
+
+    env = gymnasium.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point", render_mode="rgb_array")
+    env.reset(seed=0)
+    frames = env.render()
+    assert isinstance(frames, tuple) and len(frames) == 2
+    assert all(f.shape == (480, 640, 3) and f.dtype == np.uint8 for f in frames)
+    assert (frames[0] != frames[1]).any()
+    env.step(np.zeros((2, 6)))
+    assert (env.render()[0] != frames[0]).any()
+    plain = gymnasium.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point")
+    plain.reset(seed=0)
+    assert plain.render() is None
+    with pytest.raises(ValueError, match="render_mode must be None or one of"):
+        ANMVectorEnv(2, render_mode="human")
+
+
 def test_record_video_films_an_episode(tmp_path):
     pytest.importorskip("moviepy", reason="gymnasium's RecordVideo writes with moviepy (not a test dependency)")
     from gymnasium.wrappers import RecordVideo

@@ -13,6 +13,7 @@ from anm_torchrl.envs.specs import check_action_dtype
 from anm_torchrl.gym.batch import NumpyBatch, make_torchrl_env
 
 AUTORESET_MODES = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)
+RENDER_MODES = ("rgb_array",)
 
 
 class ANMVectorEnv(VectorEnv):
@@ -40,13 +41,17 @@ class ANMVectorEnv(VectorEnv):
         max_episode_steps: truncate episodes after this many steps (``None``: never, as gym-anm).
         autoreset_mode: ``AutoresetMode.NEXT_STEP`` or ``SAME_STEP`` (or their string values).
         env: an existing TorchRL env of this package with batch size (N,) (e.g. a ``SurrogateEnv``).
+        render_mode: None or ``"rgb_array"``: :meth:`render` returns one (H, W, 3) uint8 image per env (the network
+            after the last reset or step, as ``ANMGymEnv.render``), a tuple of N (``SyncVectorEnv``'s convention).
         **env_kwargs: passed to the true-simulator env (``action_mode``, ``init``, ``backend``).
     """
 
     def __init__(self, num_envs: int = 1, network: str = "anm6_easy", seed: int | None = None,
                  max_episode_steps: int | None = None,
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, env: EnvBase | None = None,
-                 **env_kwargs: Any):
+                 render_mode: str | None = None, **env_kwargs: Any):
+        if render_mode is not None and render_mode not in RENDER_MODES:
+            raise ValueError(f"render_mode must be None or one of {list(RENDER_MODES)}, got {render_mode!r}")
         mode = AutoresetMode(autoreset_mode)
         if mode not in AUTORESET_MODES:
             raise ValueError(f"autoreset_mode must be one of {[m.value for m in AUTORESET_MODES]}, got {mode.value!r}")
@@ -57,8 +62,9 @@ class ANMVectorEnv(VectorEnv):
         self._batch = NumpyBatch(env if env is not None else make_torchrl_env(network, int(num_envs), seed,
                                                                              **env_kwargs))
         self.num_envs = self._batch.num_envs
-        self.metadata = {"render_modes": [], "autoreset_mode": mode}
-        self.render_mode = None
+        self.metadata = {"render_modes": list(RENDER_MODES), "render_fps": 4, "autoreset_mode": mode}
+        self.render_mode = render_mode
+        self._frame = None  # anm_torchrl.render.frame.NetworkFrame, built on the first render()
         self.single_observation_space = self._batch.observation_space
         self.single_action_space = self._batch.action_space
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
@@ -119,3 +125,27 @@ class ANMVectorEnv(VectorEnv):
     def _reset_rows(self, rows: np.ndarray) -> np.ndarray:
         self._steps[rows] = 0
         return self._batch.reset(mask=rows)
+
+    def render(self) -> tuple[np.ndarray, ...] | None:
+        """One (H, W, 3) uint8 image of the network per env, after the last reset or step (``render_mode=
+        "rgb_array"``); None when ``render_mode`` is None (gymnasium's convention)."""
+        if self.render_mode is None:
+            return None
+        from anm_torchrl.render.frame import NetworkFrame  # matplotlib only when rendering
+        from anm_torchrl.render.tables import network_tables
+
+        v_magn, branch_s = self._batch.grid("v_magn"), self._batch.grid("branch_s")
+        if v_magn is None or branch_s is None:
+            raise ValueError(f"{type(self._batch.env).__name__} reports no ('grid', 'v_magn' / 'branch_s'), "
+                             "so there is nothing to draw")
+        sim = self._batch.env.sim
+        if self._frame is None:
+            self._frame = NetworkFrame(network_tables(sim.net))
+        aux = self.state[:, sim.state_slices()["aux"]][:, 0]
+        name = self.spec.id if self.spec else "ANMVectorEnv"
+        frames = []
+        for i in range(self.num_envs):
+            minutes = int(round(float(aux[i]) * float(sim.net.delta_t) * 60))
+            frames.append(self._frame.draw(v_magn[i], branch_s[i], f"{name} [env {i}]\nstep {self._steps[i]} "
+                                                                   f"({minutes // 60 % 24:02d}:{minutes % 60:02d})"))
+        return tuple(frames)
