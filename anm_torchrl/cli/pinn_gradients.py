@@ -1,0 +1,34 @@
+"""``python -m anm_torchrl.cli.pinn_gradients``: the PINN chain's d(reward)/d(action) against the exact one
+(:mod:`anm_torchrl.experiments.pinn_gradients`)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+import torch
+
+from anm_torchrl.experiments.pinn_gradients import run
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Parse ``argv``, measure, write the record and the figure, print one line per network and set."""
+    ap = argparse.ArgumentParser(description="PINN vs exact gradients of the reward with respect to the action")
+    ap.add_argument("--networks", nargs="+", default=["anm6_easy"])
+    ap.add_argument("--rows", type=int, default=512, help="(state, action) rows per action set")
+    ap.add_argument("--train", action="store_true", help="train a network's default PINN when it is not cached")
+    ap.add_argument("--out", required=True, help="path stem of the record (.json) and the figure (.png)")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    rec = run(args.networks, args.rows, args.out, args.train)
+    for e in rec["networks"]:
+        for name, m in e["sets"].items():
+            print(f"{e['network']:>20} {name:>16}: cosine median {m['cosine_median']:.3f} (q10 {m['cosine_q10']:.3f}), "
+                  f"relative error median {m['rel_error_median']:.3f}, sign agreement {m['sign_agreement']:.3f}, "
+                  f"{m['rows']} rows ({m['terminal_rows']} terminal left out)")
+    return rec
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO)
+    main()
