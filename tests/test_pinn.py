@@ -563,3 +563,41 @@ def test_nan_weight_in_a_pinn_file_is_refused(smoke_file, tmp_path):
     save_file(tensors, str(bad), metadata={**meta, "sha256": tensors_sha256(tensors, header)})
     with pytest.raises(ArtifactError, match=rf"nan\.safetensors is corrupted: tensor '{name}'.*NaN"):
         load_pinn(path=bad)
+
+
+def test_killed_training_resumes_from_its_finished_stages(tmp_path, sim, monkeypatch):
+    """Issue 25: a PINN training killed in its last stage resumes from the stages it finished (same weights as an
+    uninterrupted training: every stage has its own seed), and the kept stages are removed once the model is saved;
+    a kept stage of another config is not resumed."""
+    from anm_torchrl.surrogates.pinn import loop
+
+    cfg = tr.preset("smoke")
+    whole, _ = loop.train_pinn(cfg, sim)
+    calls = []
+    real = loop.train_module
+
+    def killed_in_power_balance(name, *a, **k):
+        calls.append(name)
+        if name == "power_balance":
+            raise KeyboardInterrupt
+        return real(name, *a, **k)
+
+    monkeypatch.setattr(loop, "train_module", killed_in_power_balance)
+    stages = tmp_path / "stages"
+    with pytest.raises(KeyboardInterrupt):
+        loop.train_pinn(cfg, sim, stage_dir=stages)
+    assert sorted(p.stem for p in stages.iterdir()) == ["generator", "storage"]
+    calls.clear()
+    monkeypatch.setattr(loop, "train_module", lambda name, *a, **k: (calls.append(name), real(name, *a, **k))[1])
+    resumed, report = loop.train_pinn(cfg, sim, stage_dir=stages)
+    assert calls == ["power_balance"] and "resumed_from" in report["generator"]
+    for name in whole:
+        for key, value in whole[name].state_dict().items():
+            torch.testing.assert_close(resumed[name].state_dict()[key], value, rtol=0, atol=0)
+    other = tr.preset("smoke", seed=1)
+    calls.clear()
+    loop.train_pinn(other, sim, stage_dir=stages)
+    assert calls == ["generator", "storage", "power_balance"]  # another seed: nothing resumed
+    file = tmp_path / "m" / "pinn.safetensors"
+    cache.train_and_save(cfg, sim, path=file)
+    assert file.is_file() and not (file.parent / ".pinn.stages").exists()

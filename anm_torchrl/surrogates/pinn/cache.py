@@ -14,6 +14,7 @@ The default cache of a network is ``surrogate_dir("pinn") / <network key> / pinn
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +63,9 @@ def train_and_save(cfg: PINNTrainConfig, sim: GridSimulator, path: str | Path | 
     """
     file = resolve_path(path) if path is not None else default_path(sim)
     check_may_train_into(file, cfg, sim, overwrite_cache)
-    modules, report = train_pinn(cfg, sim, log_dir=log_dir, progress=progress)
+    stages = file.parent / f".{file.stem}.stages"  # finished stages: a killed training resumes from them
+    modules, report = train_pinn(cfg, sim, log_dir=log_dir, progress=progress, stage_dir=stages)
+    shutil.rmtree(stages, ignore_errors=True)  # the training is complete: its outcome is decided below
     if is_default(file, sim) and not report["accepted"] and not overwrite_cache:
         where = ""
         if reject_path is not None:

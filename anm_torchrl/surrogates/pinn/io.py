@@ -36,12 +36,12 @@ def resolve_path(path: str | Path) -> Path:
     return p if p.suffix else p / FILE_NAME
 
 
-def _plain(x: Any) -> Any:
+def plain(x: Any) -> Any:
     """JSON-ready copy (dicts, lists, str, int, float, bool, None; other numbers as float)."""
     if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
+        return {str(k): plain(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
+        return [plain(v) for v in x]
     if isinstance(x, (str, int, float, bool)) or x is None:
         return x
     return float(x)
@@ -59,7 +59,7 @@ def save_pinn(path: str | Path, modules: dict[str, nn.Module], cfg: PINNTrainCon
     """
     sim = sim if sim is not None else network_simulator(ANM6_EASY)
     tensors = {f"{k}.{n}": t for k, m in modules.items() for n, t in m.state_dict().items()}
-    meta = {"config": cfg.to_dict(), "report": _plain(report or {}), "network": network_key(sim),
+    meta = {"config": cfg.to_dict(), "report": plain(report or {}), "network": network_key(sim),
             "refine_steps": int(modules["power_balance"].refine_steps),
             "refine_method": str(modules["power_balance"].refine_method), "torch_version": str(torch.__version__)}
     return save_tensors(resolve_path(path), tensors, meta, KIND)

@@ -166,8 +166,57 @@ def _lbfgs_finish(task: _Task, cfg: ModuleTrainConfig, seed: int) -> None:
     module.net.float()
 
 
+STAGE_KIND = "anm_torchrl.pinn_stage"
+
+
+def _stage_file(stage_dir: Path, name: str) -> Path:
+    return stage_dir / f"{name}.safetensors"
+
+
+def _save_stage(stage_dir: Path, name: str, module: nn.Module, cfg: PINNTrainConfig, sim: GridSimulator,
+                report: dict[str, Any]) -> None:
+    """Keep a finished stage (weights, its report, what it was trained for) so a killed training resumes here."""
+    from anm_torchrl.artifacts import save_tensors
+    from anm_torchrl.grid.identity import network_key
+    from anm_torchrl.surrogates.pinn.io import plain
+
+    stage_dir.mkdir(parents=True, exist_ok=True)
+    save_tensors(_stage_file(stage_dir, name), module.state_dict(),
+                 {"module": name, "config": plain(cfg.to_dict()), "network": network_key(sim),
+                  "report": plain(report)}, STAGE_KIND)
+
+
+def _resume_stage(stage_dir: Path, name: str, module: nn.Module, cfg: PINNTrainConfig,
+                  sim: GridSimulator) -> dict[str, Any] | None:
+    """The report of a stage kept by an earlier, interrupted training of the same config on the same network, its
+    weights loaded into ``module``; None (the stage is trained) when there is none or it does not match."""
+    from anm_torchrl.artifacts import ArtifactError, load_tensors
+    from anm_torchrl.grid.identity import network_key
+    from anm_torchrl.surrogates.pinn.io import plain
+
+    file = _stage_file(stage_dir, name)
+    if not file.is_file():
+        return None
+    try:
+        tensors, meta = load_tensors(file, STAGE_KIND)
+    except ArtifactError as err:
+        log.warning("PINN stage %s: the kept stage %s is unusable (%s); training it again", name, file, err)
+        return None
+    if (meta.get("module"), meta.get("network"), meta.get("config")) != (name, network_key(sim),
+                                                                         plain(cfg.to_dict())):
+        log.warning("PINN stage %s: the kept stage %s was trained for another config or network; training it again",
+                    name, file)
+        return None
+    module.load_state_dict(tensors)
+    module.eval()
+    report = dict(meta["report"])
+    if report.get("refine_steps") is not None:
+        module.set_refine_steps(int(report["refine_steps"]))
+    return {**report, "resumed_from": str(file)}
+
+
 def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = None, log_dir: str | Path | None = None,
-               progress: bool = False) -> tuple[dict[str, nn.Module], dict[str, Any]]:
+               progress: bool = False, stage_dir: str | Path | None = None) -> tuple[dict[str, nn.Module], dict[str, Any]]:
     """Train the three PINN modules from physics alone.
 
     Args:
@@ -175,6 +224,9 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
         sim: the simulator providing the physics constants (default ANM6-Easy on CPU).
         log_dir: TensorBoard folder (None: no logging).
         progress: show a tqdm progress bar over all Adam steps.
+        stage_dir: keep each finished stage there, and resume from the stages an interrupted training of the same
+            config on the same network kept (every stage has its own seed, so a resumed training gives the weights
+            an uninterrupted one gives); None: no stages kept.
 
     Returns:
         the trained modules (``generator``, ``storage``, ``power_balance``) and a report (per-module steps,
@@ -204,9 +256,19 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
         for i, name in enumerate(MODULES, 1):
             if bar is not None:
                 bar.set_postfix_str(name)
+            kept = None if stage_dir is None else _resume_stage(Path(stage_dir), name, modules[name], cfg, sim)
+            if kept is not None:
+                log.info("PINN stage %d/%d: %s resumed from %s (trained before an interruption)", i, len(MODULES),
+                         name, kept["resumed_from"])
+                report[name] = kept
+                if bar is not None:
+                    bar.update(budget[name])
+                continue
             log.info("PINN stage %d/%d: %s, up to %d Adam steps", i, len(MODULES), name, budget[name])
             report[name] = train_module(name, modules[name], sim, getattr(cfg, name), seed=module_seed(cfg, name),
                                         writer=writer, progress=bar)
+            if stage_dir is not None:
+                _save_stage(Path(stage_dir), name, modules[name], cfg, sim, report[name])
             elapsed, left = time.perf_counter() - t0, sum(budget[m] for m in MODULES[i:])
             rate = report[name]["steps"] / max(report[name]["adam_time_s"], 1e-9)  # this stage's steps/s
             log.info("PINN stage %d/%d done: %s, %d steps in %.0f s (%.0f s so far%s)", i, len(MODULES), name,
