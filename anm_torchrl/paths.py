@@ -5,6 +5,8 @@
 
 from __future__ import annotations
 
+import io
+
 import os
 from pathlib import Path
 from typing import Any
@@ -34,4 +36,9 @@ def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
 
     from anm_torchrl.artifacts import atomic_write
 
-    return atomic_write(path, lambda tmp: torch.save(obj, tmp))
+    # serialised in memory, then written as bytes: torch.save's own file writer reports a full disk as a raw
+    # RuntimeError ("enforce fail at inline_container.cc"); a plain write raises ENOSPC, which atomic_write turns
+    # into a DiskFullError naming the file and saying the previous one is intact
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    return atomic_write(path, buf.getvalue())

@@ -449,3 +449,27 @@ def test_long_rollout_states_pass_the_validator(network):
     else:
         env = make_true_env(32, seed=0, network=network)
     _rollout_states_pass_the_validator(env, 300, seed=1)
+
+
+def test_full_disk_while_saving_a_checkpoint_keeps_the_previous_one(tmp_path, monkeypatch):
+    """Weak point: a full disk while PPO writes a checkpoint raised torch's raw ``RuntimeError: [enforce fail at
+    inline_container.cc]``; now it is a DiskFullError naming the file and saying the previous one is intact, and the
+    previous checkpoint still loads."""
+    import os
+
+    from anm_torchrl.artifacts import DiskFullError
+    from anm_torchrl.training.checkpoint import save_checkpoint
+
+    import io
+
+    path = tmp_path / "last.pt"
+    targets, real_save = [], torch.save
+    monkeypatch.setattr(torch, "save", lambda obj, f, *a, **k: (targets.append(type(f)), real_save(obj, f, *a, **k)))
+    save_checkpoint(path, {"update": 1})
+    assert targets == [io.BytesIO]  # torch's own file writer never meets the disk: its errors are not ENOSPC
+    monkeypatch.setattr(os, "fsync", _enospc)
+    with pytest.raises(DiskFullError, match=f"to write {path}.*previous version is intact"):
+        save_checkpoint(path, {"update": 2})
+    monkeypatch.undo()
+    assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]
+    assert torch.load(path, weights_only=True)["update"] == 1
