@@ -473,3 +473,25 @@ def test_full_disk_while_saving_a_checkpoint_keeps_the_previous_one(tmp_path, mo
     monkeypatch.undo()
     assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]
     assert torch.load(path, weights_only=True)["update"] == 1
+
+
+def test_ill_conditioned_branch_is_refused():
+    """Weak point: a branch with x = 1e-12 p.u. was accepted and the two backends disagreed on terminations; it is
+    refused now, naming the branch and what to do, while 1e-6 p.u. (where they agree to 4e-8 MW) is accepted."""
+    import copy
+
+    import numpy as np
+
+    from anm_torchrl.networks import get_network, simulator
+
+    case = get_network("anm6_easy")
+    for x, ok in ((1e-12, False), (1e-6, True)):
+        net = copy.deepcopy(case.network)
+        br = np.array(net["branch"], dtype=float)
+        br[2, 2], br[2, 3] = 0.0, x
+        net["branch"] = br
+        if ok:
+            simulator(net, case.load_p, case.gen_p_max)
+        else:
+            with pytest.raises(ValueError, match=r"branch \(.*BR_X.*below 1e-06 p.u.*merge the two buses"):
+                simulator(net, case.load_p, case.gen_p_max)
