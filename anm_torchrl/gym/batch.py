@@ -77,6 +77,7 @@ class NumpyBatch:
         self.action_space = spaces.Box(a_low, a_high, dtype=np.float64)
         self._state: torch.Tensor | None = None  # (N, D) float64, the TorchRL env's "state"
         self._grid: dict[str, torch.Tensor] = {}  # ("grid", k) (N, ...) of the last reset / step, for rendering
+        self._frame = None  # anm_torchrl.render.frame.NetworkFrame, built on the first draw
 
     @property
     def state(self) -> np.ndarray:
@@ -90,6 +91,29 @@ class NumpyBatch:
         self._require_reset()
         value = self._grid.get(key)
         return None if value is None else value.to(torch.float64).cpu().numpy()
+
+    def clock(self, row: int) -> str:
+        """Time of day ``HH:MM`` of env ``row``'s current state (from its time index)."""
+        sim = self.env.sim
+        minutes = int(round(float(self.state[row, sim.state_slices()["aux"]][0]) * float(sim.net.delta_t) * 60))
+        return f"{minutes // 60 % 24:02d}:{minutes % 60:02d}"
+
+    def draw(self, rows: list[int], titles: list[str]) -> list[np.ndarray]:
+        """(H, W, 3) uint8 images of the network of envs ``rows`` after the last reset or step (bus |V|, branch
+        loading), one per title.
+
+        Raises:
+            ValueError: the env reports no ``("grid", "v_magn" / "branch_s")`` (nothing to draw)."""
+        from anm_torchrl.render.frame import NetworkFrame  # matplotlib only when rendering
+        from anm_torchrl.render.tables import network_tables
+
+        v_magn, branch_s = self.grid("v_magn"), self.grid("branch_s")
+        if v_magn is None or branch_s is None:
+            raise ValueError(f"{type(self.env).__name__} reports no ('grid', 'v_magn' / 'branch_s'), "
+                             "so there is nothing to draw")
+        if self._frame is None:
+            self._frame = NetworkFrame(network_tables(self.env.sim.net))
+        return [self._frame.draw(v_magn[i], branch_s[i], t) for i, t in zip(rows, titles)]
 
     def _keep_grid(self, td, mask: torch.Tensor | None = None) -> None:
         grid = td.get("grid", None)

@@ -45,7 +45,6 @@ class ANMGymEnv(gymnasium.Env):
         self.render_mode = render_mode
         self._terminated = False
         self._steps, self._reward = 0, None
-        self._frame = None  # anm_torchrl.render.frame.NetworkFrame, built on the first render()
 
     @property
     def state(self) -> np.ndarray:
@@ -76,19 +75,7 @@ class ANMGymEnv(gymnasium.Env):
         None when ``render_mode`` is None (gymnasium's convention)."""
         if self.render_mode is None:
             return None
-        from anm_torchrl.render.frame import NetworkFrame  # matplotlib only when rendering
-        from anm_torchrl.render.tables import network_tables
-
-        v_magn, branch_s = self._batch.grid("v_magn"), self._batch.grid("branch_s")
-        if v_magn is None or branch_s is None:
-            raise ValueError(f"{type(self._batch.env).__name__} reports no ('grid', 'v_magn' / 'branch_s'), "
-                             "so there is nothing to draw")
-        sim = self._batch.env.sim
-        if self._frame is None:
-            self._frame = NetworkFrame(network_tables(sim.net))
-        minutes = int(round(float(self.state[sim.state_slices()["aux"]][0]) * float(sim.net.delta_t) * 60))
-        when = f"step {self._steps} ({minutes // 60 % 24:02d}:{minutes % 60:02d})"
         what = ("power flow did not converge (terminal)" if self._terminated
                 else "after reset" if self._reward is None else f"reward {self._reward:.3f}")
-        return self._frame.draw(v_magn[0], branch_s[0], f"{self.spec.id if self.spec else 'ANMGymEnv'}\n"
-                                                        f"{when}: {what}")
+        name = self.spec.id if self.spec else "ANMGymEnv"
+        return self._batch.draw([0], [f"{name}\nstep {self._steps} ({self._batch.clock(0)}): {what}"])[0]

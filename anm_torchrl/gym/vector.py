@@ -64,7 +64,6 @@ class ANMVectorEnv(VectorEnv):
         self.num_envs = self._batch.num_envs
         self.metadata = {"render_modes": list(RENDER_MODES), "render_fps": 4, "autoreset_mode": mode}
         self.render_mode = render_mode
-        self._frame = None  # anm_torchrl.render.frame.NetworkFrame, built on the first render()
         self.single_observation_space = self._batch.observation_space
         self.single_action_space = self._batch.action_space
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
@@ -131,21 +130,7 @@ class ANMVectorEnv(VectorEnv):
         "rgb_array"``); None when ``render_mode`` is None (gymnasium's convention)."""
         if self.render_mode is None:
             return None
-        from anm_torchrl.render.frame import NetworkFrame  # matplotlib only when rendering
-        from anm_torchrl.render.tables import network_tables
-
-        v_magn, branch_s = self._batch.grid("v_magn"), self._batch.grid("branch_s")
-        if v_magn is None or branch_s is None:
-            raise ValueError(f"{type(self._batch.env).__name__} reports no ('grid', 'v_magn' / 'branch_s'), "
-                             "so there is nothing to draw")
-        sim = self._batch.env.sim
-        if self._frame is None:
-            self._frame = NetworkFrame(network_tables(sim.net))
-        aux = self.state[:, sim.state_slices()["aux"]][:, 0]
         name = self.spec.id if self.spec else "ANMVectorEnv"
-        frames = []
-        for i in range(self.num_envs):
-            minutes = int(round(float(aux[i]) * float(sim.net.delta_t) * 60))
-            frames.append(self._frame.draw(v_magn[i], branch_s[i], f"{name} [env {i}]\nstep {self._steps[i]} "
-                                                                   f"({minutes // 60 % 24:02d}:{minutes % 60:02d})"))
-        return tuple(frames)
+        rows = list(range(self.num_envs))
+        return tuple(self._batch.draw(rows, [f"{name} [env {i}]\nstep {self._steps[i]} ({self._batch.clock(i)})"
+                                             for i in rows]))
