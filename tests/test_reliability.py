@@ -495,3 +495,31 @@ def test_ill_conditioned_branch_is_refused():
         else:
             with pytest.raises(ValueError, match=r"branch \(.*BR_X.*below 1e-06 p.u.*merge the two buses"):
                 simulator(net, case.load_p, case.gen_p_max)
+
+
+def test_anm6_initial_distribution_is_refused_on_other_networks():
+    """Smaller weak point: ``init="gym_anm"`` was accepted on case33bw (ANM6-Easy's device indices and quirks applied
+    to another network); it is refused with what to use instead, and still accepted on ANM6-Easy."""
+    from anm_torchrl.training.factory import make_true_env
+
+    for init in ("gym_anm", "intended"):
+        with pytest.raises(ValueError, match=f"init='{init}' is ANM6-Easy's initial distribution.*init='uniform'"):
+            make_true_env(2, seed=0, network="case33bw", init=init)
+        assert make_true_env(2, seed=0, init=init).reset()["state"].shape == (2, 18)
+
+
+def test_set_state_honours_a_partial_reset_mask():
+    """Smaller weak point: ``reset(set_state=True)`` with a ``_reset`` mask checked and solved every row, so a
+    row not being reset that no transition could start from made it raise; only the masked rows are set now, and the others
+    keep their values (TorchRL's partial-reset rule)."""
+    from tensordict import TensorDict
+
+    from anm_torchrl.envs import ANM6Env
+
+    env = ANM6Env(2, seed=0)
+    state = env.reset()["state"].clone()
+    given = state.clone()
+    given[0, 0] = float("nan")  # a row not valid to start from, and not being reset
+    out = env.reset(TensorDict({"state": given, "_reset": torch.tensor([[False], [True]])}, [2]), set_state=True)
+    torch.testing.assert_close(out["state"][1], given[1])
+    assert not bool(out["terminated"][1])

@@ -14,7 +14,8 @@ from tensordict import TensorDict
 
 from anm_torchrl.artifacts import exclusive_lock
 from anm_torchrl.data.agent import WaypointAgent, generate_agent
-from anm_torchrl.data.generic import for_network, is_anm6
+from anm_torchrl.data.generic import for_network
+from anm_torchrl.networks.resolve import is_anm6
 from anm_torchrl.data.generative import generate_generative
 from anm_torchrl.data.registry import available_datasets, dataset_generator, register_dataset
 from anm_torchrl.data.storage import (KINDS, SPLITS, DatasetError, checksum, load_dataset, make_command, read_meta,

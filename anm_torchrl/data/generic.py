@@ -8,25 +8,11 @@ reads a stale model or dataset.
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 
 from anm_torchrl.grid.identity import network_key
 from anm_torchrl.grid.simulator import GridSimulator
-from anm_torchrl.networks import ANM6_EASY
-from anm_torchrl.networks import simulator as network_simulator
-
-
-@functools.lru_cache(maxsize=1)
-def _anm6_key() -> str:
-    return network_key(network_simulator(ANM6_EASY))
-
-
-def is_anm6(sim: GridSimulator) -> bool:
-    """Whether ``sim`` runs ANM6-Easy's network (its tables, number of time steps and reward constants)."""
-    if sim is None:
-        raise ValueError("sim is required: pass anm_torchrl.networks.simulator(<network>)")
-    return network_key(sim) == _anm6_key()
+from anm_torchrl.networks.resolve import is_anm6
 
 
 def for_network(folder: Path, sim: GridSimulator) -> Path:

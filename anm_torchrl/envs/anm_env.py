@@ -84,6 +84,13 @@ class ANMEnv(EnvBase):
                                     next_vars=next_vars)
         elif network is not None or load_p is not None or gen_p_max is not None or next_vars is not None:
             raise ValueError("pass either sim= or network=/load_p=/gen_p_max=/next_vars=, not both")
+        if init in ("gym_anm", "intended"):
+            from anm_torchrl.networks.resolve import is_anm6
+
+            if not is_anm6(sim):
+                raise ValueError(f"init={init!r} is ANM6-Easy's initial distribution (its init_state, with its "
+                                 f"device indices and unit quirks); this network is not ANM6-Easy: use "
+                                 f"init='uniform' or a callable sampler")
         self.sim = sim
         self.action_mode, self.init = action_mode, init
         self.obs_map = ObservationMap(sim, observation, (0.0, float(sim.n_time - 1)))
@@ -149,8 +156,17 @@ class ANMEnv(EnvBase):
             if tensordict is None or "state" not in tensordict.keys():
                 raise ValueError("reset(..., set_state=True) needs a TensorDict with a 'state' entry (N, "
                                  f"{self.sim.state_dim}); got {None if tensordict is None else list(tensordict.keys())}")
-            state = self.validate_state(tensordict.get("state"))
-            tr = self.sim.operating_point(state)
+            state = tensordict.get("state")
+            if mask is None:
+                state = self.validate_state(state)
+                tr = self.sim.operating_point(state)
+            else:  # only the rows being reset are checked and solved (the others may be terminal zeros)
+                if state.ndim != 2 or state.shape[0] != n:
+                    raise ValueError(f"state must have shape ({n}, {self.sim.state_dim}), got {tuple(state.shape)}")
+                rows = state[mask].to(self.device, torch.float64)
+                self.sim.check_state(rows)
+                state, tr = self._scatter_rows(mask, rows, self.sim.operating_point(rows))
+                tr.converged = tr.converged | ~mask
             terminated = (~tr.converged).unsqueeze(-1)  # no power-flow solution: a terminal state
         else:
             rows = n if mask is None else int(mask.sum())

@@ -13,12 +13,12 @@ from anm_torchrl.networks.registry import (ANM6_EASY, check_network_name, get_ne
 from anm_torchrl.networks.user import load_network_file, save_network
 
 __all__ = ["ANM6_EASY", "NetworkCase", "check_network_name", "get_network", "list_networks", "load_network_file",
-           "register_network", "save_network", "simulator", "unregister_network"]
+           "is_anm6", "register_network", "save_network", "simulator", "unregister_network"]
 
 
 def __getattr__(name: str):
-    if name == "simulator":
-        from anm_torchrl.networks.resolve import simulator
+    if name in ("simulator", "is_anm6"):
+        from anm_torchrl.networks import resolve
 
-        return simulator
+        return getattr(resolve, name)
     raise AttributeError(f"module 'anm_torchrl.networks' has no attribute {name!r}")

@@ -9,8 +9,10 @@ env, a dataset and a surrogate given the same network get the same simulator, an
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
+from anm_torchrl.grid.identity import network_key
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks.case import NetworkCase
 from anm_torchrl.networks.registry import get_network
@@ -74,3 +76,18 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
     return GridSimulator.from_tables(net, load_p, gen_p_max, float(c["delta_t"]), float(c["gamma"]),
                                      float(c["lamb"]), clip, device=device, backend=backend,
                                      next_vars_hook=next_vars, linear_solver=linear_solver)
+
+
+@functools.lru_cache(maxsize=1)
+def _anm6_key() -> str:
+    from anm_torchrl.networks.registry import ANM6_EASY
+
+    return network_key(simulator(ANM6_EASY))
+
+
+def is_anm6(sim: GridSimulator) -> bool:
+    """Whether ``sim`` runs ANM6-Easy's network (its tables, number of time steps and reward constants; its
+    profiles may differ)."""
+    if sim is None:
+        raise ValueError("sim is required: pass anm_torchrl.networks.simulator(<network>)")
+    return network_key(sim) == _anm6_key()

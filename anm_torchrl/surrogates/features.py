@@ -22,7 +22,7 @@ import math
 
 import torch
 
-from anm_torchrl.data.generic import is_anm6
+from anm_torchrl.networks.resolve import is_anm6
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.grid.state import STATE_KEYS, from_vector
 

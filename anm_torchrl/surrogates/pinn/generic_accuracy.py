@@ -48,7 +48,7 @@ from typing import Any
 
 import torch
 
-from anm_torchrl.data.generic import is_anm6
+from anm_torchrl.networks.resolve import is_anm6
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn import cache
 from anm_torchrl.surrogates.pinn.load import load_pinn

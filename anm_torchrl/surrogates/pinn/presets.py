@@ -246,7 +246,7 @@ def network_preset_name(name: str, sim) -> str:
     """The preset ``name`` stands for on ``sim``'s network (a :class:`GridSimulator`):
     ``default`` is the ANM6-Easy design on ANM6-Easy (unchanged) and :data:`FEEDER_DEFAULT` on any other
     network; every other name is itself."""
-    from anm_torchrl.data.generic import is_anm6
+    from anm_torchrl.networks.resolve import is_anm6
 
     return FEEDER_DEFAULT if name == "default" and not is_anm6(sim) else name
 

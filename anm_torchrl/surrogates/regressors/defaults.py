@@ -53,7 +53,7 @@ def train_command(kind: str, dataset: str, sim, path: str | os.PathLike | None =
     """The command that trains surrogate ``kind`` on ``dataset`` (into ``path`` if not the default) for ``sim``'s
     network (a :class:`GridSimulator`; a network other than ANM6-Easy is named by a placeholder: the simulator
     does not know its name)."""
-    from anm_torchrl.data.generic import is_anm6
+    from anm_torchrl.networks.resolve import is_anm6
 
     network = "" if is_anm6(sim) else " network=<its name>"
     cmd = f"python recipes/train_surrogate.py{network} surrogate={kind} surrogate.dataset={dataset}"
