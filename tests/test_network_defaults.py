@@ -39,10 +39,15 @@ def test_a_group_choice_protects_its_keys():
     assert cfg.model.init_action == "do_nothing"
 
 
-def test_anm6_entry_changes_nothing():
+def test_anm6_entry_changes_only_the_learning_rate():
+    """ANM6-Easy keeps the groups' defaults but for its validated learning rate; a given lr is kept."""
     cfg = compose("config", [])
     before = OmegaConf.to_container(cfg)
-    assert apply_network_defaults(cfg)["applied"] == {} and OmegaConf.to_container(cfg) == before
+    assert apply_network_defaults(cfg)["applied"] == {"optim.lr": 1.0e-4}
+    after = OmegaConf.to_container(cfg)
+    assert after["optim"].pop("lr") == 1.0e-4 and before["optim"].pop("lr") == 3.0e-4 and after == before
+    given = compose("config", ["optim.lr=3e-4"])
+    assert apply_network_defaults(given, explicit={"optim.lr"})["applied"] == {}
 
 
 @pytest.mark.parametrize("network", ["my_feeder.npz", "my_registered_feeder"])
