@@ -1,4 +1,4 @@
-"""The env accepts its own float32 action spec's bounds on every registered network (case33bw's 0.754 MW
+"""The env accepts its own float32 action spec's bounds on every registered network (a 0.754 MW bound, as an earlier case33bw had,
 rounds outward in float32) and still rejects actions outside it."""
 
 import pytest

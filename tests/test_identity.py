@@ -17,8 +17,9 @@ torch.set_num_threads(1)
 EXPECTED = {
     "anm6_easy": ("75059cd710548aa317ba34efd1e3bd7c97e71a7e35ba1f75cf2687ef372649a6", "fbfad07500f1aacf",
                   "fd5c3e1a0470df0d", "54b27910b37f05ee05e72f594ba2d363c82fff9dd37f0202ae02fb162450ea79"),
-    "case33bw": ("8a1c00dd1059701a95f7570809c9ad9588618ba854b83d1bb748ac1aa052a7b6", "4395ad656038b206",
-                 "1788fc526f07a0ff", "8ce033748ab7de97492326eef281165179612e3d33e1cdc5616430842f5a66a2"),
+    # case33bw re-made on 2026-12-03 (MAPDN's PV placement and voltage band): new case, new keys
+    "case33bw": ("0089e35fd088a15d39c1f0f944a5582a36aab415bd35bf1948b76063e7e96ddf", "d79fb346ee77ea3e",
+                 "0e5b431d89d6cefd", "f5e56812316d3b76ab68f055a290076d3903a73271cbf1aa761412c4035c2642"),
     "cigre_mv": ("494bbdff3c4340725d969268504f0098c15c2c739f6d6271dd76b5ced56798f2", "855b90c1a928f9eb",
                  "a652cbf0563fd5be", "a37842503fa0067e046fb1406a3c1e93348ce36a9f5f1ac1615cd2fcbb34d1b2"),
     "simbench_mv_semiurb": ("6e3330288764e48acf41430e906f05f1de58da4ed07ab9c2ffbde7b3be6f93c0", "69a5b990abe5870f",

@@ -11,26 +11,24 @@ scaled so that its annual maximum is the feeder's nominal value (the nominal loa
 
 * ``case33bw`` — pandapower's Baran & Wu 33-bus feeder (M. E. Baran, F. F. Wu, "Network reconfiguration in
   distribution systems for loss reduction and load balancing", IEEE Trans. Power Delivery 4(2), 1989; 12.66 kV,
-  3.715 MW / 2.3 MVAr peak, tie lines open). Three DG units at buses 14, 24 and 30 (1-based, pandapower
-  indices 13, 23, 29) of 0.754, 1.100 and 1.071 MW: meant as the three-DG (unity power factor) loss-minimising
-  placement that the DG-placement literature reports for this feeder. SOURCE UNVERIFIED: it was written from
-  memory and attributed to M. M. Aman, G. B. Jasmon, A. H. A. Bakar, H. Mokhlis, Energy 66 (2014) 202–215; that
-  attribution could not be confirmed. Searched (2026-12-01, the project's reference search: stored web pages,
-  documentation, public source code and GitHub issues) for the bus triple 14/24/30 with the sizes 0.754 /
-  1.099(4) / 1.071(4) MW, for "33-bus" multi-DG placement by Aman et al., Hung & Mithulananthan (IEEE Trans.
-  Ind. Electron., 2013), Kansal et al. (IJEPES, 2013) and Mahmoud et al. (IEEE Trans. Power Syst., 2016), and
-  for the exact strings "1.0994", "754 kW" and "14, 24, 30": no stored page, document or file states this
-  placement with these sizes, so no study is cited here. A second search (2026-12-01: exact strings "0.7540",
-  "1.0994", "(1.0994)", "1.0714", "1099.4", "1071.4", "71.45 kW", "71.4572", "14,24,30", "[14, 24, 30]" in public
-  source; pages, code, docs and issues for three-DG 33-bus tables, EA-OPF and DG-placement repositories) found
-  none either: the stored copy of Mahmoud, Yorino & Ahmed (IEEE Trans. Power Syst. 31(2), 2016) can be read only
-  as far as its abstract, and the one released RL feeder found, MAPDN's case33bw (Wang et al., NeurIPS 2021;
-  github.com/xuwkk/gen_pandapower_pv bus33bw.py @43d373fc), places six PV units at pandapower buses
-  12/17/21/24/28/32 with no wind or storage, so it cannot stand in. Do not quote the placement as a published one
-  until its source is checked in the paper itself. Our choices, not any study's: bus 14 and 30 units are PV
-  (SimBench PV3), bus 24 is wind (WP4); two storage units of 0.5 MW / 2 MWh at the ends of the two longest
-  laterals (buses 18 and 33, indices 17 and 32). Every load follows SimBench ``lv_semiurb5`` (peak-scaled); the
-  case has no line ratings (no branch penalty).
+  3.715 MW / 2.3 MVAr peak, tie lines open) with the PV placement of MAPDN (J. Wang, W. Xu, Y. Gu, W. Song,
+  T. C. Green, "Multi-Agent Reinforcement Learning for Active Voltage Control on Power Distribution Networks",
+  NeurIPS 2021; code github.com/Future-Power-Networks/MAPDN, whose 33-bus net is made by
+  github.com/xuwkk/gen_pandapower_pv ``bus33bw.py`` @43d373fc, ``PV_bus_index = [12,17,21,24,28,32]``): **six PV
+  units at buses 13, 18, 22, 25, 29 and 33** (1-based; pandapower indices 12, 17, 21, 24, 28, 32), one at the end
+  of each lateral and of the main feeder, and MAPDN's voltage band, 0.95–1.05 p.u. at every non-slack bus (the
+  pandapower case has 0.9–1.1). Placement and band from the study; the rest are this project's choices:
+  - sizes: 1.0 MW each (6.0 MW nominal; MAPDN's PV series are not in the stored sources, so their scale could
+    not be copied). Chosen so that the case has MAPDN's problem, over-voltage from PV: with SimBench's ``PV3``
+    profile the six units give up to 3.29 MW in the profile week against 0.50–2.30 MW of load, so do-nothing
+    exceeds 1.05 p.u. at midday (max 1.057) and falls below 0.95 p.u. at the evening peak (min 0.948), and the
+    controller has curtailment, reactive power and storage to use both ways (0.5 MW each gave no over-voltage);
+  - no wind (MAPDN has none);
+  - two storage units of 0.5 MW / 2 MWh at the ends of the two longest laterals (buses 18 and 33, indices 17 and
+    32, beside two of the PV units), because gym-anm's task is about shifting energy and MAPDN has no storage;
+  - every load follows SimBench ``lv_semiurb5`` (peak-scaled); no line ratings (no branch penalty), as the case.
+  An earlier placement (three DG units at buses 14/24/30 of 0.754/1.100/1.071 MW) was dropped on 2026-12-03:
+  no readable study could be found for it.
 * ``cigre_mv`` — pandapower's ``create_cigre_network_mv(with_der="all")`` (CIGRE TB 575, 2014, European MV
   benchmark: 14 buses at 20 kV; 8 PV, 1 wind park, 2 fuel cells, 1 CHP diesel, 1 residential fuel cell pair,
   2 batteries); its default switch states (S1–S3 open, radial). Residential loads take SimBench
@@ -63,7 +61,9 @@ STEPS_PER_DAY = 96
 ENV = {"delta_t": 0.25, "gamma": 0.995, "lamb": 100.0, "costs_clipping": [1.0, 100.0]}  # ANM6-Easy's
 SIMBENCH_CODE = "1-MV-semiurb--0-sw"
 
-CASE33_DG = [(13, 0.754, "PV", "PV3"), (23, 1.100, "WP", "WP4"), (29, 1.071, "PV", "PV3")]
+CASE33_PV_BUSES = (12, 17, 21, 24, 28, 32)  # MAPDN's (pandapower indices)
+CASE33_DG = [(bus, 1.0, "PV", "PV3") for bus in CASE33_PV_BUSES]  # (bus index, MW, type, SimBench profile)
+CASE33_V_BAND = (0.95, 1.05)  # MAPDN's (p.u., non-slack buses)
 CASE33_STORAGE = [(17, 0.5, 2.0), (32, 0.5, 2.0)]  # (bus index, MW, MWh)
 
 
@@ -103,6 +103,7 @@ def _case33bw_net():
     pn = require("pandapower.networks")
 
     net = pn.case33bw()
+    net.bus.loc[net.bus.index != net.ext_grid.bus.iloc[0], ["min_vm_pu", "max_vm_pu"]] = CASE33_V_BAND
     for bus, p, kind, _ in CASE33_DG:
         pp.create_sgen(net, bus, p_mw=p, q_mvar=0.0, sn_mva=p, type=kind, name=f"{kind} bus {bus + 1}")
     for bus, p, e in CASE33_STORAGE:
