@@ -1,5 +1,5 @@
-"""The env accepts its own float32 action spec's bounds on every registered network (a 0.754 MW bound, as an earlier case33bw had,
-rounds outward in float32) and still rejects actions outside it."""
+"""The env accepts its own float32 action spec's bounds on every registered network (a bound such as 0.754 MW,
+an earlier case33bw's, rounds outward in float32) and still rejects actions outside it."""
 
 import pytest
 import torch
