@@ -86,8 +86,8 @@ class ActionBox:
     """The action box (A,) MW/MVAr in float64 and the box :func:`check_action` accepts.
 
     The action spec is float32: a bound such as 0.754 MW (an earlier case33bw's) rounds outward in float32, so the
-    spec's own high/low must pass. ``accept_low``/``accept_high`` are the bounds widened to the nearest float32 value outside
-    them, computed once here rather than on every step.
+    spec's own high/low must pass. ``accept_low``/``accept_high`` are the bounds widened to the nearest float32
+    value outside them, computed once here rather than on every step.
     """
 
     low: torch.Tensor
