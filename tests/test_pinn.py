@@ -472,8 +472,10 @@ def test_feeder_preset_selection():
 @pytest.mark.parametrize("network", ["case33bw", "cigre_mv"])
 def test_refinement_converges_to_newton_raphson(network, method):
     """``refine_steps``: Newton (rule v2) or chord (v1) steps from an untrained network's output contract towards
-    the exact power flow (each step at least 5× closer on these light-load injections; a wrong Jacobian or sign
-    diverges), and ``refine=False`` is the raw network."""
+    the exact power flow, and ``refine=False`` is the raw network. A wrong Jacobian or sign diverges. Chord: each
+    step at least 5× closer on these light-load injections (linear convergence). Newton: damped, so its first
+    step from an untrained net's far-off estimate may be short (case33bw with MAPDN's PV: 3.9× closer); every step
+    must still get closer, and two steps at least 100× (quadratic once close: 140× on the second step there)."""
     from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
 
@@ -490,7 +492,10 @@ def test_refinement_converges_to_newton_raphson(network, method):
             errs.append(float((pb(p, q)[0] - trn.v.abs())[ok].abs().mean()))
             raw = float((pb(p, q, refine=False)[0] - trn.v.abs())[ok].abs().mean())
         assert raw == errs[0]
-    assert errs[1] < errs[0] / 5 and errs[2] < errs[1] / 5, errs
+    if method == "chord":
+        assert errs[1] < errs[0] / 5 and errs[2] < errs[1] / 5, errs
+    else:
+        assert errs[1] < errs[0] and errs[2] < errs[1] and errs[2] < errs[0] / 100, errs
 
 
 def test_unknown_option_is_rejected():
