@@ -18,7 +18,6 @@ import logging
 import time
 
 import hydra
-import torch
 from omegaconf import DictConfig
 
 from anm_torchrl.training.recipe_help import register as register_help
@@ -26,17 +25,31 @@ from anm_torchrl.training.recipe_help import register as register_help
 log = logging.getLogger("make_dataset")
 
 
-def run(cfg: DictConfig) -> str:
-    """Generate and write the dataset described by ``cfg``; returns its folder."""
-    from anm_torchrl.data import make_dataset
-    from anm_torchrl.networks import simulator as network_simulator
+def check(cfg: DictConfig):
+    """Every range of ``cfg`` and its network, before any work (and before torch is imported); returns the
+    network's simulator.
+
+    Raises:
+        ValueError: naming the offending key."""
     from anm_torchrl.training.config_checks import check_make_dataset_config
 
-    check_make_dataset_config(cfg)  # every range before any work: one line naming the key
+    check_make_dataset_config(cfg)
+    from anm_torchrl.networks import simulator as network_simulator
+
+    return network_simulator(cfg.network)
+
+
+def run(cfg: DictConfig, sim=None) -> str:
+    """Generate and write the dataset described by ``cfg`` (on ``sim``, the result of :func:`check`, checked here
+    if None); returns its folder."""
+    start = time.perf_counter()
+    sim = check(cfg) if sim is None else sim
+    import torch
+
+    from anm_torchrl.data import make_dataset
+
     torch.set_num_threads(int(cfg.threads))
     options = dict(cfg[cfg.dataset]) if cfg.get(cfg.dataset) is not None else {}
-    start = time.perf_counter()
-    sim = network_simulator(cfg.network)
     path = make_dataset(cfg.dataset, int(cfg.size), int(cfg.seed), path=cfg.out, overwrite=bool(cfg.overwrite),
                         sim=sim, progress=bool(cfg.progress), fractions=tuple(cfg.fractions), **options)
     log.info("%s dataset (%d rows, seed %d) written to %s in %.1f s", cfg.dataset, cfg.size, cfg.seed, path,
@@ -49,7 +62,13 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 
 @hydra.main(config_path="conf", config_name="make_dataset", version_base="1.3")
 def main(cfg: DictConfig) -> str:
-    return run(cfg)
+    from hydra.core.hydra_config import HydraConfig
+
+    from anm_torchrl.training.recipe_errors import user_errors
+
+    with user_errors("make_dataset.py", HydraConfig.get().runtime.output_dir):  # one line naming the key
+        sim = check(cfg)
+    return run(cfg, sim)
 
 
 if __name__ == "__main__":

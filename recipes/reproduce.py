@@ -169,7 +169,8 @@ def main(cfg: DictConfig) -> dict:
             log.info("report only: redrew %s, %s", target, target_md)
             return committed_run(target / REPRODUCTION)
         if cfg.out_dir is None:
-            raise ValueError("report_only=true needs out_dir=<a run directory> (or publish=true for results/)")
+            raise SystemExit("reproduce.py: report_only=true needs out_dir=<a run directory> (or publish=true for "
+                             "results/)")
         out_dir = _abs(cfg.out_dir)
         run_info = json.loads((out_dir / "run.json").read_text())
         figs, md = render(out_dir, _md(cfg, out_dir), run_info)
@@ -179,11 +180,14 @@ def main(cfg: DictConfig) -> dict:
     experiments = list(p.get("experiments", []))
     from anm_torchrl.experiments import registry
 
-    for name in experiments:  # an unknown name is refused before anything runs
-        registry.get(name)
-    if cfg.publish:  # refuse before anything runs
-        for study, names in by_study(experiments).items():
-            check_publish(target / study, str(p.get("name")), names, bool(cfg.merge), bool(cfg.force))
+    from anm_torchrl.training.recipe_errors import user_errors
+
+    with user_errors("reproduce.py", HydraConfig.get().runtime.output_dir):  # one line, before anything runs
+        for name in experiments:  # an unknown name is refused
+            registry.get(name)
+        if cfg.publish:
+            for study, names in by_study(experiments).items():
+                check_publish(target / study, str(p.get("name")), names, bool(cfg.merge), bool(cfg.force))
     out_dir = _abs(cfg.out_dir) if cfg.out_dir is not None else Path(HydraConfig.get().runtime.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     surrogates = [dict(s) for s in p.get("surrogates", [])]

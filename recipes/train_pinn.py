@@ -49,7 +49,10 @@ def main(cfg: DictConfig) -> dict:
 
     torch.set_num_threads(int(cfg.threads))
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    try:  # bad input (an unknown network, a preset value out of range) is one line naming it, not a traceback
+    from anm_torchrl.training.recipe_errors import user_errors
+
+    # bad input (an unknown network, a preset value out of range) is one line naming it, not a traceback
+    with user_errors("train_pinn.py", run_dir):
         check_network_name(cfg.network)
         sim = network_simulator(cfg.network)
         file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
@@ -57,8 +60,6 @@ def main(cfg: DictConfig) -> dict:
         # line's changes to the composed preset kept
         train_cfg = (None if cfg.eval_only else
                      from_composed(OmegaConf.to_container(cfg.pinn_preset, resolve=True), sim, seed=int(cfg.seed)))
-    except (ValueError, TypeError) as err:
-        raise SystemExit(f"train_pinn.py: {err}") from None
     out: dict = {"path": str(file)}
     if train_cfg is not None:
         name = train_cfg.preset

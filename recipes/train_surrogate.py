@@ -38,8 +38,12 @@ def run(cfg: DictConfig) -> list[dict]:
     """Train what ``cfg`` asks for (one surrogate, or all ten with ``all=true``); returns the metrics."""
     from anm_torchrl.surrogates.regressors.train import train_surrogates
 
-    default_size = int(OmegaConf.load(CONF / "train_surrogate.yaml").data.size)
-    return train_surrogates(cfg, OmegaConf.load(CONF / "make_dataset.yaml"), default_size)
+    return train_surrogates(cfg, OmegaConf.load(CONF / "make_dataset.yaml"), default_size())
+
+
+def default_size() -> int:
+    """The default ``data.size`` (``recipes/conf/train_surrogate.yaml``)."""
+    return int(OmegaConf.load(CONF / "train_surrogate.yaml").data.size)
 
 
 register_help()  # --help lists only this recipe's config groups (recipes/conf/hydra/help/recipe.yaml)
@@ -47,6 +51,13 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 
 @hydra.main(config_path="conf", config_name="train_surrogate", version_base="1.3")
 def main(cfg: DictConfig) -> list[dict]:
+    from hydra.core.hydra_config import HydraConfig
+
+    from anm_torchrl.surrogates.regressors.train import check_train_request
+    from anm_torchrl.training.recipe_errors import user_errors
+
+    with user_errors("train_surrogate.py", HydraConfig.get().runtime.output_dir):  # one line naming the key
+        check_train_request(cfg, default_size())
     return run(cfg)
 
 

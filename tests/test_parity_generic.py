@@ -1,4 +1,4 @@
-"""Parity of ``anm_torchrl.envs.ANMEnv`` with gym-anm 2.0.1's generic ``ANMEnv`` on three networks of our own.
+"""Parity of ``anm_torchrl.envs.ANMEnv`` with gym-anm 2.0.1's generic ``ANMEnv`` on four networks of our own.
 
 Fixtures: ``tests/fixtures/generic_<name>.npz``, recorded from gym-anm itself by
 ``tests/fixtures/record_generic.py`` (>= 2,000 transitions each; see its docstring for what they cover).
@@ -9,7 +9,8 @@ Tolerances: next states within 1e-6 (MW / MVAr / MWh: the issue's target; both s
 Newton-Raphson to the same 1e-5 p.u. stopping rule, so iterates agree to round-off and the projections to
 the QP solver's accuracy); rewards within 1e-6 relative (plus 1e-9 absolute for rewards that are ~0);
 identical terminations; observations equal to gym-anm's float64 observation rounded to float32, within two
-float32 ulps or 1e-6 absolute (the state tolerance, for quantities near 0).
+float32 ulps or 1e-6 absolute (the state tolerance, for quantities near 0). A row outside them passes only if
+gym-anm itself, replayed with accurate QP projections, gives this package's value (``benchmarks.parity``).
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ import numpy as np
 import pytest
 import torch
 
-from anm_torchrl.benchmarks.parity import (FIXTURES, GENERIC_PREFIX, OBS_ATOL, OBS_RTOL, REWARD_ATOL, REWARD_RTOL,
-                                           STATE_TOL, generic_env, load_fixture, step_recorded)
+from anm_torchrl.benchmarks.parity import (FIXTURES, GENERIC_PREFIX, STATE_TOL, generic_env, load_fixture,
+                                           run_fixture, step_recorded)
 
 torch.set_num_threads(1)
 
@@ -62,18 +63,23 @@ def test_fixtures_cover_every_device_type():
 @pytest.mark.parametrize("backend", ["numba", "torch"])
 @pytest.mark.parametrize("name", NETWORKS)
 def test_one_batch_equals_gym_anm(name, backend):
+    """Every transition within the tolerances of the recording, or QP-inexact: off the recording where gym-anm's
+    default cvxpy projection was inexact, and equal to gym-anm replayed with accurate projections
+    (``benchmarks.gym_anm_replay``). Such rows are rare (< 1 %); any other difference fails, named."""
     d = load(name)
     n = len(d["reward"])
+    row = run_fixture(GENERIC_PREFIX + name, d, backend)
+    print(f"{name} ({backend}): QP-inexact rows {row['qp_inexact_rows']}, "
+          f"max |Δstate| to the recording {row['max_abs_state_diff']:.1e}, to the accurate replay "
+          f"{row['max_abs_state_diff_accurate']}")
+    bad = row["mismatch_rows"]
+    assert bad == [], f"{len(bad)} transitions differ, first {bad[:5]}"
+    assert row["state_ok"] and row["reward_ok"] and row["terminations_ok"] and row["obs_ok"], row
+    assert len(row["qp_inexact_rows"]) <= 0.01 * n
+    if row["qp_inexact_rows"]:
+        assert row["max_abs_state_diff_accurate"] <= STATE_TOL
     out = step_recorded(generic_env(d, n, backend), d)
-
-    term = out["terminated"].reshape(n).numpy()
-    bad = np.flatnonzero(term != d["terminated"])
-    assert bad.size == 0, f"terminations differ at {bad.size} transitions, first {bad[:5].tolist()}"
-    err = np.abs(out["state"].numpy() - d["next_state"]).max(axis=1)
-    assert err.max() <= STATE_TOL, f"state error {err.max():.2e} at transition {int(err.argmax())}"
-    np.testing.assert_allclose(out["reward"].reshape(n).double().numpy(), d["reward"],
-                               rtol=REWARD_RTOL, atol=REWARD_ATOL)
     obs = out["observation"]
     assert obs.dtype == torch.float32 and obs.shape == (n, d["obs"].shape[1])
+    assert out["reward"].dtype == torch.float32 and out["terminated"].dtype == torch.bool
     assert d["obs"].dtype == np.float32  # gym-anm's observation rounded to float32 by the recorder
-    np.testing.assert_allclose(obs.numpy(), d["obs"], rtol=OBS_RTOL, atol=OBS_ATOL)

@@ -298,19 +298,20 @@ def run_recipe(cfg: DictConfig) -> dict:
 
     from anm_torchrl.networks.user import network_argument
     from anm_torchrl.training.algorithms import check_algorithm_config
+    from anm_torchrl.training.recipe_errors import check_device, user_errors
     from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
 
     run_dir = Path.cwd()
-    # a network file's path is relative to where the command was typed, not to the run directory
-    cfg.network = network_argument(cfg.network, hydra.utils.get_original_cwd())
-    try:
+    with user_errors(f"{HydraConfig.get().job.name}.py", run_dir):
+        # a network file's path is relative to where the command was typed, not to the run directory
+        cfg.network = network_argument(cfg.network, hydra.utils.get_original_cwd())
         defaults = apply_network_defaults(cfg, explicit_keys(HydraConfig.get().overrides.task))
         check_algorithm_config(cfg)
-    except ValueError as err:
-        remove_hydra_only_dir(run_dir)
-        raise SystemExit(f"{HydraConfig.get().job.name}.py: {err}") from None
-    if cfg.checkpoint.resume:  # relative to where the command was typed, not to the run directory
-        cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
+        check_device(cfg.env.device)
+        if cfg.checkpoint.resume:  # relative to where the command was typed, not to the run directory
+            cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
+            if not Path(cfg.checkpoint.resume).is_file():
+                raise FileNotFoundError(f"checkpoint.resume: no file {cfg.checkpoint.resume}")
     print(f"run directory: {run_dir}", flush=True)
     try:
         return train(cfg, run_dir, network_defaults=defaults)
@@ -318,12 +319,3 @@ def run_recipe(cfg: DictConfig) -> dict:
         raise SystemExit(130) from None
     finally:
         print(f"run directory: {run_dir}", flush=True)
-
-
-def remove_hydra_only_dir(run_dir: Path) -> None:
-    """Remove ``run_dir`` if it holds nothing but what Hydra writes at start (``.hydra/``, ``<job>.log``)."""
-    if run_dir.is_dir() and all(p.name == ".hydra" or p.suffix == ".log" for p in run_dir.iterdir()):
-        import os
-
-        os.chdir(run_dir.parent)  # hydra.job.chdir made it the working directory
-        shutil.rmtree(run_dir)

@@ -158,6 +158,25 @@ def summary_table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def check_train_request(cfg: DictConfig, default_size: int):
+    """Everything :func:`train_surrogates` checks before loading or generating data: the kind / dataset pair, the
+    default slot's size rule, ``all`` without a path, and the network (returned as its simulator).
+
+    Raises:
+        ValueError: naming the offending key."""
+    from anm_torchrl.networks import simulator as network_simulator
+    from anm_torchrl.surrogates.regressors import DATASETS
+
+    if not cfg.all:
+        check_request(cfg.surrogate.name, cfg.surrogate.get("dataset"))
+    elif cfg.surrogate.get("path"):
+        raise ValueError("all=true writes every model to its default folder; leave surrogate.path null")
+    if not any(cfg.data.get(k) for k in DATASETS):
+        check_default_slot(int(cfg.data.size), None if cfg.all else cfg.surrogate.get("path"),
+                           bool(cfg.overwrite_cache), default_size)
+    return network_simulator(cfg.network)
+
+
 def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int) -> list[dict]:
     """Train what ``cfg`` (``recipes/conf/train_surrogate.yaml``) asks for: one surrogate, or all ten with
     ``all=true``; returns the metrics. ``make_cfg``: the dataset recipe's config (options of missing datasets);
@@ -165,22 +184,14 @@ def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int) -
     ``overwrite_cache``."""
     from anm_torchrl.artifacts import atomic_write
     from anm_torchrl.data import for_network
-    from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.paths import artifact_home
     from anm_torchrl.surrogates.regressors import DATASETS, KINDS
 
     torch.set_num_threads(int(cfg.threads))
-    if not cfg.all:  # fail before loading or generating data
-        check_request(cfg.surrogate.name, cfg.surrogate.get("dataset"))
-    if not any(cfg.data.get(k) for k in DATASETS):  # before generating or loading anything
-        check_default_slot(int(cfg.data.size), None if cfg.all else cfg.surrogate.get("path"),
-                           bool(cfg.overwrite_cache), default_size)
+    sim = check_train_request(cfg, default_size)  # fail before loading or generating data
     start = time.perf_counter()
-    sim = network_simulator(cfg.network)
     data = load_datasets(cfg, sim, make_cfg)
     if cfg.all:
-        if cfg.surrogate.get("path"):
-            raise ValueError("all=true writes every model to its default folder; leave surrogate.path null")
         jobs = [(k, d) for d in DATASETS for k in KINDS]
         results = [train_one(cfg, k, d, None, data, sim, default_size)
                    for k, d in tqdm(jobs, desc="surrogates", unit="model", disable=not cfg.progress)]

@@ -1,0 +1,87 @@
+"""A user's mistake in a recipe is one line naming it, not a traceback, and leaves no empty run directory.
+
+Every recipe (``recipes/*.py``) runs its checks — config ranges, network names and files, devices, missing
+extras — inside :func:`user_errors` before any heavy work, so ``make_dataset.py generative.chunk=0`` prints
+``make_dataset.py: generative.chunk must be an integer >= 1, got 0`` and exits with status 1. Errors raised
+later, during the work itself, keep their traceback: by then they are bugs or faults, not typos.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+from anm_torchrl._extras import MissingExtraError
+
+#: what a user's input can raise before the work starts (a bad value, a wrong kind, a missing file or extra)
+USER_ERRORS = (ValueError, TypeError, KeyError, FileNotFoundError, NotADirectoryError, PermissionError,
+               MissingExtraError)
+
+
+def remove_hydra_only_dir(run_dir: Path) -> None:
+    """Remove ``run_dir`` if it holds nothing but what Hydra writes at start (``.hydra/``, ``<job>.log``), and
+    then up to three parents that this left empty (Hydra's ``outputs/<job>/<date>/`` levels), never the
+    working directory."""
+    run_dir = Path(run_dir).resolve()
+    if run_dir.is_dir() and all(p.name == ".hydra" or p.suffix == ".log" for p in run_dir.iterdir()):
+        if Path.cwd().resolve() == run_dir:  # hydra.job.chdir made it the working directory
+            os.chdir(_original_cwd() or run_dir.parent)
+        shutil.rmtree(run_dir)
+        for parent in run_dir.parents[:3]:
+            if parent == Path.cwd().resolve() or any(parent.iterdir()):
+                break
+            parent.rmdir()
+
+
+def _original_cwd() -> str | None:
+    """Where the command was typed (Hydra's ``runtime.cwd``), or None outside a Hydra run."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return HydraConfig.get().runtime.cwd if HydraConfig.initialized() else None
+
+
+@contextlib.contextmanager
+def user_errors(recipe: str, run_dir: str | os.PathLike | None = None) -> Iterator[None]:
+    """Turn :data:`USER_ERRORS` raised in the block into ``SystemExit("<recipe>: <message>")`` (status 1) and
+    remove ``run_dir`` if it holds only Hydra's start-up files.
+
+    Args:
+        recipe: the script's name as the user typed it, e.g. ``"make_dataset.py"``.
+        run_dir: the Hydra run directory made for this run, or None.
+    """
+    try:
+        yield
+    except USER_ERRORS as err:
+        if run_dir is not None:
+            remove_hydra_only_dir(Path(run_dir))
+        message = err.args[0] if isinstance(err, KeyError) and err.args else err
+        raise SystemExit(f"{recipe}: {message}") from None
+
+
+def check_device(device: str, key: str = "env.device") -> None:
+    """``device`` names a device this torch build has (``cpu``, or ``cuda[:i]`` / ``mps`` where available).
+
+    Raises:
+        ValueError: naming ``key``, the device and what this build offers.
+    """
+    if str(device) == "cpu":
+        return
+    import torch
+
+    try:
+        dev = torch.device(str(device))
+    except RuntimeError as err:
+        raise ValueError(f"{key}: {device!r} is not a torch device ({err})") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"{key}={device}: this torch build ({torch.__version__}) has no usable CUDA device; "
+                             "use env.device=cpu, or install a CUDA build of torch on a machine with a GPU")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{key}={device}: only {torch.cuda.device_count()} CUDA device(s) here")
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"{key}={device}: MPS is not available here; use env.device=cpu")
+    elif dev.type not in ("cuda", "mps"):
+        raise ValueError(f"{key}={device}: expected cpu, cuda[:i] or mps")
