@@ -44,8 +44,10 @@ def test_generator_covers_the_device_and_branch_variety():
     assert np.isnan(np.array([r for c in cases for r in c.network["device"] if r[2] in (2, 3)], float)[:, 8]).any()
     assert (gens[:, 8] < gens[:, 4]).any()  # a corner below PMAX
     assert len({c.meta["base_mva"] for c in cases}) > 1
-    with pytest.raises(ValueError, match="n_bus must lie in 5..80"):
-        rnd.generate(0, n_bus=81)
+    with pytest.raises(ValueError, match="n_bus must lie in 5..400"):
+        rnd.generate(0, n_bus=401)
+    with pytest.raises(ValueError, match="n_bus must lie in 5..400"):
+        rnd.generate(0, n_bus=4)
 
 
 def test_battery_case_classes_and_agreement():

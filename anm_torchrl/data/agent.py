@@ -23,13 +23,13 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 from anm_torchrl.networks.resolve import is_anm6
+from anm_torchrl.data.options import WAYPOINT_DISTS
 from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
 from anm_torchrl.grid import reset as grid_reset
 from anm_torchrl.grid.simulator import GridSimulator
 
 log = logging.getLogger(__name__)
 
-WAYPOINT_DISTS = ("arcsine", "uniform")
 
 
 class WaypointAgent:

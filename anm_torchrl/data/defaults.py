@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from anm_torchrl.data.storage import DEFAULT_FRACTIONS  # its one home (train, validation, test shares)
+from anm_torchrl.data.options import DEFAULT_FRACTIONS  # its one home (train, validation, test shares)
 
 DEFAULT_SIZE = 100_000  # rows (train + validation + test)
 DEFAULT_SEED = 0

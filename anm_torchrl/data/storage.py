@@ -48,6 +48,7 @@ from tensordict import TensorDict, TensorDictBase
 from anm_torchrl._version import __version__
 from anm_torchrl.artifacts import (ArtifactError, DiskFullError, atomic_folder, disk_full_error, exclusive_lock,
                                   reserve_space, verify_manifest, write_manifest)
+from anm_torchrl.data.options import DEFAULT_FRACTIONS, check_fractions  # noqa: F401 (their home: options)
 from anm_torchrl.data.registry import available_datasets
 from anm_torchrl.grid.identity import network_key, simulator_fingerprint
 from anm_torchrl.grid.simulator import GridSimulator
@@ -58,7 +59,6 @@ META_FILE = "dataset.json"
 DATA_DIR = "data"
 KINDS = available_datasets()
 SPLITS = {"train": 0, "val": 1, "test": 2}
-DEFAULT_FRACTIONS = (0.8, 0.1, 0.1)
 
 
 class DatasetError(RuntimeError):
@@ -90,21 +90,6 @@ def simulator_settings(sim: GridSimulator) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------------------- splits
-def check_fractions(fractions, name: str = "fractions") -> tuple[float, float, float]:
-    """``fractions`` as three non-negative finite floats (train, validation, test) summing to 1 (within 1e-6);
-    a ``ValueError`` naming ``name`` otherwise (they are never renormalised silently)."""
-    try:
-        f = tuple(float(x) for x in fractions if not isinstance(x, (bool, str, bytes)))
-        ok = len(f) == len(list(fractions)) == 3
-    except (TypeError, ValueError):
-        ok = False
-    if not ok or any(not math.isfinite(x) or x < 0 for x in f) or not math.isclose(sum(f), 1.0, abs_tol=1e-6):
-        shown = list(fractions) if isinstance(fractions, Iterable) and not isinstance(fractions, str) else fractions
-        raise ValueError(f"{name} must be three non-negative numbers (train, validation, test) summing to 1, "
-                         f"got {shown!r}")
-    return f
-
-
 def split_codes(n_units: int, fractions=DEFAULT_FRACTIONS, generator: torch.Generator | None = None) -> torch.Tensor:
     """Assign ``n_units`` units (rows or trajectories) to train/val/test, (n_units,) int8, seeded permutation.
 

@@ -3,15 +3,17 @@
 At a converged solution ``F(x, s) = 0`` (``F`` = [Re, Im] of the non-slack mismatch, ``x`` = [θ_1.., |V|_1..])
 with ``∂F/∂s = -I``, so ``dx/ds = J⁻¹`` for the polar Jacobian ``J = ∂F/∂x`` at the solution. The forward runs
 :func:`~anm_torchrl.grid.powerflow.newton_iterates` under ``no_grad`` (the same numbers as
-:func:`~anm_torchrl.grid.powerflow.newton_raphson`); the backward is one batched linear solve with ``Jᵀ`` — the
-Newton iterations are never backpropagated. Rows that did not converge get a zero gradient.
+:func:`~anm_torchrl.grid.powerflow.newton_raphson`) and keeps only the solution; the backward rebuilds ``J`` there
+and solves with ``Jᵀ`` in batched chunks of bounded memory (:func:`~anm_torchrl.grid.powerflow.jacobian_rows`) —
+the Newton iterations are never backpropagated. Rows that did not converge get a zero gradient.
 """
 
 from __future__ import annotations
 
 import torch
 
-from anm_torchrl.grid.powerflow import MAX_ITER, TOL, PowerFlowResult, _jacobian, _voltages, newton_iterates
+from anm_torchrl.grid.powerflow import (MAX_ITER, TOL, PowerFlowResult, _jacobian, _voltages, jacobian_rows,
+                                       newton_iterates)
 from anm_torchrl.grid.residuals import power_injection
 
 
@@ -27,22 +29,32 @@ class ImplicitPowerFlow(torch.autograd.Function):
         with torch.no_grad():
             s_bus = torch.complex(p_bus, q_bus)
             x, converged, n_iter, diff = newton_iterates(y_bus, s_bus, tol, max_iter)
-            v = _voltages(x, s_bus.shape[1])
-            jac = _jacobian(v, power_injection(v, y_bus), y_bus[1:, 1:].conj())
-        ctx.save_for_backward(jac, converged)
+        # the solution, not its Jacobian: (N, 2n-2) instead of (N, 2n-2, 2n-2) held until backward, which
+        # rebuilds J in bounded chunks (a SHAC horizon holds one of these per step)
+        ctx.save_for_backward(x, converged, y_bus)
         ctx.mark_non_differentiable(converged, n_iter, diff)
         return x, converged, n_iter, diff
 
     @staticmethod
     def backward(ctx, grad_x, *_):
-        jac, converged = ctx.saved_tensors
-        k = jac.shape[-1] // 2
+        x, converged, y_bus = ctx.saved_tensors
+        k = x.shape[-1] // 2
+        v = _voltages(x, k + 1)
+        s_inj, y_conj = power_injection(v, y_bus), y_bus[1:, 1:].conj()
+        eye = torch.eye(2 * k, dtype=x.dtype, device=x.device)
         # dL/ds = J⁻ᵀ dL/dx (F = S_inj(x) - s, so ∂x/∂s = J⁻¹); non-converged or singular rows: 0
-        ok = converged & torch.isfinite(grad_x).all(-1) & torch.isfinite(jac).flatten(1).all(-1)
-        safe_jac = torch.where(ok[:, None, None], jac, torch.eye(2 * k, dtype=jac.dtype, device=jac.device))
-        lam, info = torch.linalg.solve_ex(safe_jac.transpose(-1, -2), torch.where(ok[:, None], grad_x, 0.0)
-                                          .unsqueeze(-1))
-        lam = torch.where((ok & (info == 0))[:, None], lam.squeeze(-1), 0.0)
+        ok = converged & torch.isfinite(grad_x).all(-1)
+        rhs = torch.where(ok[:, None], grad_x, 0.0)
+        lam, ok_rows = torch.zeros_like(rhs), torch.zeros_like(ok)
+        rows = jacobian_rows(len(x), 2 * k, x.element_size())
+        for i in range(0, len(x), rows):
+            sl = slice(i, i + rows)
+            jac = _jacobian(v[sl], s_inj[sl], y_conj)
+            good = ok[sl] & torch.isfinite(jac).flatten(1).all(-1)
+            safe_jac = torch.where(good[:, None, None], jac, eye)
+            sol, info = torch.linalg.solve_ex(safe_jac.transpose(-1, -2), rhs[sl].unsqueeze(-1))
+            lam[sl], ok_rows[sl] = sol.squeeze(-1), good & (info == 0)
+        lam = torch.where(ok_rows[:, None], lam, 0.0)
         zero = lam.new_zeros(lam.shape[0], 1)
         grad_p = torch.cat([zero, lam[:, :k]], 1)
         grad_q = torch.cat([zero, lam[:, k:]], 1)

@@ -289,18 +289,19 @@ def generate(seed: int, n_bus: int | None = None, meshed: bool | None = None, ma
 
     Args:
         seed: the seed; the same seed (and arguments) always gives the same network.
-        n_bus: bus count in 5..80 (None: drawn from 5..80 by the seed).
+        n_bus: bus count in 5..400 (None: drawn from 5..80, the battery's range, by the seed; larger ones serve
+            scaling benchmarks).
         meshed: tie lines (None: drawn, half of the seeds).
         max_attempts: sub-draws tried before giving up.
 
     Raises:
-        ValueError: ``n_bus`` outside 5..80, or no valid draw in ``max_attempts`` (naming the last reason).
+        ValueError: ``n_bus`` outside 5..400, or no valid draw in ``max_attempts`` (naming the last reason).
     """
     rng0 = np.random.default_rng([seed, 0])
     n_bus = int(rng0.integers(5, 81)) if n_bus is None else int(n_bus)
     meshed = bool(rng0.random() < 0.5) if meshed is None else bool(meshed)
-    if not 5 <= n_bus <= 80:
-        raise ValueError(f"n_bus must lie in 5..80, got {n_bus}")
+    if not 5 <= n_bus <= 400:
+        raise ValueError(f"n_bus must lie in 5..400, got {n_bus}")
     why = None
     for attempt in range(max_attempts):
         rng = np.random.default_rng([seed, n_bus, int(meshed), attempt])

@@ -223,8 +223,8 @@ def check_make_dataset_config(cfg: Mapping) -> None:
     Raises:
         ValueError: the first offending key, with the expected range and the value received.
     """
+    from anm_torchrl.data.options import WAYPOINT_DISTS, check_fractions
     from anm_torchrl.data.registry import available_datasets
-    from anm_torchrl.data.storage import check_fractions
     from anm_torchrl.networks import check_network_name
 
     check_network_name(_get(cfg, "network"))
@@ -241,8 +241,6 @@ def check_make_dataset_config(cfg: Mapping) -> None:
         _int(cfg, "agent.max_episode_steps")
         if not isinstance(_get(cfg, "agent.random_every"), bool):
             raise ValueError(f"agent.random_every must be true or false, got {_get(cfg, 'agent.random_every')!r}")
-        from anm_torchrl.data.agent import WAYPOINT_DISTS
-
         _choice(cfg, "agent.waypoints", tuple(WAYPOINT_DISTS))
 
 
