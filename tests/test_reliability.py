@@ -362,6 +362,48 @@ def test_next_vars_hook_nan_is_an_error():
         env.step(td.set("action", torch.zeros(2, env.action_spec.shape[-1])))
 
 
+def test_clipped_profiles_are_reported_once(caplog, monkeypatch):
+    """Weak point: profiles with positive loads or potentials beyond PMAX are clipped as gym-anm does, and now said
+    so once per case at WARNING, naming device, bound and extreme (before: silently); so is a hook's output."""
+    import logging
+
+    import numpy as np
+
+    import anm_torchrl.grid.simulator as simulator_module
+    from anm_torchrl.envs import ANMEnv
+    from anm_torchrl.networks import anm6_easy as a
+
+    monkeypatch.setattr(simulator_module, "_REPORTED", set())
+    net = {"baseMVA": a.BASE_MVA, "bus": a.BUSES, "branch": a.BRANCHES, "device": a.DEVICES}
+    sim = _anm6_sim()
+    load_p = np.full((4, sim.n_load), -1.0)
+    gen_p_max = np.full((4, sim.n_gen), 1.0)
+    load_p[2, 0] = 5.0  # a load that produces: above its PMAX of 0 MW
+    gen_p_max[1, 1] = 1e6  # far above the generator's PMAX
+    caplog.clear()  # ANM6-Easy's own wind profile passes its PMAX (gym-anm's data): reported by _anm6_sim
+    with caplog.at_level(logging.WARNING, logger="anm_torchrl.grid.simulator"):
+        ANMEnv(net, load_p, gen_p_max, num_envs=2, seed=0)
+        ANMEnv(net, load_p, gen_p_max, num_envs=2, seed=1)  # the same case: not repeated
+    records = [r.getMessage() for r in caplog.records if r.name == "anm_torchrl.grid.simulator"]
+    assert len(records) == 1, records
+    assert "load P of device 1 above PMAX (0 MW) at 1 entries (extreme 5 MW)" in records[0]
+    assert "potential of device" in records[0] and "extreme 1e+06 MW" in records[0]
+
+    def hot(state):
+        n = state.shape[0]
+        return (torch.full((n, sim.n_load), 2.0, dtype=state.dtype), torch.zeros(n, sim.n_gen, dtype=state.dtype),
+                torch.zeros(n, 1, dtype=state.dtype))
+
+    env = ANMEnv(net, np.full((4, sim.n_load), -1.0), np.full((4, sim.n_gen), 1.0), num_envs=2, seed=0, next_vars=hot)
+    td = env.reset()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="anm_torchrl.grid.simulator"):
+        for _ in range(2):
+            td = env.step(td.set("action", torch.zeros(2, env.action_spec.shape[-1])))["next"]
+    records = [r.getMessage() for r in caplog.records if r.name == "anm_torchrl.grid.simulator"]
+    assert len(records) == 1 and records[0].startswith("the next_vars hook 'hot' hold values"), records
+
+
 def test_reset_mask_must_be_bool():
     """Extra: a float '_reset' mask raises a clear error naming dtype and shape (before: a raw TypeError)."""
     from tensordict import TensorDict

@@ -22,7 +22,7 @@ Per network, in the same run (these machines are shared: compare ratios, not abs
 
 ``--solver-sweep`` times the numba kernel (``GridSimulator.step``, transitions/s) with the dense LU, the band
 LU and the tree block LU (:func:`anm_torchrl.grid.constants.jacobian_ordering`) on synthetic
-feeders of growing size (batch ``--sweep-batch``, 128): the crossover sets :data:`anm_torchrl.grid.constants.BANDED_MIN_BUS`.
+feeders of growing size (batch ``--sweep-batch``, 128): the crossover sets :data:`anm_torchrl.grid.tree_solve.BANDED_MIN_BUS`.
 Writes ``<out>.json`` and ``<out>.md``.
 """
 

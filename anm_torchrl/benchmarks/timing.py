@@ -68,3 +68,28 @@ def time_env_steps(make: Callable[[], object], min_time: float, min_steps: int, 
 
     warm, elapsed, n = _timed(first, step, min_time, min_steps)
     return warm, n / elapsed
+
+
+def record_provenance(module: str, argv: list[str] | None) -> dict:
+    """The command (``python -m <module> <args>``), machine, versions and UTC date of a benchmark record."""
+    import sys
+    import time
+
+    from anm_torchrl.provenance import machine_info, versions
+
+    args = sys.argv[1:] if argv is None else argv
+    return {"command": " ".join(["python -m", module, *args]), "machine": machine_info(), "versions": versions(),
+            "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+
+def write_record(out, record: dict, markdown_lines: list[str]) -> None:
+    """``<out>.json`` (the record) and ``<out>.md`` (its table), atomically, creating the folder."""
+    import json
+    from pathlib import Path
+
+    from anm_torchrl.artifacts import atomic_write
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(out.with_suffix(".json"), (json.dumps(record, indent=1) + "\n").encode())
+    atomic_write(out.with_suffix(".md"), ("\n".join(markdown_lines) + "\n").encode())

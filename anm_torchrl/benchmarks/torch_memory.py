@@ -1,12 +1,15 @@
-"""Peak memory and speed of the torch backend on a large random feeder, with and without the Jacobian budget.
+"""Peak memory and speed of the torch backend on a large random feeder: block-tree solve, dense LU under the
+Jacobian budget, and the dense LU without it (the solve of before both).
 
 Each row runs in a fresh process (its peak resident set is its own): ``ANMEnv(backend="torch")`` on the random
 radial network of ``seed`` with ``n_bus`` buses (:func:`anm_torchrl.networks.random.generate`), a reset and
-``steps`` random steps of ``num_envs`` envs, with ``powerflow.JACOBIAN_BUDGET_BYTES`` at the given MiB (0: no
-budget, the unchunked dense solve of before). Reports transitions/s of the steps and the process's peak RSS.
+``steps`` random steps of ``num_envs`` envs, in one of the modes ``auto`` (the backend as shipped: the block-tree
+solve of :mod:`anm_torchrl.grid.tree_solve` on a radial network), ``dense`` (the dense LU with
+``powerflow.JACOBIAN_BUDGET_BYTES`` at ``--budget`` MiB) or ``dense-unbounded`` (no budget). Reports
+transitions/s of the steps and the process's peak RSS.
 
-    python -m anm_torchrl.benchmarks.torch_memory --n-bus 320 --envs 256 1024 --budgets 256 0 \\
-        --out results/benchmarks/torch_backend_memory
+    python -m anm_torchrl.benchmarks.torch_memory --n-bus 320 --envs 256 1024 \\
+        --modes auto dense dense-unbounded --out results/benchmarks/torch_backend_memory
 """
 
 from __future__ import annotations
@@ -21,18 +24,24 @@ import time
 log = logging.getLogger(__name__)
 
 
-def measure_one(n_bus: int, seed: int, num_envs: int, budget_mib: int, steps: int) -> dict:
+MODES = ("auto", "dense", "dense-unbounded")
+
+
+def measure_one(n_bus: int, seed: int, num_envs: int, mode: str, budget_mib: int, steps: int) -> dict:
     """One row, in this process: transitions/s of ``steps`` random steps and this process's peak RSS (MiB)."""
     import resource
 
     import torch
 
     import anm_torchrl.grid.powerflow as pf
+    import anm_torchrl.grid.tree_solve as ts
     from anm_torchrl.envs import ANMEnv
     from anm_torchrl.networks.random import generate
 
     torch.set_num_threads(1)
-    pf.JACOBIAN_BUDGET_BYTES = budget_mib * 2**20 if budget_mib else 1 << 62
+    if mode != "auto":
+        ts.TREE_WORK = float("inf")
+    pf.JACOBIAN_BUDGET_BYTES = budget_mib * 2**20 if mode != "dense-unbounded" else 1 << 62
     case = generate(seed, n_bus=n_bus, meshed=False)
     env = ANMEnv(network=case.network, load_p=case.load_p, gen_p_max=case.gen_p_max, num_envs=num_envs,
                  backend="torch", seed=seed)
@@ -41,7 +50,7 @@ def measure_one(n_bus: int, seed: int, num_envs: int, budget_mib: int, steps: in
     for _ in range(steps):
         td = env.rand_step(td)["next"]
     wall = time.perf_counter() - t0
-    return {"n_bus": n_bus, "seed": seed, "num_envs": num_envs, "budget_mib": budget_mib, "steps": steps,
+    return {"n_bus": n_bus, "seed": seed, "num_envs": num_envs, "mode": mode, "budget_mib": budget_mib, "steps": steps,
             "transitions_per_s": steps * num_envs / wall, "peak_rss_mib": resource.getrusage(
                 resource.RUSAGE_SELF).ru_maxrss / 1024}
 
@@ -52,7 +61,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--n-bus", type=int, default=320)
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--envs", type=int, nargs="+", default=[256, 1024])
-    p.add_argument("--budgets", type=int, nargs="+", default=[256, 0], help="MiB; 0 = no budget")
+    p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+    p.add_argument("--budget", type=int, default=256, help="MiB, the dense mode's Jacobian budget")
     p.add_argument("--steps", type=int, default=2)
     p.add_argument("--timeout", type=float, default=1800, help="seconds per row (a row over it is reported so)")
     p.add_argument("--out", default=None)
@@ -60,41 +70,33 @@ def main(argv: list[str] | None = None) -> dict:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     rows = []
     for n_env in args.envs:
-        for budget in args.budgets:
+        for mode in args.modes:
             code = (f"import json; from anm_torchrl.benchmarks.torch_memory import measure_one; print(json.dumps("
-                    f"measure_one({args.n_bus}, {args.seed}, {n_env}, {budget}, {args.steps})))")
+                    f"measure_one({args.n_bus}, {args.seed}, {n_env}, {mode!r}, {args.budget}, {args.steps})))")
             try:
                 out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                                      timeout=args.timeout)
                 row = (json.loads(out.stdout.strip().splitlines()[-1]) if out.returncode == 0 else
-                       {"num_envs": n_env, "budget_mib": budget, "error": out.stderr.strip().splitlines()[-1:],
+                       {"num_envs": n_env, "mode": mode, "error": out.stderr.strip().splitlines()[-1:],
                         "returncode": out.returncode})
             except subprocess.TimeoutExpired:
-                row = {"num_envs": n_env, "budget_mib": budget, "error": f"over {args.timeout:.0f} s"}
+                row = {"num_envs": n_env, "mode": mode, "error": f"over {args.timeout:.0f} s"}
             log.info("%s", row)
             rows.append(row)
-    from anm_torchrl.provenance import machine_info, versions
+    from anm_torchrl.benchmarks.timing import record_provenance, write_record
 
-    record = {"rows": rows, "command": "python -m anm_torchrl.benchmarks.torch_memory " + " ".join(
-        sys.argv[1:] if argv is None else argv), "machine": machine_info(), "versions": versions(),
-        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    record = {"rows": rows, **record_provenance("anm_torchrl.benchmarks.torch_memory", argv)}
     if args.out:
-        from pathlib import Path
-
-        from anm_torchrl.artifacts import atomic_write
-
         lines = [f"torch backend, random radial network of {args.n_bus} buses (seed {args.seed}), {args.steps} random "
                  "steps after a reset, one process per row, 1 thread", "",
-                 "| envs | Jacobian budget | transitions/s | peak RSS |", "|---:|---|---:|---:|"]
+                 "| envs | Newton solve | transitions/s | peak RSS |", "|---:|---|---:|---:|"]
+        names = {"auto": "block tree (as shipped)", "dense": f"dense LU, {args.budget} MiB Jacobian budget",
+                 "dense-unbounded": "dense LU, unbounded (before)"}
         for r in rows:
-            budget = "none" if r["budget_mib"] == 0 else f"{r['budget_mib']} MiB"
-            lines.append(f"| {r['num_envs']:,} | {budget} | " + (
+            lines.append(f"| {r['num_envs']:,} | {names[r['mode']]} | " + (
                 f"{r['transitions_per_s']:.1f} | {r['peak_rss_mib']:,.0f} MiB |" if "error" not in r
                 else f"– | failed: {r['error']} |"))
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(out.with_suffix(".json"), (json.dumps(record, indent=1) + "\n").encode())
-        atomic_write(out.with_suffix(".md"), ("\n".join(lines) + "\n").encode())
+        write_record(args.out, record, lines)
     return record
 
 

@@ -35,9 +35,7 @@ import contextlib
 import errno
 import hashlib
 import json
-import math
 import os
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 

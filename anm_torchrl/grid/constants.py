@@ -15,6 +15,7 @@ import torch
 
 from anm_torchrl.grid.devices import DES_SOC_ROWS, GEN_PPOT_ROW
 from anm_torchrl.grid.powerflow import MAX_ITER, TOL
+from anm_torchrl.grid.tree_solve import BANDED_MIN_BUS, bus_tree  # their one home
 
 
 class TransitionConstants(NamedTuple):
@@ -88,12 +89,6 @@ def _npy(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().cpu().numpy())
 
 
-# Buses from which the tree block LU (radial) or the band LU (meshed) replaces the dense LU. Measured on radial
-# feeders (results/benchmarks/bench_env_solver.md, ``python -m anm_torchrl.benchmarks.env --solver-sweep --out
-# results/benchmarks/bench_env_solver``): tree / dense 1.2x at 6 buses, 2.7x at 16, 5.6x at 33, 59x at 120; band / dense
-# 0.8-1.2x up to 10 buses, 1.6x at 16. Below 13 buses the dense LU is kept: ANM6-Easy's outputs stay
-# bit-identical to earlier releases for a gain of at most ~20 %.
-BANDED_MIN_BUS = 13
 
 
 def jacobian_ordering(y_bus: np.ndarray, solver: str = "auto") -> tuple[np.ndarray, int, int, np.ndarray]:
@@ -118,7 +113,7 @@ def jacobian_ordering(y_bus: np.ndarray, solver: str = "auto") -> tuple[np.ndarr
     no_tree = np.zeros(0, dtype=np.int64)
     if solver == "dense" or (solver == "auto" and y_bus.shape[0] < BANDED_MIN_BUS):
         return np.arange(2 * k, dtype=np.int64), 2 * k - 1, 2 * k - 1, no_tree
-    forest = _forest(y_bus)
+    forest = bus_tree(y_bus)
     if solver == "tree" and forest is None:
         raise ValueError("linear_solver='tree' needs a radial network (the non-slack buses form a forest)")
     if forest is not None and solver in ("tree", "auto"):
@@ -132,27 +127,6 @@ def jacobian_ordering(y_bus: np.ndarray, solver: str = "auto") -> tuple[np.ndarr
     ix = np.concatenate([2 * pos, 2 * pos + 1]).astype(np.int64)
     band = min(2 * bw + 1, 2 * k - 1)
     return ix, band, band, no_tree
-
-
-def _forest(y_bus: np.ndarray) -> tuple[list[int], np.ndarray] | None:
-    """Breadth-first order and parents (-1: root) of the non-slack buses, or ``None`` if they hold a loop."""
-    k = y_bus.shape[0] - 1
-    adj = [[int(q) - 1 for q in np.flatnonzero(y_bus[i + 1]) if q != 0 and q != i + 1] for i in range(k)]
-    parent, seen, bfs = np.full(k, -1), np.zeros(k, bool), []
-    for root in range(k):
-        if seen[root]:
-            continue
-        seen[root], queue = True, [root]
-        while queue:
-            i = queue.pop(0)
-            bfs.append(i)
-            for q in adj[i]:
-                if not seen[q]:
-                    seen[q], parent[q] = True, i
-                    queue.append(q)
-    if sum(len(a) for a in adj) // 2 != k - int((parent < 0).sum()):  # a forest has k - (#trees) edges
-        return None
-    return bfs, parent
 
 
 def _tree_ordering(bfs: list[int], parent: np.ndarray) -> tuple[np.ndarray, int, int, np.ndarray]:

@@ -15,6 +15,7 @@ import torch
 from anm_torchrl.grid.powerflow import (MAX_ITER, TOL, PowerFlowResult, _jacobian, _voltages, jacobian_rows,
                                        newton_iterates)
 from anm_torchrl.grid.residuals import power_injection
+from anm_torchrl.grid.tree_solve import tree_newton_step, use_tree
 
 
 class ImplicitPowerFlow(torch.autograd.Function):
@@ -40,25 +41,40 @@ class ImplicitPowerFlow(torch.autograd.Function):
         x, converged, y_bus = ctx.saved_tensors
         k = x.shape[-1] // 2
         v = _voltages(x, k + 1)
-        s_inj, y_conj = power_injection(v, y_bus), y_bus[1:, 1:].conj()
-        eye = torch.eye(2 * k, dtype=x.dtype, device=x.device)
+        s_inj = power_injection(v, y_bus)
         # dL/ds = J⁻ᵀ dL/dx (F = S_inj(x) - s, so ∂x/∂s = J⁻¹); non-converged or singular rows: 0
         ok = converged & torch.isfinite(grad_x).all(-1)
         rhs = torch.where(ok[:, None], grad_x, 0.0)
-        lam, ok_rows = torch.zeros_like(rhs), torch.zeros_like(ok)
-        rows = jacobian_rows(len(x), 2 * k, x.element_size())
-        for i in range(0, len(x), rows):
-            sl = slice(i, i + rows)
-            jac = _jacobian(v[sl], s_inj[sl], y_conj)
-            good = ok[sl] & torch.isfinite(jac).flatten(1).all(-1)
-            safe_jac = torch.where(good[:, None, None], jac, eye)
-            sol, info = torch.linalg.solve_ex(safe_jac.transpose(-1, -2), rhs[sl].unsqueeze(-1))
-            lam[sl], ok_rows[sl] = sol.squeeze(-1), good & (info == 0)
-        lam = torch.where(ok_rows[:, None], lam, 0.0)
+        forest = use_tree(y_bus, len(x))
+        if forest is not None:  # radial and large: Jᵀ on the bus tree, O(n) per row
+            lam, info = tree_newton_step(v, s_inj, y_bus, rhs, forest, transpose=True)
+            ok = ok & (info == 0)
+        else:
+            lam, ok = _dense_transpose_solve(v, s_inj, y_bus[1:, 1:].conj(), rhs, ok)
+        lam = torch.where(ok[:, None], lam, 0.0)
         zero = lam.new_zeros(lam.shape[0], 1)
         grad_p = torch.cat([zero, lam[:, :k]], 1)
         grad_q = torch.cat([zero, lam[:, k:]], 1)
         return grad_p, grad_q, None, None, None
+
+
+def _dense_transpose_solve(v: torch.Tensor, s_inj: torch.Tensor, y_conj: torch.Tensor, rhs: torch.Tensor,
+                           ok: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``J(v)⁻ᵀ rhs`` (N, m) on the rows ``ok`` (N,) whose Jacobian is finite and non-singular (the others get an
+    identity in its place), in chunks of :func:`~anm_torchrl.grid.powerflow.jacobian_rows`; returns the solution
+    and the rows it holds for."""
+    m = rhs.shape[1]
+    eye = torch.eye(m, dtype=rhs.dtype, device=rhs.device)
+    lam, ok_rows = torch.zeros_like(rhs), torch.zeros_like(ok)
+    rows = jacobian_rows(len(rhs), m, rhs.element_size())
+    for i in range(0, len(rhs), rows):
+        sl = slice(i, i + rows)
+        jac = _jacobian(v[sl], s_inj[sl], y_conj)
+        good = ok[sl] & torch.isfinite(jac).flatten(1).all(-1)
+        safe_jac = torch.where(good[:, None, None], jac, eye)
+        sol, info = torch.linalg.solve_ex(safe_jac.transpose(-1, -2), rhs[sl].unsqueeze(-1))
+        lam[sl], ok_rows[sl] = sol.squeeze(-1), good & (info == 0)
+    return lam, ok_rows
 
 
 def implicit_power_flow(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL, max_iter: int = MAX_ITER

@@ -1,6 +1,9 @@
 """Batched Newton–Raphson AC power flow with gym-anm's exact stopping rule (spec §4.1).
 
 Flat start on every call; unknowns ``[θ_1..θ_{n-1}, |V_1|..|V_{n-1}|]`` with the slack (bus 0) fixed at 1∠0;
+each step solves with the dense batched LU, or on radial networks where the batch's dense work is large
+(:func:`~.tree_solve.use_tree`) with the O(n) block-tree elimination of :mod:`.tree_solve` (the numba kernel's
+``"tree"`` solver);
 stop an env at its first iterate with ``||F||_inf <= tol`` (it is then frozen), after ``max_iter`` iterations,
 or when ``||F||_inf`` is NaN. Converged ⇔ not NaN and ``||F||_inf <= tol``. Only the still-active rows are
 iterated, so the rare non-converging env costs its own 100 iterations and nothing else.
@@ -13,6 +16,7 @@ import dataclasses
 import torch
 
 from anm_torchrl.grid.residuals import power_injection
+from anm_torchrl.grid.tree_solve import tree_newton_step, use_tree
 
 TOL = 1e-5
 MAX_ITER = 100
@@ -147,7 +151,10 @@ def newton_iterates(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL, 
     for it in range(1, max_iter + 1):
         if idx.numel() == 0:
             break
-        if it == 1:  # every env is still at the flat start: one Jacobian, one LU factorisation for all
+        forest = use_tree(y_bus, len(idx))  # radial and a large batch: O(n) block-tree steps, not the dense LU
+        if forest is not None:
+            dx, info = tree_newton_step(va, sia, y_bus, fa, forest)
+        elif it == 1:  # every env is still at the flat start: one Jacobian, one LU factorisation for all
             lu, piv, info = torch.linalg.lu_factor_ex(_jacobian(va[:1], sia[:1], y_conj))
             # every row as one right-hand side of the one factorisation: broadcasting (1, m, m) against (N, m, 1)
             # would copy the factors N times (3.3 GB at 1,024 envs on 320 buses)

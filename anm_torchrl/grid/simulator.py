@@ -9,6 +9,7 @@ loop fed with one :class:`~anm_torchrl.grid.constants.TransitionConstants`); the
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 
 import numpy as np
@@ -23,6 +24,12 @@ from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STOR
 from anm_torchrl.grid.reward import terminal_reward
 from anm_torchrl.grid.state import _pairs, check_state, state_sizes, state_slices
 from anm_torchrl.grid.transition import Transition
+
+log = logging.getLogger(__name__)
+#: MW by which a profile value must pass a device's limit to be reported as clipped (the parity tolerance: the
+#: MW -> p.u. -> MW round trip of a value at its limit is not exact)
+CLIP_TOL = 1e-6
+_REPORTED: set[str] = set()  # clipping reports already logged in this process (one per distinct case)
 
 __all__ = ["GridSimulator", "Transition"]
 
@@ -95,6 +102,8 @@ class GridSimulator:
         self.des_polygons = [dv.Polygon(g) for g in self.des_g] if polys else []
         self.gen_idx, self.des_idx, self.load_idx = (torch.tensor(ix, dtype=torch.long, device=net.dev.device)
                                                      for ix in (self.gen_ids, self.des_ids, self.load_ids))
+        self._clipping_reported = False
+        self.report_clipping(self.load_series.T * net.base_mva, self.p_max_series.T * net.base_mva, "the profiles")
         self.counted = (net.dev_type != STORAGE).to(net.dev.dtype)  # ΔE counts gens, slack and loads
         self.terminal_reward = terminal_reward(gamma, costs_clipping)
         self.physics = get_backend(backend, net)
@@ -238,10 +247,45 @@ class GridSimulator:
                     raise ValueError(f"the next_vars hook {getattr(self.next_vars_hook, '__name__', '')!r} returned "
                                      f"non-finite {name} at (env, entry) {_pairs(envs, entries)}: every exogenous "
                                      f"variable must be finite (a NaN would make the step terminal silently)")
+            if not self._clipping_reported:
+                hook = getattr(self.next_vars_hook, "__name__", "")
+                self.report_clipping(p_load, p_pot, f"the next_vars hook {hook!r}")
             return p_load.to(state), p_pot.to(state), aux.to(state)
         t = self._next_index(state)
         b = self.net.base_mva
         return self.load_series[:, t].T * b, self.p_max_series[:, t].T * b, t.unsqueeze(1).to(state)
+
+    def clipped_entries(self, p_load: torch.Tensor, p_pot: torch.Tensor) -> list[str]:
+        """What the transition will clip of load P (..., n_load) and potentials (..., n_gen) MW, as gym-anm does:
+        one line per device and direction (device id, how many entries, the extreme value), empty if nothing."""
+        out = []
+        b = self.net.base_mva
+        for name, x, ids, idx in (("load P", p_load, self.load_ids, self.load_idx),
+                                  ("potential", p_pot, self.gen_ids, self.gen_idx)):
+            dev = self.net.dev[idx]
+            x = x.reshape(-1, len(ids)).to(dev)
+            for bound, col, side in (("PMAX", dv.PMAX, x > dev[:, dv.PMAX] * b + CLIP_TOL),
+                                     ("PMIN", dv.PMIN, x < dev[:, dv.PMIN] * b - CLIP_TOL)):
+                for j in side.any(0).nonzero().flatten().tolist():
+                    ext = (x[:, j].max() if bound == "PMAX" else x[:, j].min()).item()
+                    out.append(f"{name} of device {ids[j]} {'above' if bound == 'PMAX' else 'below'} {bound} "
+                               f"({dev[j, col].item() * b:g} MW) at {int(side[:, j].sum())} entries (extreme "
+                               f"{ext:g} MW)")
+        return out
+
+    def report_clipping(self, p_load: torch.Tensor, p_pot: torch.Tensor, source: str) -> None:
+        """Log at WARNING, once per simulator and per distinct message in a process, what of ``source``'s load P /
+        potentials (MW) will be clipped to the devices' [PMIN, PMAX] (gym-anm clips them silently; this package
+        keeps its behaviour but says so)."""
+        lines = self.clipped_entries(p_load, p_pot)
+        if lines:
+            self._clipping_reported = True
+            more = f"; and {len(lines) - 4} more" if len(lines) > 4 else ""
+            message = (f"{source} hold values outside the devices' limits, clipped as gym-anm does: "
+                       f"{'; '.join(lines[:4])}{more}")
+            if message not in _REPORTED:  # every env of a run builds its own simulator: one line per case
+                _REPORTED.add(message)
+                log.warning("%s", message)
 
     def project_generators(self, target: torch.Tensor, p_pot: torch.Tensor) -> torch.Tensor:
         """Feasible (P, Q) (N, n_gen, 2) p.u. for set-points ``target`` (N, n_gen, 2) and ``p_pot`` (N, n_gen)."""
