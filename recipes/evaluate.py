@@ -52,6 +52,7 @@ def parse_args(argv: list[str]):
 
     from anm_torchrl.baselines import available_baselines
     from anm_torchrl.training.config_checks import check_evaluate_config
+    from anm_torchrl.training.recipe_errors import check_writable, user_errors
 
     if any(a in ("-h", "--help") for a in argv):
         print(usage())
@@ -68,10 +69,10 @@ def parse_args(argv: list[str]):
     except HydraException as err:
         first = str(err).strip().splitlines()[0]
         raise SystemExit(f"evaluate.py: unknown option or bad value ({first}); valid keys: {keys}") from None
-    try:
+    with user_errors("evaluate.py"):
         check_evaluate_config(cfg)
-    except ValueError as err:
-        raise SystemExit(f"evaluate.py: {err}") from None
+        if cfg.render:  # now, not after the evaluation (output= is written after the JSON is printed)
+            check_writable(cfg.render_dir, "render_dir")
     if cfg.policy is None and cfg.checkpoint is None:
         raise SystemExit("evaluate.py: give checkpoint=<path> or policy=<baseline> "
                          f"(baselines: {', '.join(available_baselines())})")
@@ -92,6 +93,7 @@ def main(argv: list[str] | None = None) -> dict:
     from anm_torchrl.training.checkpoint import load_checkpoint, load_actor
     from anm_torchrl.evaluation import draw_initial_states, evaluate_policy, evaluate_policy_gym_anm
     from anm_torchrl.training.factory import make_true_env
+    from anm_torchrl.training.recipe_errors import user_errors
 
     ckpt = None
     if cfg.checkpoint is not None:
@@ -113,7 +115,8 @@ def main(argv: list[str] | None = None) -> dict:
         kwargs = OmegaConf.to_container(cfg.policy_kwargs, resolve=True)
         if cfg.policy == "random":
             kwargs.setdefault("seed", int(cfg.seed))
-        policy, name = make_baseline(cfg.policy, env.sim, **kwargs), cfg.policy
+        with user_errors("evaluate.py"):  # a policy_kwargs value the baseline refuses: one line, before the run
+            policy, name = make_baseline(cfg.policy, env.sim, **kwargs), cfg.policy
 
     t0 = time.perf_counter()
     if cfg.env == "anm6":

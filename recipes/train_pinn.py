@@ -42,7 +42,7 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 @hydra.main(config_path="conf", config_name="train_pinn", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     from anm_torchrl.networks import check_network_name, simulator as network_simulator
-    from anm_torchrl.surrogates.pinn.cache import default_path, train_and_save
+    from anm_torchrl.surrogates.pinn.cache import check_may_train_into, default_path, train_and_save
     from anm_torchrl.surrogates.pinn.load import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
     from anm_torchrl.surrogates.pinn.train import from_composed, resolve_path
@@ -60,6 +60,8 @@ def main(cfg: DictConfig) -> dict:
         # line's changes to the composed preset kept
         train_cfg = (None if cfg.eval_only else
                      from_composed(OmegaConf.to_container(cfg.pinn_preset, resolve=True), sim, seed=int(cfg.seed)))
+        if train_cfg is not None:  # a preset without acceptance bar never replaces the default cache
+            check_may_train_into(file, train_cfg, sim, bool(cfg.overwrite_cache))
     out: dict = {"path": str(file)}
     if train_cfg is not None:
         name = train_cfg.preset

@@ -7,13 +7,15 @@ before heavy work; the subprocess tests run the real scripts as a user types the
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from anm_torchrl.training.recipe_errors import check_device, remove_hydra_only_dir, user_errors
+from anm_torchrl.training.recipe_errors import (NotWritableError, check_artifact_cache, check_device, check_writable,
+                                                remove_hydra_only_dir, user_errors)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -52,18 +54,44 @@ def test_check_device():
             check_device("cuda:0")
 
 
-@pytest.mark.parametrize("recipe, override, message", [
+def test_check_writable_and_artifact_cache(monkeypatch, tmp_path):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    check_writable(tmp_path / "new" / "dir", "render_dir")  # creatable: fine, and nothing is created
+    assert not (tmp_path / "new").exists()
+    with pytest.raises(NotWritableError, match=r"^render_dir=.*a_file/ep: cannot write there \(.*a_file is not a"):
+        check_writable(a_file / "ep", "render_dir")
+    monkeypatch.setenv("ANM_TORCHRL_HOME", str(a_file / "home"))
+    check_artifact_cache({"name": "none"})  # the true simulator, or an explicit path, needs no cache
+    check_artifact_cache({"name": "pinn", "path": "model.safetensors"})
+    with pytest.raises(NotWritableError, match="cannot write the artifact cache .*set ANM_TORCHRL_HOME"):
+        check_artifact_cache({"name": "pinn", "path": None})
+
+
+@pytest.mark.parametrize("recipe, args, message", [
     ("make_dataset", "generative.chunk=0", "generative.chunk must be an integer >= 1, got 0"),
     ("train_surrogate", "network=case34bw", "unknown network 'case34bw'"),
     ("reproduce", "preset.experiments=[nope]", "unknown experiment 'nope'"),
     ("sac", "checkpoint.resume=missing.pt", "checkpoint.resume: no file"),
+    ("evaluate", "policy=mpc_perfect policy_kwargs.horizon=-1 steps=5 episodes=1", "horizon must be >= 1"),
+    ("evaluate", "policy=do_nothing render=true render_dir={tmp}/a_file/ep steps=5 episodes=1",
+     r"render_dir=.*/a_file/ep: cannot write there \(.*/a_file is not a folder\)"),
+    ("ppo", "ANM_TORCHRL_HOME={tmp}/a_file/home surrogate=pinn collector.total_frames=1000",
+     r"cannot write the artifact cache .*/a_file/home .*set ANM_TORCHRL_HOME to a writable folder"),
+    ("train_pinn", "pinn_preset=smoke", "preset 'smoke' has no acceptance bar"),  # into the default cache
 ])
-def test_recipe_prints_one_line(recipe, override, message, tmp_path):
-    env = {**os.environ, "ANM_TORCHRL_HOME": str(tmp_path / "home"), "HYDRA_FULL_ERROR": "0"}
-    out = subprocess.run([sys.executable, str(ROOT / "recipes" / f"{recipe}.py"), override], cwd=tmp_path,
+def test_recipe_prints_one_line(recipe, args, message, tmp_path):
+    """``args`` as typed after ``python recipes/<recipe>.py`` (``NAME=value`` of an upper-case NAME sets that
+    environment variable; ``{tmp}`` is the test's folder, holding a regular file ``a_file``); ``message`` a regex."""
+    (tmp_path / "a_file").write_text("")  # nothing can be created under it
+    env = {**os.environ, "ANM_TORCHRL_HOME": str(tmp_path / "home"), "HYDRA_FULL_ERROR": "0", "OMP_NUM_THREADS": "1"}
+    argv = [a.format(tmp=tmp_path) for a in args.split()]
+    env.update(a.split("=", 1) for a in argv if a.split("=", 1)[0].isupper())
+    argv = [a for a in argv if not a.split("=", 1)[0].isupper()]
+    out = subprocess.run([sys.executable, str(ROOT / "recipes" / f"{recipe}.py"), *argv], cwd=tmp_path,
                          capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 1, out.stderr
     assert "Traceback" not in out.stderr + out.stdout
     last = out.stderr.strip().splitlines()[-1]
-    assert last.startswith(f"{recipe}.py: ") and message in last, last
+    assert last.startswith(f"{recipe}.py: ") and re.search(message, last), last
     assert not (tmp_path / "outputs").exists(), list((tmp_path / "outputs").rglob("*"))

@@ -298,7 +298,7 @@ def run_recipe(cfg: DictConfig) -> dict:
 
     from anm_torchrl.networks.user import network_argument
     from anm_torchrl.training.algorithms import check_algorithm_config
-    from anm_torchrl.training.recipe_errors import check_device, user_errors
+    from anm_torchrl.training.recipe_errors import check_artifact_cache, check_device, user_errors
     from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
 
     run_dir = Path.cwd()
@@ -308,6 +308,7 @@ def run_recipe(cfg: DictConfig) -> dict:
         defaults = apply_network_defaults(cfg, explicit_keys(HydraConfig.get().overrides.task))
         check_algorithm_config(cfg)
         check_device(cfg.env.device)
+        check_artifact_cache(cfg.surrogate)  # a surrogate trained on first use is saved under ANM_TORCHRL_HOME
         if cfg.checkpoint.resume:  # relative to where the command was typed, not to the run directory
             cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
             if not Path(cfg.checkpoint.resume).is_file():

@@ -1,9 +1,10 @@
 """A user's mistake in a recipe is one line naming it, not a traceback, and leaves no empty run directory.
 
 Every recipe (``recipes/*.py``) runs its checks — config ranges, network names and files, devices, missing
-extras — inside :func:`user_errors` before any heavy work, so ``make_dataset.py generative.chunk=0`` prints
-``make_dataset.py: generative.chunk must be an integer >= 1, got 0`` and exits with status 1. Errors raised
-later, during the work itself, keep their traceback: by then they are bugs or faults, not typos.
+extras, folders it will write in — inside :func:`user_errors` before any heavy work, so
+``make_dataset.py generative.chunk=0`` prints ``make_dataset.py: generative.chunk must be an integer >= 1, got 0``
+and exits with status 1. Errors raised later, during the work itself, keep their traceback: by then they are bugs
+or faults, not typos.
 """
 
 from __future__ import annotations
@@ -11,14 +12,20 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from anm_torchrl._extras import MissingExtraError
 
-#: what a user's input can raise before the work starts (a bad value, a wrong kind, a missing file or extra)
+
+class NotWritableError(OSError):
+    """A folder the run will write in can neither be written nor created (:func:`check_writable`)."""
+
+
+#: what a user's input can raise before the work starts (a bad value, a wrong kind, a missing file or extra, a
+#: folder that cannot be written)
 USER_ERRORS = (ValueError, TypeError, KeyError, FileNotFoundError, NotADirectoryError, PermissionError,
-               MissingExtraError)
+               MissingExtraError, NotWritableError)
 
 
 def remove_hydra_only_dir(run_dir: Path) -> None:
@@ -85,3 +92,44 @@ def check_device(device: str, key: str = "env.device") -> None:
         raise ValueError(f"{key}={device}: MPS is not available here; use env.device=cpu")
     elif dev.type not in ("cuda", "mps"):
         raise ValueError(f"{key}={device}: expected cpu, cuda[:i] or mps")
+
+
+def _unwritable(folder: Path) -> str | None:
+    """Why files cannot be written in ``folder`` (made with its parents where missing), or None; creates nothing."""
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if not existing.is_dir():
+        return f"{existing} is not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):  # also false on a read-only file system, even for root
+        return f"{existing} is not writable"
+    return None
+
+
+def check_writable(folder: str | os.PathLike, key: str) -> None:
+    """``folder`` is, or can be made, a folder this process may write in (creates nothing).
+
+    Raises:
+        NotWritableError: naming ``key`` and ``folder``.
+    """
+    folder = Path(folder).expanduser()
+    if (reason := _unwritable(folder)) is not None:
+        raise NotWritableError(f"{key}={folder}: cannot write there ({reason})")
+
+
+def check_artifact_cache(surrogate: Mapping) -> None:
+    """A surrogate config (``name``, ``path``, ``dataset``) that loads from the default cache, where a missing
+    model is trained and saved on first use, finds that folder filled already (a read-only shared cache is fine)
+    or writable; ``none``, ``gym_anm`` and an explicit ``path`` need no cache.
+
+    Raises:
+        NotWritableError: naming ``ANM_TORCHRL_HOME``.
+    """
+    from anm_torchrl.paths import artifact_home, surrogate_dir
+
+    if surrogate["name"] in ("none", "gym_anm") or surrogate.get("path") is not None:
+        return
+    folder = surrogate_dir(surrogate["name"], surrogate.get("dataset"))
+    if folder.is_dir() and os.access(folder, os.R_OK | os.X_OK) and any(folder.iterdir()):
+        return
+    if (reason := _unwritable(folder)) is not None:
+        raise NotWritableError(f"cannot write the artifact cache {artifact_home()} ({reason}); set ANM_TORCHRL_HOME "
+                               "to a writable folder, or give surrogate.path=")
