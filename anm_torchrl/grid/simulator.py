@@ -262,6 +262,8 @@ class GridSimulator:
         b = self.net.base_mva
         for name, x, ids, idx in (("load P", p_load, self.load_ids, self.load_idx),
                                   ("potential", p_pot, self.gen_ids, self.gen_idx)):
+            if not ids:
+                continue
             dev = self.net.dev[idx]
             x = x.reshape(-1, len(ids)).to(dev)
             for bound, col, side in (("PMAX", dv.PMAX, x > dev[:, dv.PMAX] * b + CLIP_TOL),
