@@ -76,8 +76,16 @@ def test_every_registered_network_has_a_batched_gym_env(env_id):
 
 
 @pytest.mark.filterwarnings(ASYMMETRIC_BOX_ADVICE)
-def test_single_env_of_a_feeder_passes_gymnasium_checker():
-    check_env(gymnasium.make("anm_torchrl/Case33bw-v0").unwrapped)
+@pytest.mark.parametrize("env_id", sorted(GYM_IDS))
+def test_every_registered_network_passes_gymnasium_checker(env_id):
+    check_env(gymnasium.make(env_id).unwrapped)
+
+
+@pytest.mark.filterwarnings(ASYMMETRIC_BOX_ADVICE)
+def test_single_env_passes_stable_baselines3_checker():
+    """SB3's own checker (spaces, dtypes, reset/step contract) on the single gymnasium env."""
+    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    sb3_checker.check_env(gymnasium.make("anm_torchrl/ANM6Easy-v0").unwrapped, warn=False)
 
 
 def test_rollout_equals_torchrl_env_on_same_seed_and_actions():

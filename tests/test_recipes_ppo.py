@@ -255,3 +255,31 @@ def test_budget_mask_keeps_the_first_frames_in_time_order():
     assert keep.shape == (2, 3, 4) and int(keep.sum()) == 10
     per_step = keep.reshape(6, 4).sum(0).tolist()
     assert per_step == [6, 4, 0, 0]  # all 6 envs at t = 0, the first 4 at t = 1
+
+
+def test_same_seed_ends_in_identical_weights(tmp_path):
+    """A whole run — collection, GAE, minibatches, Adam, evaluations — is deterministic: two runs of one seed end
+    in bit-identical actor weights and optimiser state (issue 25)."""
+    from anm_torchrl.training.checkpoint import load_checkpoint
+
+    ckpts = []
+    for k in range(2):
+        run_dir = tmp_path / f"run{k}"
+        run(PPO, *TINY, "seed=7", "logger.backend=csv", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+        ckpts.append(load_checkpoint(run_dir / "checkpoints" / "last.pt"))
+
+    def tensors(x, prefix=""):
+        if isinstance(x, torch.Tensor):
+            yield prefix, x
+        elif isinstance(x, dict):
+            for k, v in x.items():
+                yield from tensors(v, f"{prefix}.{k}")
+        elif isinstance(x, (list, tuple)):
+            for i, v in enumerate(x):
+                yield from tensors(v, f"{prefix}[{i}]")
+
+    a, b = (dict(tensors({"actor": c["actor"], "state": c["state"]})) for c in ckpts)
+    assert a.keys() == b.keys() and len(a) > 4
+    assert any(".weight" in k for k in a)
+    changed = [k for k in a if not torch.equal(a[k], b[k])]
+    assert not changed, changed[:5]
