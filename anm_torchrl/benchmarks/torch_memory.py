@@ -1,7 +1,7 @@
 """Peak memory and speed of the torch backend on a large random feeder: block-tree solve, dense LU under the
 Jacobian budget, and the dense LU without it (the solve of before both).
 
-Each row runs in a fresh process (its peak resident set is its own): ``ANMEnv(backend="torch")`` on the random
+Each row runs in a fresh spawned process (its peak resident set is its own): ``ANMEnv(backend="torch")`` on the random
 radial network of ``seed`` with ``n_bus`` buses (:func:`anm_torchrl.networks.random.generate`), a reset and
 ``steps`` random steps of ``num_envs`` envs, in one of the modes ``auto`` (the backend as shipped: the block-tree
 solve of :mod:`anm_torchrl.grid.tree_solve` on a radial network), ``dense`` (the dense LU with
@@ -15,11 +15,10 @@ transitions/s of the steps and the process's peak RSS.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import subprocess
-import sys
+import multiprocessing
 import time
+from concurrent.futures import ProcessPoolExecutor, TimeoutError
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +55,7 @@ def measure_one(n_bus: int, seed: int, num_envs: int, mode: str, budget_mib: int
 
 
 def main(argv: list[str] | None = None) -> dict:
-    """CLI: every (envs, budget) row in its own process; writes ``<out>.json`` and ``<out>.md`` if ``--out``."""
+    """CLI: every (envs, mode) row in its own process; writes ``<out>.json`` and ``<out>.md`` if ``--out``."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n-bus", type=int, default=320)
     p.add_argument("--seed", type=int, default=3)
@@ -71,16 +70,15 @@ def main(argv: list[str] | None = None) -> dict:
     rows = []
     for n_env in args.envs:
         for mode in args.modes:
-            code = (f"import json; from anm_torchrl.benchmarks.torch_memory import measure_one; print(json.dumps("
-                    f"measure_one({args.n_bus}, {args.seed}, {n_env}, {mode!r}, {args.budget}, {args.steps})))")
-            try:
-                out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                                     timeout=args.timeout)
-                row = (json.loads(out.stdout.strip().splitlines()[-1]) if out.returncode == 0 else
-                       {"num_envs": n_env, "mode": mode, "error": out.stderr.strip().splitlines()[-1:],
-                        "returncode": out.returncode})
-            except subprocess.TimeoutExpired:
-                row = {"num_envs": n_env, "mode": mode, "error": f"over {args.timeout:.0f} s"}
+            # a fresh spawned process per row: its peak resident set is the row's own
+            with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+                future = pool.submit(measure_one, args.n_bus, args.seed, n_env, mode, args.budget, args.steps)
+                try:
+                    row = future.result(timeout=args.timeout)
+                except TimeoutError:
+                    row = {"num_envs": n_env, "mode": mode, "error": f"over {args.timeout:.0f} s"}
+                except Exception as err:  # noqa: BLE001 (a row that fails, e.g. out of memory, is reported as such)
+                    row = {"num_envs": n_env, "mode": mode, "error": f"{type(err).__name__}: {err}"}
             log.info("%s", row)
             rows.append(row)
     from anm_torchrl.benchmarks.timing import record_provenance, write_record
