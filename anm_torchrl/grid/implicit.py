@@ -4,7 +4,7 @@ At a converged solution ``F(x, s) = 0`` (``F`` = [Re, Im] of the non-slack misma
 with ``∂F/∂s = -I``, so ``dx/ds = J⁻¹`` for the polar Jacobian ``J = ∂F/∂x`` at the solution. The forward runs
 :func:`~anm_torchrl.grid.powerflow.newton_iterates` under ``no_grad`` (the same numbers as
 :func:`~anm_torchrl.grid.powerflow.newton_raphson`) and keeps only the solution; the backward rebuilds ``J`` there
-and solves with ``Jᵀ`` in batched chunks of bounded memory (:func:`~anm_torchrl.grid.powerflow.jacobian_rows`) —
+and solves with ``Jᵀ`` in batched chunks of bounded memory (:func:`~anm_torchrl.grid.powerflow.solve_newton_step`) —
 the Newton iterations are never backpropagated. Rows that did not converge get a zero gradient.
 """
 
@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import torch
 
-from anm_torchrl.grid.powerflow import (MAX_ITER, TOL, PowerFlowResult, _jacobian, _voltages, jacobian_rows,
-                                       newton_iterates)
+from anm_torchrl.grid.powerflow import (MAX_ITER, TOL, PowerFlowResult, _voltages, newton_iterates,
+                                       solve_newton_step)
 from anm_torchrl.grid.residuals import power_injection
 from anm_torchrl.grid.tree_solve import tree_newton_step, use_tree
 
@@ -48,33 +48,13 @@ class ImplicitPowerFlow(torch.autograd.Function):
         forest = use_tree(y_bus, len(x))
         if forest is not None:  # radial and large: Jᵀ on the bus tree, O(n) per row
             lam, info = tree_newton_step(v, s_inj, y_bus, rhs, forest, transpose=True)
-            ok = ok & (info == 0)
         else:
-            lam, ok = _dense_transpose_solve(v, s_inj, y_bus[1:, 1:].conj(), rhs, ok)
-        lam = torch.where(ok[:, None], lam, 0.0)
+            lam, info = solve_newton_step(v, s_inj, y_bus[1:, 1:].conj(), rhs, transpose=True)
+        lam = torch.where((ok & (info == 0))[:, None], lam, 0.0)
         zero = lam.new_zeros(lam.shape[0], 1)
         grad_p = torch.cat([zero, lam[:, :k]], 1)
         grad_q = torch.cat([zero, lam[:, k:]], 1)
         return grad_p, grad_q, None, None, None
-
-
-def _dense_transpose_solve(v: torch.Tensor, s_inj: torch.Tensor, y_conj: torch.Tensor, rhs: torch.Tensor,
-                           ok: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``J(v)⁻ᵀ rhs`` (N, m) on the rows ``ok`` (N,) whose Jacobian is finite and non-singular (the others get an
-    identity in its place), in chunks of :func:`~anm_torchrl.grid.powerflow.jacobian_rows`; returns the solution
-    and the rows it holds for."""
-    m = rhs.shape[1]
-    eye = torch.eye(m, dtype=rhs.dtype, device=rhs.device)
-    lam, ok_rows = torch.zeros_like(rhs), torch.zeros_like(ok)
-    rows = jacobian_rows(len(rhs), m, rhs.element_size())
-    for i in range(0, len(rhs), rows):
-        sl = slice(i, i + rows)
-        jac = _jacobian(v[sl], s_inj[sl], y_conj)
-        good = ok[sl] & torch.isfinite(jac).flatten(1).all(-1)
-        safe_jac = torch.where(good[:, None, None], jac, eye)
-        sol, info = torch.linalg.solve_ex(safe_jac.transpose(-1, -2), rhs[sl].unsqueeze(-1))
-        lam[sl], ok_rows[sl] = sol.squeeze(-1), good & (info == 0)
-    return lam, ok_rows
 
 
 def implicit_power_flow(y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float = TOL, max_iter: int = MAX_ITER

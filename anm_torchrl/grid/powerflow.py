@@ -86,19 +86,24 @@ def jacobian_rows(n_rows: int, m: int, itemsize: int = 8) -> int:
     return max(1, min(n_rows, JACOBIAN_BUDGET_BYTES // (_JACOBIAN_COPIES * m * m * itemsize)))
 
 
-def solve_newton_step(v: torch.Tensor, s_inj: torch.Tensor, y_conj: torch.Tensor, rhs: torch.Tensor
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``J(v)⁻¹ rhs`` (N, m) and LAPACK's ``info`` (N,) for the polar Jacobian at voltages ``v`` (N, n) with
-    injections ``s_inj`` (N, n), ``y_conj`` = conj(Y[1:, 1:]), built and solved in chunks of
-    :func:`jacobian_rows` rows."""
+def solve_newton_step(v: torch.Tensor, s_inj: torch.Tensor, y_conj: torch.Tensor, rhs: torch.Tensor,
+                      transpose: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """``J(v)⁻¹ rhs`` (or ``J(v)⁻ᵀ rhs``) (N, m) and ``info`` (N,), nonzero where ``J`` is singular (LAPACK's) or
+    not finite, for the polar Jacobian at voltages ``v`` (N, n) with injections ``s_inj`` (N, n), ``y_conj`` =
+    conj(Y[1:, 1:]); built and solved in chunks of :func:`jacobian_rows` rows. A non-finite ``J`` is replaced by
+    the identity before the solve, so its row's solution is meaningless and only ``info`` says so."""
     n, m = rhs.shape
     rows = jacobian_rows(n, m, rhs.element_size())
-    if rows == n:
-        dx, info = torch.linalg.solve_ex(_jacobian(v, s_inj, y_conj), rhs.unsqueeze(-1))
-        return dx.squeeze(-1), info
-    parts = [torch.linalg.solve_ex(_jacobian(v[i:i + rows], s_inj[i:i + rows], y_conj), rhs[i:i + rows, :, None])
-             for i in range(0, n, rows)]
-    return torch.cat([p[0] for p in parts]).squeeze(-1), torch.cat([p[1] for p in parts])
+    eye = torch.eye(m, dtype=rhs.dtype, device=rhs.device)
+    dx, info = torch.empty_like(rhs), torch.empty(n, dtype=torch.int32, device=rhs.device)
+    for i in range(0, n, rows):
+        sl = slice(i, i + rows)
+        jac = _jacobian(v[sl], s_inj[sl], y_conj)
+        finite = torch.isfinite(jac).flatten(1).all(-1)
+        jac = torch.where(finite[:, None, None], jac, eye)
+        sol, code = torch.linalg.solve_ex(jac.transpose(-1, -2) if transpose else jac, rhs[sl].unsqueeze(-1))
+        dx[sl], info[sl] = sol.squeeze(-1), torch.where(finite, code, 1)
+    return dx, info
 
 
 def power_flow_jacobian(v_magn: torch.Tensor, v_ang: torch.Tensor, y_bus: torch.Tensor) -> torch.Tensor:
