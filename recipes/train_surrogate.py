@@ -34,11 +34,12 @@ from anm_torchrl.training.recipe_help import register as register_help
 CONF = Path(__file__).parent / "conf"
 
 
-def run(cfg: DictConfig) -> list[dict]:
-    """Train what ``cfg`` asks for (one surrogate, or all ten with ``all=true``); returns the metrics."""
+def run(cfg: DictConfig, sim=None) -> list[dict]:
+    """Train what ``cfg`` asks for (one surrogate, or all ten with ``all=true``) on ``sim`` (the checks'
+    simulator; None: checked here); returns the metrics."""
     from anm_torchrl.surrogates.regressors.train import train_surrogates
 
-    return train_surrogates(cfg, OmegaConf.load(CONF / "make_dataset.yaml"), default_size())
+    return train_surrogates(cfg, OmegaConf.load(CONF / "make_dataset.yaml"), default_size(), sim)
 
 
 def default_size() -> int:
@@ -57,8 +58,8 @@ def main(cfg: DictConfig) -> list[dict]:
     from anm_torchrl.training.recipe_errors import user_errors
 
     with user_errors("train_surrogate.py", HydraConfig.get().runtime.output_dir):  # one line naming the key
-        check_train_request(cfg, default_size())
-    return run(cfg)
+        sim = check_train_request(cfg, default_size())
+    return run(cfg, sim)
 
 
 if __name__ == "__main__":

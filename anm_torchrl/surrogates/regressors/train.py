@@ -177,18 +177,20 @@ def check_train_request(cfg: DictConfig, default_size: int):
     return network_simulator(cfg.network)
 
 
-def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int) -> list[dict]:
+def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int, sim=None) -> list[dict]:
     """Train what ``cfg`` (``recipes/conf/train_surrogate.yaml``) asks for: one surrogate, or all ten with
     ``all=true``; returns the metrics. ``make_cfg``: the dataset recipe's config (options of missing datasets);
     ``default_size``: the default ``data.size``, below which a model never replaces the default one unless
-    ``overwrite_cache``."""
+    ``overwrite_cache``; ``sim``: the network's simulator as :func:`check_train_request` returned it (None: the
+    checks run here)."""
     from anm_torchrl.artifacts import atomic_write
     from anm_torchrl.data import for_network
     from anm_torchrl.paths import artifact_home
     from anm_torchrl.surrogates.regressors import DATASETS, KINDS
 
     torch.set_num_threads(int(cfg.threads))
-    sim = check_train_request(cfg, default_size)  # fail before loading or generating data
+    if sim is None:  # fail before loading or generating data
+        sim = check_train_request(cfg, default_size)
     start = time.perf_counter()
     data = load_datasets(cfg, sim, make_cfg)
     if cfg.all:
