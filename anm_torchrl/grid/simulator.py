@@ -257,17 +257,22 @@ class GridSimulator:
 
     def clipped_entries(self, p_load: torch.Tensor, p_pot: torch.Tensor) -> list[str]:
         """What the transition will clip of load P (..., n_load) and potentials (..., n_gen) MW, as gym-anm does:
-        one line per device and direction (device id, how many entries, the extreme value), empty if nothing."""
-        out = []
+        one line per device and direction (device id, how many entries, the extreme value), empty if nothing.
+        One host sync when nothing is clipped (a ``next_vars`` hook's outputs are checked every step)."""
         b = self.net.base_mva
+        checks = []  # (kind, x (rows, n), ids, devices, PMAX side, PMIN side)
         for name, x, ids, idx in (("load P", p_load, self.load_ids, self.load_idx),
                                   ("potential", p_pot, self.gen_ids, self.gen_idx)):
-            if not ids:
-                continue
-            dev = self.net.dev[idx]
-            x = x.reshape(-1, len(ids)).to(dev)
-            for bound, col, side in (("PMAX", dv.PMAX, x > dev[:, dv.PMAX] * b + CLIP_TOL),
-                                     ("PMIN", dv.PMIN, x < dev[:, dv.PMIN] * b - CLIP_TOL)):
+            if ids:
+                dev = self.net.dev[idx]
+                x = x.reshape(-1, len(ids)).to(dev)
+                above, below = x > dev[:, dv.PMAX] * b + CLIP_TOL, x < dev[:, dv.PMIN] * b - CLIP_TOL
+                checks.append((name, x, ids, dev, above, below))
+        if not checks or not bool(torch.stack([(hi | lo).any() for *_, hi, lo in checks]).any()):
+            return []
+        out = []
+        for name, x, ids, dev, above, below in checks:
+            for bound, col, side in (("PMAX", dv.PMAX, above), ("PMIN", dv.PMIN, below)):
                 for j in side.any(0).nonzero().flatten().tolist():
                     ext = (x[:, j].max() if bound == "PMAX" else x[:, j].min()).item()
                     out.append(f"{name} of device {ids[j]} {'above' if bound == 'PMAX' else 'below'} {bound} "
