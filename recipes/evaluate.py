@@ -50,7 +50,7 @@ def parse_args(argv: list[str]):
     from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException
 
-    from anm_torchrl.baselines import available_baselines
+    from anm_torchrl.baselines.names import available_baselines
     from anm_torchrl.training.config_checks import check_evaluate_config
     from anm_torchrl.training.recipe_errors import check_writable, user_errors
 

@@ -29,7 +29,6 @@ import time
 from pathlib import Path
 
 import hydra
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from anm_torchrl.training.recipe_help import register as register_help
@@ -150,12 +149,8 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 
 @hydra.main(config_path="conf", config_name="reproduce", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
-    torch.set_num_threads(int(cfg.threads))
     from hydra.core.hydra_config import HydraConfig
 
-    from anm_torchrl.experiments.common import RunContext
-    from anm_torchrl.experiments.io import write_json
-    from anm_torchrl.provenance import machine_info, versions
     from anm_torchrl.experiments.publish import check_publish, committed_run, publish
     from anm_torchrl.experiments.records import REPRODUCTION
 
@@ -184,10 +179,17 @@ def main(cfg: DictConfig) -> dict:
 
     with user_errors("reproduce.py", HydraConfig.get().runtime.output_dir):  # one line, before anything runs
         for name in experiments:  # an unknown name is refused
-            registry.get(name)
+            registry.check(name)
         if cfg.publish:
             for study, names in by_study(experiments).items():
                 check_publish(target / study, str(p.get("name")), names, bool(cfg.merge), bool(cfg.force))
+    import torch
+
+    from anm_torchrl.experiments.common import RunContext
+    from anm_torchrl.experiments.io import write_json
+    from anm_torchrl.provenance import machine_info, versions
+
+    torch.set_num_threads(int(cfg.threads))
     out_dir = _abs(cfg.out_dir) if cfg.out_dir is not None else Path(HydraConfig.get().runtime.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     surrogates = [dict(s) for s in p.get("surrogates", [])]

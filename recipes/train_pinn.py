@@ -26,7 +26,6 @@ import logging
 from pathlib import Path
 
 import hydra
-import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig, OmegaConf
@@ -41,25 +40,34 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 
 @hydra.main(config_path="conf", config_name="train_pinn", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
-    from anm_torchrl.networks import check_network_name, simulator as network_simulator
+    from anm_torchrl.networks import ANM6_EASY, check_network_name, list_networks
+    from anm_torchrl.surrogates.pinn.presets import check_default_target, from_composed as check_preset
+    from anm_torchrl.training.recipe_errors import user_errors
+
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    composed = OmegaConf.to_container(cfg.pinn_preset, resolve=True)
+    with user_errors("train_pinn.py", run_dir):  # an unknown network or a preset value out of range: before torch
+        check_network_name(cfg.network)
+        if cfg.network in list_networks():  # a network file's kind is known once it is built (below)
+            checked = check_preset(composed, anm6=cfg.network == ANM6_EASY, seed=int(cfg.seed))
+            if cfg.path is None and not cfg.eval_only:
+                check_default_target(checked, f"of {cfg.network}", bool(cfg.overwrite_cache))
+    import torch
+
+    from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.surrogates.pinn.cache import check_may_train_into, default_path, train_and_save
     from anm_torchrl.surrogates.pinn.load import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
     from anm_torchrl.surrogates.pinn.train import from_composed, resolve_path
 
     torch.set_num_threads(int(cfg.threads))
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    from anm_torchrl.training.recipe_errors import user_errors
-
-    # bad input (an unknown network, a preset value out of range) is one line naming it, not a traceback
-    with user_errors("train_pinn.py", run_dir):
-        check_network_name(cfg.network)
+    with user_errors("train_pinn.py", run_dir):  # a network file's tables, the target's rules: one line too
         sim = network_simulator(cfg.network)
         file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
         # ``default`` stands for the network's own default (the feeder preset off ANM6-Easy), with the command
         # line's changes to the composed preset kept
         train_cfg = (None if cfg.eval_only else
-                     from_composed(OmegaConf.to_container(cfg.pinn_preset, resolve=True), sim, seed=int(cfg.seed)))
+                     from_composed(composed, sim, seed=int(cfg.seed)))
         if train_cfg is not None:  # a preset without acceptance bar never replaces the default cache
             check_may_train_into(file, train_cfg, sim, bool(cfg.overwrite_cache))
     out: dict = {"path": str(file)}

@@ -54,10 +54,15 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 def main(cfg: DictConfig) -> list[dict]:
     from hydra.core.hydra_config import HydraConfig
 
-    from anm_torchrl.surrogates.regressors.train import check_train_request
+    from anm_torchrl.surrogates.regressors.requests import check_train_config
     from anm_torchrl.training.recipe_errors import user_errors
 
-    with user_errors("train_surrogate.py", HydraConfig.get().runtime.output_dir):  # one line naming the key
+    run_dir = HydraConfig.get().runtime.output_dir
+    with user_errors("train_surrogate.py", run_dir):  # one line naming the key, before torch is imported
+        check_train_config(cfg, default_size())
+    from anm_torchrl.surrogates.regressors.train import check_train_request
+
+    with user_errors("train_surrogate.py", run_dir):  # the network's tables
         sim = check_train_request(cfg, default_size())
     return run(cfg, sim)
 

@@ -79,6 +79,8 @@ def test_check_writable_and_artifact_cache(monkeypatch, tmp_path):
     ("ppo", "ANM_TORCHRL_HOME={tmp}/a_file/home surrogate=pinn collector.total_frames=1000",
      r"cannot write the artifact cache .*/a_file/home .*set ANM_TORCHRL_HOME to a writable folder"),
     ("train_pinn", "pinn_preset=smoke", "preset 'smoke' has no acceptance bar"),  # into the default cache
+    ("evaluate", "policy=mpc_perfect policy_kwargs.bogus=1 steps=5 episodes=1",
+     r"MPC options \['bogus'\] are not settings of the '\w+' solver"),  # was an AttributeError at the first step
 ])
 def test_recipe_prints_one_line(recipe, args, message, tmp_path):
     """``args`` as typed after ``python recipes/<recipe>.py`` (``NAME=value`` of an upper-case NAME sets that
@@ -95,3 +97,33 @@ def test_recipe_prints_one_line(recipe, args, message, tmp_path):
     last = out.stderr.strip().splitlines()[-1]
     assert last.startswith(f"{recipe}.py: ") and re.search(message, last), last
     assert not (tmp_path / "outputs").exists(), list((tmp_path / "outputs").rglob("*"))
+
+
+LIGHT = """
+import runpy, sys
+sys.argv = sys.argv[1:]
+try:
+    runpy.run_path(sys.argv[0], run_name="__main__")
+except SystemExit as stop:  # a user error: its one line, as the interpreter would print it
+    print(stop.code, file=sys.stderr)
+finally:
+    print("heavy modules imported:", sorted(m for m in ("torch", "numba", "tensordict") if m in sys.modules))
+"""
+
+
+@pytest.mark.parametrize("recipe, args", [
+    ("ppo", "network=case34bw"), ("sac", "network=case34bw"), ("shac", "network=case34bw"),
+    ("make_dataset", "generative.chunk=0"), ("train_surrogate", "network=case34bw"),
+    ("train_surrogate", "surrogate=pinn"), ("train_pinn", "network=case34bw"),
+    ("train_pinn", "pinn_preset.power_balance.max_steps=-1"), ("train_pinn", "pinn_preset=smoke"),
+    ("reproduce", "preset.experiments=[nope]"), ("evaluate", "network=case34bw policy=do_nothing"),
+    ("evaluate", "policy=nope"),
+])
+def test_user_errors_come_before_torch(recipe, args, tmp_path):
+    """Issue 24: a config or network-name mistake is refused before torch, numba or tensordict is imported (they
+    cost 4-10 s of a user's wait), in every recipe; counted in imported modules, not in seconds."""
+    env = {**os.environ, "ANM_TORCHRL_HOME": str(tmp_path / "home"), "HYDRA_FULL_ERROR": "0"}
+    out = subprocess.run([sys.executable, "-c", LIGHT, str(ROOT / "recipes" / f"{recipe}.py"), *args.split()],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env)
+    assert f"{recipe}.py: " in out.stderr, out.stderr
+    assert "heavy modules imported: []" in out.stdout, (out.stdout, out.stderr[-2000:])

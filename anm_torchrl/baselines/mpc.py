@@ -85,6 +85,24 @@ def default_solver() -> str:
     raise ImportError("qpsolvers has none of clarabel, highs, osqp")
 
 
+def check_solver_settings(solver: str, settings: dict, given: list[str]) -> None:
+    """Raise ``ValueError`` naming ``given`` (the caller's keys) if ``solver`` refuses ``settings``: tried on a
+    one-variable LP now, not at the first step of an episode (qpsolvers hands unknown keys to the solver, which
+    fails with its own AttributeError or TypeError)."""
+    qpsolvers = require("qpsolvers")
+
+    from scipy import sparse
+
+    one = np.ones(1)
+    lp = qpsolvers.Problem(sparse.csc_matrix((1, 1)), one, sparse.csc_matrix(one[None]), one)
+    try:
+        qpsolvers.solve_problem(lp, solver=solver, **settings)
+    except (AttributeError, TypeError, ValueError, KeyError) as err:  # the solver's own words for a bad setting
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ValueError(f"MPC options {given} are not settings of the {solver!r} solver, or a value is invalid "
+                         f"(MPC's own options: horizon, safety_margin, gamma, solver): {first}") from None
+
+
 class MPCPolicy(TensorDictModuleBase):
     """gym-anm's N-stage MPC DC-OPF policy (``MPCAgentPerfect`` / ``MPCAgentConstant``) as a TorchRL policy.
 
@@ -117,6 +135,8 @@ class MPCPolicy(TensorDictModuleBase):
         self.safety_margin, self.gamma = float(safety_margin), float(gamma)
         self.solver = default_solver() if solver is None else solver
         self.solver_settings = {**SOLVER_SETTINGS.get(self.solver, {}), **solver_settings}
+        if solver_settings:
+            check_solver_settings(self.solver, self.solver_settings, sorted(solver_settings))
         self._load_series = sim.load_series.detach().cpu().numpy()
         self._p_max_series = sim.p_max_series.detach().cpu().numpy()
         self._sl = sim.state_slices()

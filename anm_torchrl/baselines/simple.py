@@ -12,6 +12,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from anm_torchrl.baselines.names import BASELINES
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
@@ -76,14 +77,6 @@ class RandomPolicy(TensorDictModuleBase):
         a = torch.minimum(torch.maximum(a, self.low.float()), self.high.float())
         tensordict.set(self.out_keys[0], a.to(x.device))
         return tensordict
-
-
-BASELINES = ("do_nothing", "random", "mpc_perfect", "mpc_constant", "optimal", "acmpc")
-
-
-def available_baselines() -> tuple[str, ...]:
-    """Names :func:`make_baseline` accepts (the registry's list; do not re-type it)."""
-    return BASELINES
 
 
 def make_baseline(name: str, sim: GridSimulator | None = None, **kw) -> TensorDictModuleBase:

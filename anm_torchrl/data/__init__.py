@@ -7,8 +7,7 @@ on networks other than ANM6-Easy); :func:`load_dataset` opens and checks it.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from anm_torchrl.lazy import lazy_exports
 
 # each public name and its home module; imported on first use, so that light submodules (``options``,
 # ``registry``) and the recipes' config checks do not pay for torch and tensordict (PEP 562)
@@ -22,15 +21,4 @@ _HOMES = {
                      "split"], "storage"),
 }
 __all__ = sorted(_HOMES)
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _HOMES:
-        raise AttributeError(f"module 'anm_torchrl.data' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"anm_torchrl.data.{_HOMES[name]}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *_HOMES])
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)

@@ -19,20 +19,15 @@ import os
 from pathlib import Path
 from typing import Any
 
-import torch
-
-
 STATUSES = ("ok", "partial", "not available", "error")
 
 
 def _plain(x: Any) -> Any:
-    """JSON-able copy: tensors/arrays to lists, NaN/inf to None, paths to str."""
+    """JSON-able copy: tensors/arrays to lists (their ``tolist``; no torch import), NaN/inf to None, paths to str."""
     if isinstance(x, dict):
         return {str(k): _plain(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [_plain(v) for v in x]
-    if isinstance(x, torch.Tensor):
-        return _plain(x.detach().cpu().tolist())
     if hasattr(x, "tolist") and not isinstance(x, (str, bytes)):
         return _plain(x.tolist())
     if isinstance(x, float):

@@ -10,40 +10,51 @@ trained file) as status "not available" or "partial" in its record; any other er
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+import importlib
+from typing import TYPE_CHECKING, Any, Callable
 
-from anm_torchrl.experiments import (accuracy, adaptability, heldout_returns, payoff, pinn_losses, ppo_curves,
-                                     rollout_error, speed, sweep)
-from anm_torchrl.experiments.common import RunContext
+if TYPE_CHECKING:
+    from anm_torchrl.experiments.common import RunContext
 
-Experiment = Callable[[dict[str, Any], RunContext], dict]
+Experiment = Callable[[dict[str, Any], "RunContext"], dict]
 
 
 @dataclasses.dataclass(frozen=True)
 class Entry:
-    """One experiment: its ``run``, what it measures (one line) and its study (the folder ``results/<study>/``
-    its published record lives in)."""
+    """One experiment: its module (``anm_torchrl.experiments.<module>``, whose ``run`` is imported on first use,
+    so that checking a preset's names costs no torch import), what it measures (one line) and its study (the folder
+    ``results/<study>/`` its published record lives in)."""
 
-    run: Experiment
+    module: str
     measures: str
     study: str = "reproduction"
+
+    @property
+    def run(self) -> Experiment:
+        return importlib.import_module(f"anm_torchrl.experiments.{self.module}").run
 
 
 # name (record file and preset key) -> entry; in the order of the paper's figures, then beyond it
 EXPERIMENTS: dict[str, Entry] = {
-    "pinn_losses": Entry(pinn_losses.run, "Fig. 5: the PINN's training losses, read from its TensorBoard run"),
-    "speed": Entry(speed.run, "Fig. 6: seconds per transition of gym-anm, the true env and every surrogate"),
-    "accuracy": Entry(accuracy.run, "Fig. 7: one-step accuracy of the data-driven surrogates (their training metrics)"),
-    "rollout_error": Entry(rollout_error.run, "Figs. 8-9: one-step and episode errors of every surrogate along "
+    "pinn_losses": Entry("pinn_losses", "Fig. 5: the PINN's training losses, read from its TensorBoard run"),
+    "speed": Entry("speed", "Fig. 6: seconds per transition of gym-anm, the true env and every surrogate"),
+    "accuracy": Entry("accuracy", "Fig. 7: one-step accuracy of the data-driven surrogates (their training metrics)"),
+    "rollout_error": Entry("rollout_error", "Figs. 8-9: one-step and episode errors of every surrogate along "
                            "expert and random rollouts"),
-    "adaptability": Entry(adaptability.run, "the surrogates on scaled or shifted load and renewable series"),
-    "sweep": Entry(sweep.run, "Figs. 10-11: PPO on a surrogate over n_envs x buffer"),
-    "ppo_curves": Entry(ppo_curves.run, "Fig. 12: PPO training curves on the true env, gym-anm and every surrogate"),
-    "test_returns": Entry(heldout_returns.run, "README's PPO table: returns on the held-out test states, PPO and "
+    "adaptability": Entry("adaptability", "the surrogates on scaled or shifted load and renewable series"),
+    "sweep": Entry("sweep", "Figs. 10-11: PPO on a surrogate over n_envs x buffer"),
+    "ppo_curves": Entry("ppo_curves", "Fig. 12: PPO training curves on the true env, gym-anm and every surrogate"),
+    "test_returns": Entry("heldout_returns", "README's PPO table: returns on the held-out test states, PPO and "
                           "the baselines"),
-    "payoff": Entry(payoff.run, "issue 13: when does a surrogate pay off (cost, accuracy and PPO time against bus "
+    "payoff": Entry("payoff", "issue 13: when does a surrogate pay off (cost, accuracy and PPO time against bus "
                     "count)", study="payoff"),
 }
+
+
+def check(name: str) -> None:
+    """Raise ``ValueError`` unless ``name`` is in :data:`EXPERIMENTS` (nothing is imported)."""
+    if name not in EXPERIMENTS:
+        raise ValueError(f"unknown experiment {name!r}; expected one of {list(EXPERIMENTS)}")
 
 
 def get(name: str) -> Experiment:
@@ -52,6 +63,5 @@ def get(name: str) -> Experiment:
     Raises:
         ValueError: ``name`` is not in :data:`EXPERIMENTS`.
     """
-    if name not in EXPERIMENTS:
-        raise ValueError(f"unknown experiment {name!r}; expected one of {list(EXPERIMENTS)}")
+    check(name)
     return EXPERIMENTS[name].run

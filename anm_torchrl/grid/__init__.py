@@ -4,12 +4,7 @@
 read by the network registry) import without torch.
 """
 
+from anm_torchrl.lazy import lazy_exports
+
 __all__ = ["GridSimulator", "Transition"]
-
-
-def __getattr__(name: str):
-    if name in __all__:
-        from anm_torchrl.grid import simulator
-
-        return getattr(simulator, name)
-    raise AttributeError(f"module 'anm_torchrl.grid' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, dict.fromkeys(__all__, "simulator"))

@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 #: MW by which a profile value must pass a device's limit to be reported as clipped (the parity tolerance: the
 #: MW -> p.u. -> MW round trip of a value at its limit is not exact)
 CLIP_TOL = 1e-6
-_REPORTED: set[str] = set()  # clipping reports already logged in this process (one per distinct case)
+_REPORTED: set[tuple[int, str]] = set()  # clipping reports logged in this process: one per level and case
 
 __all__ = ["GridSimulator", "Transition"]
 
@@ -70,7 +70,8 @@ class GridSimulator:
 
     def __init__(self, net: Network, load_series: torch.Tensor, p_max_series: torch.Tensor, gamma: float,
                  lamb: float, costs_clipping: tuple[float, float], backend: str = "auto",
-                 next_vars_hook: Callable | None = None, linear_solver: str = "auto"):
+                 next_vars_hook: Callable | None = None, linear_solver: str = "auto",
+                 profile_clip_level: int = logging.WARNING):
         self.net = net
         self.linear_solver = linear_solver
         kind = net.dev_type.tolist()
@@ -103,7 +104,8 @@ class GridSimulator:
         self.gen_idx, self.des_idx, self.load_idx = (torch.tensor(ix, dtype=torch.long, device=net.dev.device)
                                                      for ix in (self.gen_ids, self.des_ids, self.load_ids))
         self._clipping_reported = False
-        self.report_clipping(self.load_series.T * net.base_mva, self.p_max_series.T * net.base_mva, "the profiles")
+        self.report_clipping(self.load_series.T * net.base_mva, self.p_max_series.T * net.base_mva, "the profiles",
+                             profile_clip_level)
         self.counted = (net.dev_type != STORAGE).to(net.dev.dtype)  # ΔE counts gens, slack and loads
         self.terminal_reward = terminal_reward(gamma, costs_clipping)
         self.physics = get_backend(backend, net)
@@ -129,16 +131,19 @@ class GridSimulator:
     @classmethod
     def from_tables(cls, network: dict, load_p, gen_p_max, delta_t: float, gamma: float, lamb: float,
                     costs_clipping: tuple[float, float], device=None, backend: str = "auto",
-                    next_vars_hook: Callable | None = None, linear_solver: str = "auto") -> "GridSimulator":
+                    next_vars_hook: Callable | None = None, linear_solver: str = "auto",
+                    profile_clip_level: int = logging.WARNING) -> "GridSimulator":
         """A simulator from a validated network dict (:func:`anm_torchrl.networks.validation.validate_network`)
-        and profiles ``load_p`` (T, n_load), ``gen_p_max`` (T, n_gen) MW in device-id order."""
+        and profiles ``load_p`` (T, n_load), ``gen_p_max`` (T, n_gen) MW in device-id order; what the profiles
+        hold outside the devices' limits is logged at ``profile_clip_level``."""
         from anm_torchrl.grid.network import make_network
 
         net = make_network(network["bus"], network["branch"], network["device"], float(network["baseMVA"]),
                            float(delta_t), device=device)
         as_t = lambda x: torch.as_tensor(x, dtype=torch.float64, device=device).T  # noqa: E731  (T, n) -> (n, T)
         return cls(net, as_t(load_p), as_t(gen_p_max), gamma=gamma, lamb=lamb, costs_clipping=costs_clipping,
-                   backend=backend, next_vars_hook=next_vars_hook, linear_solver=linear_solver)
+                   backend=backend, next_vars_hook=next_vars_hook, linear_solver=linear_solver,
+                   profile_clip_level=profile_clip_level)
 
     @property
     def n_load(self) -> int:
@@ -280,8 +285,9 @@ class GridSimulator:
                                f"{ext:g} MW)")
         return out
 
-    def report_clipping(self, p_load: torch.Tensor, p_pot: torch.Tensor, source: str) -> None:
-        """Log at WARNING, once per simulator and per distinct message in a process, what of ``source``'s load P /
+    def report_clipping(self, p_load: torch.Tensor, p_pot: torch.Tensor, source: str,
+                        level: int = logging.WARNING) -> None:
+        """Log at ``level``, once per simulator and per distinct message in a process, what of ``source``'s load P /
         potentials (MW) will be clipped to the devices' [PMIN, PMAX] (gym-anm clips them silently; this package
         keeps its behaviour but says so)."""
         lines = self.clipped_entries(p_load, p_pot)
@@ -290,9 +296,9 @@ class GridSimulator:
             more = f"; and {len(lines) - 4} more" if len(lines) > 4 else ""
             message = (f"{source} hold values outside the devices' limits, clipped as gym-anm does: "
                        f"{'; '.join(lines[:4])}{more}")
-            if message not in _REPORTED:  # every env of a run builds its own simulator: one line per case
-                _REPORTED.add(message)
-                log.warning("%s", message)
+            if (level, message) not in _REPORTED:  # every env of a run builds its own simulator: one line per case
+                _REPORTED.add((level, message))
+                log.log(level, "%s", message)
 
     def project_generators(self, target: torch.Tensor, p_pot: torch.Tensor) -> torch.Tensor:
         """Feasible (P, Q) (N, n_gen, 2) p.u. for set-points ``target`` (N, n_gen, 2) and ``p_pot`` (N, n_gen)."""

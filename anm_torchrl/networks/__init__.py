@@ -7,6 +7,7 @@ network is registered by name (:func:`register_network`) or saved to a file any 
 ``import anm_torchrl.gym`` registers its ids cheaply.
 """
 
+from anm_torchrl.lazy import lazy_exports
 from anm_torchrl.networks.case import NetworkCase
 from anm_torchrl.networks.registry import (ANM6_EASY, check_network_name, get_network, list_networks, register_network,
                                            unregister_network)
@@ -16,9 +17,4 @@ __all__ = ["ANM6_EASY", "NetworkCase", "check_network_name", "get_network", "lis
            "is_anm6", "register_network", "save_network", "simulator", "unregister_network"]
 
 
-def __getattr__(name: str):
-    if name in ("simulator", "is_anm6"):
-        from anm_torchrl.networks import resolve
-
-        return getattr(resolve, name)
-    raise AttributeError(f"module 'anm_torchrl.networks' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, dict.fromkeys(["simulator", "is_anm6"], "resolve"))

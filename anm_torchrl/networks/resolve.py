@@ -10,12 +10,13 @@ env, a dataset and a surrogate given the same network get the same simulator, an
 from __future__ import annotations
 
 import functools
+import logging
 from collections.abc import Callable
 
 from anm_torchrl.grid.identity import network_key
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks.case import NetworkCase
-from anm_torchrl.networks.registry import get_network
+from anm_torchrl.networks.registry import builtin_networks, get_network
 from anm_torchrl.networks.user import DEFAULT_CONSTANTS
 from anm_torchrl.networks.validation import check_reward_args, device_ids, validate_network, validate_profile
 
@@ -47,8 +48,10 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
     """
     if isinstance(network, str):
         network = get_network(network)
+    shipped = False  # a shipped network's own profiles: their known clipping is logged at INFO, not WARNING
     if isinstance(network, NetworkCase):
         case = network
+        shipped = case.name in builtin_networks() and load_p is None and gen_p_max is None
         defaults = {"delta_t": case.delta_t, "gamma": case.gamma, "lamb": case.lamb,
                     "costs_clipping": case.costs_clipping}
         network = case.network
@@ -75,7 +78,8 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
         raise ValueError(f"next_vars must be callable, got {next_vars!r}")
     return GridSimulator.from_tables(net, load_p, gen_p_max, float(c["delta_t"]), float(c["gamma"]),
                                      float(c["lamb"]), clip, device=device, backend=backend,
-                                     next_vars_hook=next_vars, linear_solver=linear_solver)
+                                     next_vars_hook=next_vars, linear_solver=linear_solver,
+                                     profile_clip_level=logging.INFO if shipped else logging.WARNING)
 
 
 @functools.lru_cache(maxsize=1)

@@ -6,7 +6,7 @@ pay for torch's import.
 
 from __future__ import annotations
 
-import importlib
+from anm_torchrl.lazy import lazy_exports
 
 _EXPORTS = {
     "load_checkpoint": "anm_torchrl.training.checkpoint",
@@ -20,7 +20,4 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'anm_torchrl.training' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

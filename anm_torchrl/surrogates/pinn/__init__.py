@@ -9,10 +9,13 @@
 * :mod:`.chain` — the ``TensorDictSequential`` surrogate; :mod:`.load` — :func:`load_pinn` (registry name
   ``"pinn"``), from a file or trained on first use;
 * :mod:`.evaluate` — accuracy against the exact simulator (``python -m anm_torchrl.surrogates.pinn.evaluate``).
+
+Names load on first use (:mod:`anm_torchrl.lazy`): :mod:`.presets` imports without torch.
 """
 
-from anm_torchrl.surrogates.pinn.chain import build_chain
-from anm_torchrl.surrogates.pinn.load import load_pinn
-from anm_torchrl.surrogates.pinn.train import PINNTrainConfig, preset, save_pinn, train_pinn
+from anm_torchrl.lazy import lazy_exports
 
-__all__ = ["PINNTrainConfig", "build_chain", "load_pinn", "preset", "save_pinn", "train_pinn"]
+_HOMES = {"build_chain": "chain", "load_pinn": "load",
+          **dict.fromkeys(["PINNTrainConfig", "preset", "save_pinn", "train_pinn"], "train")}
+__all__ = sorted(_HOMES)
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)

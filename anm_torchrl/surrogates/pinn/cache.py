@@ -23,7 +23,7 @@ from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.paths import surrogate_dir
 from anm_torchrl.surrogates.pinn.io import resolve_path, save_pinn
 from anm_torchrl.surrogates.pinn.loop import train_pinn
-from anm_torchrl.surrogates.pinn.presets import PINNTrainConfig
+from anm_torchrl.surrogates.pinn.presets import PINNTrainConfig, check_default_target
 
 log = logging.getLogger(__name__)
 
@@ -44,9 +44,8 @@ def is_default(file: Path, sim: GridSimulator) -> bool:
 
 def check_may_train_into(file: Path, cfg: PINNTrainConfig, sim: GridSimulator, overwrite_cache: bool) -> None:
     """Raise ``ValueError`` before any work if ``cfg`` can never be accepted into the default cache ``file``."""
-    if is_default(file, sim) and not cfg.acceptance and not overwrite_cache:
-        raise ValueError(f"preset {cfg.preset!r} has no acceptance bar, so it never replaces the default PINN cache "
-                         f"{file}; give another path (path=...) or overwrite_cache=true")
+    if is_default(file, sim):
+        check_default_target(cfg, str(file), overwrite_cache)
 
 
 def train_and_save(cfg: PINNTrainConfig, sim: GridSimulator, path: str | Path | None = None,

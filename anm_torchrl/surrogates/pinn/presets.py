@@ -242,13 +242,15 @@ def preset(name: str, **overrides: Any) -> PINNTrainConfig:
     return PINNTrainConfig.from_dict(d)
 
 
-def network_preset_name(name: str, sim) -> str:
-    """The preset ``name`` stands for on ``sim``'s network (a :class:`GridSimulator`):
-    ``default`` is the ANM6-Easy design on ANM6-Easy (unchanged) and :data:`FEEDER_DEFAULT` on any other
-    network; every other name is itself."""
-    from anm_torchrl.networks.resolve import is_anm6
+def network_preset_name(name: str, sim=None, *, anm6: bool | None = None) -> str:
+    """The preset ``name`` stands for on ``sim``'s network (a :class:`GridSimulator`; or say ``anm6``, whether
+    it is ANM6-Easy's, without building it): ``default`` is the ANM6-Easy design on ANM6-Easy (unchanged) and
+    :data:`FEEDER_DEFAULT` on any other network; every other name is itself."""
+    if anm6 is None:
+        from anm_torchrl.networks.resolve import is_anm6
 
-    return FEEDER_DEFAULT if name == "default" and not is_anm6(sim) else name
+        anm6 = is_anm6(sim)
+    return FEEDER_DEFAULT if name == "default" and not anm6 else name
 
 
 def preset_for(name: str, sim, **overrides: Any) -> PINNTrainConfig:
@@ -273,13 +275,26 @@ def overrides_of(d: dict[str, Any], name: str) -> dict[str, Any]:
     return out
 
 
-def from_composed(composed: dict[str, Any], sim, **overrides: Any) -> PINNTrainConfig:
+def from_composed(composed: dict[str, Any], sim=None, *, anm6: bool | None = None,
+                  **overrides: Any) -> PINNTrainConfig:
     """The training configuration a recipe's composed ``pinn_preset`` group (a dict with its ``name``) stands for
-    on ``sim``'s network: the preset it names (``default`` resolved by :func:`network_preset_name`) with the
-    entries the command line changed (:func:`overrides_of`) and ``overrides`` (e.g. ``seed``)."""
+    on ``sim``'s network (or on ANM6-Easy's or a feeder's, ``anm6``): the preset it names (``default`` resolved by
+    :func:`network_preset_name`) with the entries the command line changed (:func:`overrides_of`) and
+    ``overrides`` (e.g. ``seed``).
+
+    Raises:
+        ValueError: a value out of range, naming the option."""
     d = dict(composed)
     given = d.pop("name")
-    return preset(network_preset_name(given, sim), **{**overrides_of(d, given), **overrides})
+    return preset(network_preset_name(given, sim, anm6=anm6), **{**overrides_of(d, given), **overrides})
+
+
+def check_default_target(cfg: PINNTrainConfig, target: str, overwrite_cache: bool) -> None:
+    """Raise ``ValueError`` if ``cfg`` has no acceptance bar, aims at the default cache (``target`` names it) and
+    ``overwrite_cache`` is off: such a model never replaces the default PINN."""
+    if not cfg.acceptance and not overwrite_cache:
+        raise ValueError(f"preset {cfg.preset!r} has no acceptance bar, so it never replaces the default PINN cache "
+                         f"{target}; give another path (path=...) or overwrite_cache=true")
 
 
 def module_seed(cfg: PINNTrainConfig, name: str) -> int:

@@ -11,18 +11,20 @@ Split by job: :mod:`.defaults` (names, file layout, hyper-parameters), :mod:`.ba
 their code-free file formats), :mod:`.module` (:class:`RegressorSurrogate`, the ``SurrogateEnv`` model: one
 batched ``predict`` of the regressor and one of the classifier per env step), :mod:`.fit`, :mod:`.metrics`,
 :mod:`.io` (atomic, hash-checked folders) and :mod:`.loaders` (the registry's loaders).
+Names load on first use (:mod:`anm_torchrl.lazy`): :mod:`.defaults` and :mod:`.requests` import without torch.
 """
 
-from anm_torchrl.surrogates.regressors.backends import BACKENDS, MODEL_FILES
-from anm_torchrl.surrogates.regressors.defaults import (DATASETS, DEFAULT_PARAMS, FORMAT, FORMAT_VERSION, KINDS,
-                                                        META_FILE, train_command)
-from anm_torchrl.surrogates.regressors.fit import fit_regressor, regression_rows, targets_of
-from anm_torchrl.surrogates.regressors.io import load_surrogate_folder, save_surrogate
-from anm_torchrl.surrogates.regressors.loaders import load_regressor_surrogate
-from anm_torchrl.surrogates.regressors.metrics import evaluate_surrogate, regression_metrics
-from anm_torchrl.surrogates.regressors.module import RegressorSurrogate
+from anm_torchrl.lazy import lazy_exports
 
-__all__ = ["BACKENDS", "DATASETS", "DEFAULT_PARAMS", "FORMAT", "FORMAT_VERSION", "KINDS", "META_FILE", "MODEL_FILES",
-           "RegressorSurrogate", "evaluate_surrogate", "fit_regressor", "load_regressor_surrogate",
-           "load_surrogate_folder", "regression_metrics", "regression_rows", "save_surrogate", "targets_of",
-           "train_command"]
+_HOMES = {
+    **dict.fromkeys(["BACKENDS", "MODEL_FILES"], "backends"),
+    **dict.fromkeys(["DATASETS", "DEFAULT_PARAMS", "FORMAT", "FORMAT_VERSION", "KINDS", "META_FILE", "train_command"],
+                    "defaults"),
+    **dict.fromkeys(["fit_regressor", "regression_rows", "targets_of"], "fit"),
+    **dict.fromkeys(["load_surrogate_folder", "save_surrogate"], "io"),
+    "load_regressor_surrogate": "loaders",
+    **dict.fromkeys(["evaluate_surrogate", "regression_metrics"], "metrics"),
+    "RegressorSurrogate": "module",
+}
+__all__ = sorted(_HOMES)
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)

@@ -19,6 +19,7 @@ from tqdm.auto import tqdm
 
 from anm_torchrl._extras import require
 from anm_torchrl.artifacts import ArtifactError, load_tensors, save_tensors
+from anm_torchrl.surrogates.regressors.defaults import KINDS
 from anm_torchrl.surrogates.terminal import ModelFileError, load_booster
 
 DNN_KIND = "anm_torchrl.dnn"
@@ -230,8 +231,8 @@ class DNNBackend(Backend, torch.nn.Module):
 
 
 #: the backend class of each data-driven kind: the one dispatch of fitting, loading and file names
-BACKENDS: dict[str, type[Backend]] = {"lr": SklearnBackend, "dt": SklearnBackend, "rf": SklearnBackend,
-                                      "xgb": XGBBackend, "dnn": DNNBackend}
+BACKENDS: dict[str, type[Backend]] = {k: {"xgb": XGBBackend, "dnn": DNNBackend}.get(k, SklearnBackend)
+                                      for k in KINDS}
 MODEL_FILES: dict[str, str] = {kind: b.FILE for kind, b in BACKENDS.items()}
 
 

@@ -38,10 +38,9 @@ from typing import Any
 
 from anm_torchrl.data.registry import available_datasets
 from anm_torchrl.surrogates.conf import load_defaults
-from anm_torchrl.surrogates.regressors.backends import BACKENDS
 
 #: the kinds this module fits and loads (those with a backend; the registry's data-driven entries load them)
-KINDS: tuple[str, ...] = tuple(BACKENDS)
+KINDS: tuple[str, ...] = ("lr", "dt", "rf", "xgb", "dnn")  # the model of each: .backends.BACKENDS
 DATASETS: tuple[str, ...] = available_datasets()
 FORMAT = "anm_torchrl.regressor_surrogate"
 FORMAT_VERSION = 2

@@ -17,6 +17,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
+from anm_torchrl.surrogates.regressors.requests import check_default_slot, check_request, check_train_config
+
 log = logging.getLogger("train_surrogate")
 
 
@@ -79,26 +81,6 @@ def fit_terminal(cfg: DictConfig, dataset: str, data: dict, sim):
     return clf
 
 
-def check_request(name: str, dataset: str | None) -> None:
-    """Raise ``ValueError`` unless ``name`` is a data-driven surrogate and ``dataset`` a dataset kind."""
-    from anm_torchrl.surrogates.regressors import DATASETS, KINDS
-
-    if name not in KINDS:
-        raise ValueError(f"train_surrogate.py trains the data-driven surrogates {list(KINDS)}, got surrogate={name!r}"
-                         + (" (the PINN has its own trainer: recipes/train_pinn.py)" if name == "pinn" else ""))
-    if dataset not in DATASETS:
-        raise ValueError(f"surrogate.dataset must be one of {list(DATASETS)}, got {dataset!r}")
-
-
-def check_default_slot(size: int, path: str | None, overwrite_cache: bool, default_size: int) -> None:
-    """Raise ``ValueError`` if a model trained on ``size`` rows, fewer than the default ``data.size``
-    (``default_size``), would land in its default folder (``path`` None) without ``overwrite_cache``."""
-    if not path and int(size) < default_size and not overwrite_cache:
-        raise ValueError(f"a dataset of {size} rows is below the default data.size={default_size}: a model trained on "
-                         f"it would replace the default one in its default folder; give surrogate.path=... or "
-                         f"overwrite_cache=true")
-
-
 def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: dict, sim, default_size: int) -> dict:
     """Train, save and evaluate surrogate ``name`` on ``dataset``; returns its metrics."""
     from anm_torchrl.data import for_network, split
@@ -159,21 +141,13 @@ def summary_table(results: list[dict]) -> str:
 
 
 def check_train_request(cfg: DictConfig, default_size: int):
-    """Everything :func:`train_surrogates` checks before loading or generating data: the kind / dataset pair, the
-    default slot's size rule, ``all`` without a path, and the network (returned as its simulator).
+    """:func:`~.requests.check_train_config`, then the network, returned as its simulator.
 
     Raises:
-        ValueError: naming the offending key."""
+        ValueError: naming the offending key or table."""
     from anm_torchrl.networks import simulator as network_simulator
-    from anm_torchrl.surrogates.regressors import DATASETS
 
-    if not cfg.all:
-        check_request(cfg.surrogate.name, cfg.surrogate.get("dataset"))
-    elif cfg.surrogate.get("path"):
-        raise ValueError("all=true writes every model to its default folder; leave surrogate.path null")
-    if not any(cfg.data.get(k) for k in DATASETS):
-        check_default_slot(int(cfg.data.size), None if cfg.all else cfg.surrogate.get("path"),
-                           bool(cfg.overwrite_cache), default_size)
+    check_train_config(cfg, default_size)
     return network_simulator(cfg.network)
 
 
