@@ -296,6 +296,7 @@ def run_recipe(cfg: DictConfig) -> dict:
     import hydra
     from hydra.core.hydra_config import HydraConfig
 
+    from anm_torchrl.networks import check_network_name
     from anm_torchrl.networks.user import network_argument
     from anm_torchrl.training.algorithms import check_algorithm_config
     from anm_torchrl.training.recipe_errors import check_artifact_cache, check_device, user_errors
@@ -305,6 +306,7 @@ def run_recipe(cfg: DictConfig) -> dict:
     with user_errors(f"{HydraConfig.get().job.name}.py", run_dir):
         # a network file's path is relative to where the command was typed, not to the run directory
         cfg.network = network_argument(cfg.network, hydra.utils.get_original_cwd())
+        check_network_name(cfg.network)  # before its defaults are applied (and logged)
         defaults = apply_network_defaults(cfg, explicit_keys(HydraConfig.get().overrides.task))
         check_algorithm_config(cfg)
         check_device(cfg.env.device)
