@@ -11,8 +11,9 @@ Options are Hydra overrides (``key=value``) of ``recipes/conf_evaluate/evaluate.
 the other recipes' configs (an unknown key or a value out of range fails before anything runs; ``--help`` lists
 them; no run directory: ``output=`` and ``render_dir=`` say where files go). By default the episodes start from the **test** states
 (``seed=0``, the PPO recipe's ``eval.test_seed``), never from the validation states its model selection used. Both
-envs run the same episodes: ``episodes`` initial states drawn from gym-anm's reset distribution with ``seed``
-(:func:`anm_torchrl.evaluation.draw_initial_states`), set into ``ANM6Env`` with
+envs (``env=exact``, the batched true simulator of the network, and ``env=gym_anm``) run the same episodes:
+``episodes`` initial states drawn from the network's reset distribution with ``seed``
+(:func:`anm_torchrl.evaluation.draw_initial_states`), set into ``ANMEnv`` with
 ``reset(..., set_state=True)`` and into gym-anm through its ``init_state`` hook. The policy acts
 deterministically; an episode ends at ``steps`` or at its first termination.
 
@@ -73,6 +74,8 @@ def parse_args(argv: list[str]):
         check_evaluate_config(cfg)
         if cfg.render:  # now, not after the evaluation (output= is written after the JSON is printed)
             check_writable(cfg.render_dir, "render_dir")
+    if cfg.env == "anm6":  # the former name of the exact simulator on any network
+        cfg.env = "exact"
     if cfg.policy is None and cfg.checkpoint is None:
         raise SystemExit("evaluate.py: give checkpoint=<path> or policy=<baseline> "
                          f"(baselines: {', '.join(available_baselines())})")
@@ -106,7 +109,7 @@ def main(argv: list[str] | None = None) -> dict:
     network = network_of(cfg, ckpt)
     if cfg.env == "gym_anm" and network != "anm6_easy":
         raise SystemExit(f"evaluate.py: env=gym_anm runs gym-anm's ANM6Easy only; this policy is for {network!r}")
-    episodes = int(cfg.episodes) if cfg.episodes is not None else (16 if cfg.env == "anm6" else 2)
+    episodes = int(cfg.episodes) if cfg.episodes is not None else (16 if cfg.env == "exact" else 2)
     env = make_true_env(episodes, network=network, seed=int(cfg.seed))  # states from its reset distribution
     states = draw_initial_states(episodes, int(cfg.seed), env.sim, env.init)
     if ckpt is not None:
@@ -119,7 +122,7 @@ def main(argv: list[str] | None = None) -> dict:
             policy, name = make_baseline(cfg.policy, env.sim, **kwargs), cfg.policy
 
     t0 = time.perf_counter()
-    if cfg.env == "anm6":
+    if cfg.env == "exact":
         result = evaluate_policy(policy, states, max_steps=int(cfg.steps), gamma=float(cfg.gamma), env=env)
     else:
         result = evaluate_policy_gym_anm(policy, states, max_steps=int(cfg.steps), gamma=float(cfg.gamma),

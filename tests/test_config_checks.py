@@ -73,7 +73,7 @@ def test_ppo_config_ranges(override, message):
     ("gamma", 1.5, "gamma must be in (0, 1], got 1.5"),
     ("steps", 0, "steps must be an integer >= 1, got 0"),
     ("episodes", 0, "episodes must be an integer >= 1 or null, got 0"),
-    ("env", "gym", "env must be one of anm6, gym_anm; got 'gym'"),
+    ("env", "gym", "env must be one of exact, gym_anm, anm6; got 'gym'"),
     ("network", "nowhere", "network: unknown network 'nowhere'; registered: ['anm6_easy', 'case33bw'"),
 ])
 def test_evaluate_config_ranges(key, value, message):

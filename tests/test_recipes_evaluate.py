@@ -42,7 +42,7 @@ def fails(evaluate, *argv: str) -> str:
 def test_evaluate_checkpoint_json_on_test_states(evaluate, ppo_checkpoint, capsys):
     out = evaluate.main([f"checkpoint={ppo_checkpoint}", "steps=20", "episodes=2"])
     assert printed_json(capsys) == json.loads(json.dumps(out))
-    assert set(RESULT_KEYS) <= set(out) and out["policy"] == "ppo" and out["env"] == "anm6"
+    assert set(RESULT_KEYS) <= set(out) and out["policy"] == "ppo" and out["env"] == "exact"
     assert out["episodes"] == 2 and 0 < out["steps"] <= 20 and math.isfinite(out["discounted_return"])
     assert out["seed"] == 0  # the PPO recipe's eval.test_seed (tests/test_config_checks.py keeps them equal)
 

@@ -56,7 +56,8 @@ def measure_one(n_bus: int, seed: int, num_envs: int, mode: str, budget_mib: int
     wall = time.perf_counter() - t0
     return {"n_bus": n_bus, "seed": seed, "num_envs": num_envs, "mode": mode, "budget_mib": budget_mib, "steps": steps,
             "transitions_per_s": steps * num_envs / wall, "peak_rss_mib": resource.getrusage(
-                resource.RUSAGE_SELF).ru_maxrss / 1024, "peak_rss_mib_per_step": peaks}
+                resource.RUSAGE_SELF).ru_maxrss / 1024, "peak_rss_mib_per_step": peaks,
+            "malloc_mmap_threshold_env": os.environ.get("MALLOC_MMAP_THRESHOLD_")}
 
 
 def measure_row(args: argparse.Namespace, n_env: int, mode: str, mmap_mib: int) -> dict:

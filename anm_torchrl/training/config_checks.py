@@ -16,7 +16,7 @@ LOGGER_BACKENDS = ("tensorboard", "csv", "wandb", "mlflow", None)
 LOGGER_PACKAGES = {"wandb": "wandb", "mlflow": "mlflow"}
 ACTION_MODES = ("raise", "clip")
 ENV_INITS = (None, "gym_anm", "intended", "uniform")
-EVALUATE_ENVS = ("anm6", "gym_anm")
+EVALUATE_ENVS = ("exact", "gym_anm", "anm6")  # anm6: the former name of exact, still accepted
 
 
 def _get(cfg: Mapping, key: str) -> Any:

@@ -80,7 +80,7 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
         train = train_if_missing if train_if_missing is not None else path is None
         if not train:
             raise FileNotFoundError(f"no trained PINN at {file}; train one with: python recipes/train_pinn.py "
-                                    f"path={file} (or pass train_if_missing=True)")
+                                    f"network=<this network> path={file} (or pass train_if_missing=True)")
         preset = tr.network_preset_name(preset, sim)
         cfg = tr.preset(preset, seed=seed)
         log.warning("no trained PINN at %s: training the %r preset from physics alone, %d Adam steps in 3 stages "

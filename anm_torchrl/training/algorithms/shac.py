@@ -4,7 +4,8 @@ learned value for the tail; the critic regresses TD(λ) targets of the same roll
 
 Model (``model.dynamics``): ``exact`` — the true transition with its gradients
 (:mod:`anm_torchrl.grid.differentiable`: implicit power-flow gradients, active-constraint projections), float64;
-``pinn`` — the PINN surrogate chain (:func:`anm_torchrl.surrogates.pinn.load.load_pinn`, its cached model only).
+``pinn`` — the PINN surrogate chain (:func:`anm_torchrl.surrogates.pinn.load.load_pinn`: the network's cached model,
+trained from physics alone on first use; or ``surrogate.path``).
 A terminal step (the power flow does not converge / the chain says collapse) takes gym-anm's terminal reward, ends
 the gradient path of its row, and the row restarts from a fresh initial state of the true env's reset
 distribution (resets are not transitions: no true-env frames).
@@ -64,7 +65,8 @@ class PINNModel:
 
         surrogate = cfg.get("surrogate", {})
         path = surrogate.get("path") if surrogate.get("name") == "pinn" else None
-        self.chain = load_pinn(env.sim, path=path, train_if_missing=False, progress=False)
+        # the default cache trains on first use (as ``ppo.py surrogate=pinn``); an explicit path must exist
+        self.chain = load_pinn(env.sim, path=path, progress=False)
         for p in self.chain.parameters():
             p.requires_grad_(False)
         self.obs_map = env.obs_map
