@@ -107,7 +107,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.out:
         lines = [f"torch backend, random radial network of {args.n_bus} buses (seed {args.seed}), {args.steps} random "
                  "steps after a reset, one process per row, 1 thread", "",
-                 "| envs | Newton solve | glibc mmap threshold | transitions/s | peak RSS | peak after each step (MiB) |",
+                 "| envs | Newton solve | glibc mmap threshold | transitions/s | peak RSS "
+                 "| peak after each step (MiB) |",
                  "|---:|---|---|---:|---:|---|"]
         names = {"auto": "block tree (as shipped)", "dense": f"dense LU, {args.budget} MiB Jacobian budget",
                  "dense-unbounded": "dense LU, unbounded (before)"}
