@@ -14,8 +14,8 @@ Per network, in the same run (these machines are shared: compare ratios, not abs
 * ``gym-anm`` — gym-anm 2.0.1's generic ``ANMEnv`` (a subclass whose ``next_vars`` reads the same profiles),
   one env, ``action_space.sample()`` actions, reset on termination; steps/s.
 * ``pandapower runpp`` / ``lightsim2grid ac_pf`` (when installed: in no extra) — one AC power flow of the
-  do-nothing injections on an equivalent pandapower network (branches as lines with their p.u. impedance, devices as ``sgen``; timing
-  only).
+  do-nothing injections on an equivalent pandapower network (branches as lines with their p.u. impedance, devices
+  as ``sgen``; timing only).
 * ``ANMEnv`` (numba | torch) — ``rand_action`` + ``step_and_maybe_reset`` at each batch size (warm-up apart).
   A row is skipped when one step is predicted to take more than ``--max-step-s`` seconds (the torch backend's
   memory is bounded by its Jacobian budget and tree solve, so size alone skips nothing).
