@@ -82,6 +82,33 @@ def test_every_registered_network_passes_gymnasium_checker(env_id):
 
 
 @pytest.mark.filterwarnings(ASYMMETRIC_BOX_ADVICE)
+# a random network leaves some limits None, and gym-anm's spaces are then unbounded there: the checker says so
+@pytest.mark.filterwarnings("ignore:.*Box observation space m.* value is -?infinity:UserWarning")
+def test_any_network_id_takes_a_users_network_by_name_or_file(tmp_path):
+    """A user's network, registered after ``anm_torchrl.gym`` was imported or saved to a file, is one gymnasium id
+    away (``anm_torchrl/ANM-v0``, ``network=``): single env (checker passes) and natively batched vector env."""
+    from anm_torchrl.gym import ANY_NETWORK_ID
+    from anm_torchrl.networks import register_network, save_network, unregister_network
+    from anm_torchrl.networks.random import generate
+
+    case = generate(11, n_bus=9, meshed=False)
+    file = save_network(tmp_path / "feeder.npz", case.network, case.load_p, case.gen_p_max)
+    register_network("gym_test_feeder", case.network, case.load_p, case.gen_p_max)
+    try:
+        for network in ("gym_test_feeder", str(file)):
+            env = gymnasium.make(ANY_NETWORK_ID, network=network)
+            check_env(env.unwrapped)
+            venv = gymnasium.make_vec(ANY_NETWORK_ID, num_envs=3, vectorization_mode="vector_entry_point",
+                                      network=network, seed=0)
+            obs, _ = venv.reset()
+            assert obs.shape == (3, venv.torchrl_env.sim.state_dim) and venv.torchrl_env.sim.net.n_bus == 9
+        with pytest.raises(ValueError, match="no such network file"):
+            gymnasium.make(ANY_NETWORK_ID, network=str(tmp_path / "missing.npz"))
+    finally:
+        unregister_network("gym_test_feeder")
+
+
+@pytest.mark.filterwarnings(ASYMMETRIC_BOX_ADVICE)
 def test_single_env_passes_stable_baselines3_checker():
     """SB3's own checker (spaces, dtypes, reset/step contract) on the single gymnasium env."""
     sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
@@ -164,7 +191,7 @@ def test_partial_reset_and_bad_input():
         venv.reset(options={"reset_mask": np.array([1, 0, 1])})
     with pytest.raises(ValueError, match="autoreset_mode"):
         ANMVectorEnv(2, autoreset_mode="Disabled")
-    with pytest.raises(ValueError, match=r"network must be one of \['anm6_easy', 'case33bw'"):
+    with pytest.raises(ValueError, match=r"unknown network 'nope'; registered: \['anm6_easy', 'case33bw'"):
         gymnasium.make_vec(ID, num_envs=2, network="nope")
     with pytest.raises(ValueError, match="observation='state'"):
         ANMVectorEnv(2, env=ANMEnv(sim=ANM6Env(1).sim, num_envs=2, observation=[("bus_v_magn", "all", "pu")]))

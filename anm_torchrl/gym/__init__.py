@@ -2,7 +2,9 @@
 
 Importing this subpackage (``import anm_torchrl.gym``; not ``import anm_torchrl``, which stays light)
 registers one gymnasium id per registered network (:data:`GYM_IDS`):
-``anm_torchrl/ANM6Easy-v0`` (gym-anm's name), ``anm_torchrl/Case33bw-v0``, ``anm_torchrl/CigreMv-v0``, …
+``anm_torchrl/ANM6Easy-v0`` (gym-anm's name), ``anm_torchrl/Case33bw-v0``, ``anm_torchrl/CigreMv-v0``, …, and
+:data:`ANY_NETWORK_ID` ``anm_torchrl/ANM-v0``, which takes ``network=`` (a name registered at any time, or the path
+of a network file: ``anm_torchrl.networks.save_network``).
 
 - ``gymnasium.make(id)``: :class:`anm_torchrl.gym.env.ANMGymEnv`, one grid with gym-anm's interface;
 - ``gymnasium.make_vec(id, num_envs=N)``: :class:`anm_torchrl.gym.vector.ANMVectorEnv`, N grids stepped by one
@@ -29,15 +31,18 @@ def gym_id(network: str) -> str:
 
 #: gymnasium id -> registered network name.
 GYM_IDS = {gym_id(n): n for n in list_networks()}
+#: the id of any network: ``gymnasium.make(ANY_NETWORK_ID, network="my_feeder" | "path/to/feeder.npz")``.
+ANY_NETWORK_ID = "anm_torchrl/ANM-v0"
 
 
 def register_envs() -> None:
-    """Register every id of :data:`GYM_IDS` with gymnasium (idempotent)."""
-    for env_id, network in GYM_IDS.items():
+    """Register every id of :data:`GYM_IDS` and :data:`ANY_NETWORK_ID` with gymnasium (idempotent)."""
+    for env_id, network in [*GYM_IDS.items(), (ANY_NETWORK_ID, None)]:
         if env_id in gymnasium.registry:
             continue
         gymnasium.register(id=env_id, entry_point="anm_torchrl.gym.env:ANMGymEnv",
-                           vector_entry_point="anm_torchrl.gym.vector:ANMVectorEnv", kwargs={"network": network})
+                           vector_entry_point="anm_torchrl.gym.vector:ANMVectorEnv",
+                           kwargs={} if network is None else {"network": network})
 
 
 register_envs()

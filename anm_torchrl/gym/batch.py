@@ -26,19 +26,18 @@ def make_torchrl_env(network: str, num_envs: int, seed: int | None = None, **kwa
     (reset: ``init="uniform"`` unless given).
 
     Args:
-        network: a name of :func:`anm_torchrl.networks.list_networks`.
+        network: a name of :func:`anm_torchrl.networks.list_networks` or the path of a network file.
         num_envs: batch size N.
         seed: seed of the reset sampler (``None``: random).
         **kwargs: passed to the env (``action_mode``, ``init``, ``backend``).
 
     Raises:
-        ValueError: unknown network.
+        ValueError: unknown network, or a network file that is missing or invalid.
     """
     from anm_torchrl.envs import ANM6Env, ANMEnv
-    from anm_torchrl.networks import get_network, list_networks
+    from anm_torchrl.networks import check_network_name, get_network
 
-    if network not in list_networks():
-        raise ValueError(f"network must be one of {list_networks()}, got {network!r}")
+    check_network_name(network)
     if network == "anm6_easy":
         return ANM6Env(num_envs=num_envs, seed=seed, **kwargs)
     case = get_network(network)

@@ -24,7 +24,7 @@ class ANMGymEnv(gymnasium.Env):
     reward in the title), so ``gymnasium.wrappers.RecordVideo`` films episodes.
 
     Args:
-        network: registered network name (ignored when ``env`` is given).
+        network: a registered network name or the path of a network file (ignored when ``env`` is given).
         env: an existing TorchRL env of this package with batch size (1,).
         render_mode: None or ``"rgb_array"``.
         **env_kwargs: passed to the true-simulator env (``action_mode``, ``init``, ``backend``).

@@ -36,7 +36,7 @@ class ANMVectorEnv(VectorEnv):
 
     Args:
         num_envs: batch size N.
-        network: registered network name (ignored when ``env`` is given).
+        network: a registered network name or the path of a network file (ignored when ``env`` is given).
         seed: seed of the reset sampler (``None``: random).
         max_episode_steps: truncate episodes after this many steps (``None``: never, as gym-anm).
         autoreset_mode: ``AutoresetMode.NEXT_STEP`` or ``SAME_STEP`` (or their string values).
