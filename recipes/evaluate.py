@@ -118,6 +118,9 @@ def main(argv: list[str] | None = None) -> dict:
         kwargs = OmegaConf.to_container(cfg.policy_kwargs, resolve=True)
         if cfg.policy == "random":
             kwargs.setdefault("seed", int(cfg.seed))
+        if cfg.policy == "optimal":  # its plan spans the episode evaluated, not the default T = 3,000
+            kwargs.setdefault("horizon", int(cfg.steps))
+            kwargs.setdefault("gamma", float(cfg.gamma))
         with user_errors("evaluate.py"):  # a policy_kwargs value the baseline refuses: one line, before the run
             policy, name = make_baseline(cfg.policy, env.sim, **kwargs), cfg.policy
 

@@ -56,6 +56,20 @@ def test_evaluate_baseline_json_and_output_folder(evaluate, tmp_path, capsys):
     assert out["terminated"] == 0.0 and out["return"] <= out["discounted_return"] < 0
 
 
+def test_optimal_plans_over_the_evaluated_steps(evaluate, tmp_path, monkeypatch, capsys):
+    # on a user's network file: a 12-step evaluation solves a 12-step plan (~1 s), not the default T = 3,000 (which
+    # ran over 15 min on this 12-bus network before evaluate.py passed `steps` as the plan's horizon)
+    from anm_torchrl.networks import save_network
+    from anm_torchrl.networks.random import generate
+
+    monkeypatch.chdir(tmp_path)
+    case = generate(7, n_bus=8)
+    save_network(tmp_path / "feeder.npz", case.network, case.load_p, case.gen_p_max)
+    out = evaluate.main(["network=feeder.npz", "policy=optimal", "steps=6", "episodes=1", "gamma=0.99"])
+    assert out["network"] == "feeder.npz" and out["steps"] == 6 and out["terminated"] == 0.0
+    assert out["wall_time"] < 120 and math.isfinite(out["discounted_return"])
+
+
 @pytest.mark.slow  # the GIF encoding takes from 20 s (idle machine) to minutes (shared)
 def test_render_writes_the_episode_figure_and_animation(evaluate, ppo_checkpoint, tmp_path, capsys):
     out = evaluate.main([f"checkpoint={ppo_checkpoint}", "steps=6", "episodes=1", "render=true",
