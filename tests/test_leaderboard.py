@@ -47,3 +47,25 @@ def test_a_run_of_another_network_is_refused(ppo_checkpoint, tmp_path):
     table = {"protocol": {"network": "case33bw", "episodes": 1, "seed": 0, "steps": 3, "gamma": 0.995}, "rows": []}
     with pytest.raises(ValueError, match="trained on 'anm6_easy', the table is of 'case33bw'"):
         leaderboard.build("case33bw", [_run_dir(tmp_path, ppo_checkpoint, "a")], gap_table=table)
+
+
+def test_keep_takes_the_other_groups_runs_of_an_earlier_record_of_the_same_protocol(tmp_path):
+    protocol = {"network": "anm6_easy", "episodes": 2, "seed": 0, "steps": 5, "gamma": 0.995}
+    table = {"protocol": protocol, "rows": [
+        {"policy": "optimum", "row": "optimal", "discounted_return": -1.0, "states": 2, "source": "gap"},
+        {"policy": "do-nothing", "row": "do_nothing", "discounted_return": -9.0, "states": 2, "source": "gap"}]}
+    old = {"algorithm": "sac", "surrogate": "none", "seed": 0, "discounted_return": -8.0, "true_env_frames": 10,
+           "wall_s": 3.0}
+    earlier = tmp_path / "earlier.json"
+    earlier.write_text(json.dumps({"protocol": protocol, "runs": [
+        {"algorithm": "ppo", "surrogate": "none", "seed": 0, "discounted_return": -2.0, "true_env_frames": 10,
+         "wall_s": 1.0}, old]}))
+    rec = leaderboard.build("anm6_easy", [], gap_table=table, keep=earlier)
+    assert {r["row"] for r in rec["rows"]} == {"optimal", "do_nothing", "ppo_none", "sac_none"}
+    assert all(r["kept_from"] == str(earlier) for r in rec["runs"])
+    # a group given again is replaced, not merged with its earlier runs
+    assert [r["seed"] for r in leaderboard.kept_runs(json.loads(earlier.read_text()), protocol, {("sac", "none")},
+                                                     "e")] == [0] and len(rec["runs"]) == 2
+    other = {**protocol, "steps": 6}
+    with pytest.raises(ValueError, match="cannot be kept"):
+        leaderboard.build("anm6_easy", [], gap_table={**table, "protocol": other}, keep=earlier)

@@ -2,6 +2,7 @@
 MPC and do-nothing on the network's gap-table states; writes ``<out>.json`` and ``<out>.md``.
 
     python -m anm_torchrl.cli.leaderboard --network anm6_easy --runs outputs/ppo/<run> outputs/sac/<run> ...
+                                          [--keep results/leaderboard/anm6_easy.json]
                                           [--out results/leaderboard/anm6_easy] [--readme README.md]
 """
 
@@ -22,6 +23,8 @@ def main(argv: list[str] | None = None) -> None:
                                      description=leaderboard.__doc__.splitlines()[0])
     parser.add_argument("--network", default="anm6_easy")
     parser.add_argument("--runs", nargs="*", default=[], help="training run directories (summary.json, best.pt)")
+    parser.add_argument("--keep", default=None, help="an earlier record of this network: its runs of the "
+                        "(algorithm, training env) groups not given in --runs are kept, named by kept_from")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", default=None, help="write <out>.json and <out>.md")
     parser.add_argument("--readme", nargs="*", default=[], help="pages whose leaderboard block is re-rendered")
@@ -30,7 +33,7 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     torch.set_num_threads(args.threads)
-    record = leaderboard.build(args.network, args.runs)
+    record = leaderboard.build(args.network, args.runs, keep=args.keep)
     record["command"] = "python -m anm_torchrl.cli.leaderboard " + " ".join(argv if argv is not None else [])
     text = leaderboard.markdown(record)
     if args.out:

@@ -83,11 +83,31 @@ def trained_rows(runs: list[dict]) -> list[dict]:
     return rows
 
 
-def build(network: str, run_dirs: list[str | Path], gap_table: dict | None = None) -> dict:
-    """The leaderboard record of ``network``: baseline rows, trained rows, ratios."""
+def kept_runs(record: dict, protocol: dict, replaced: set[tuple[str, str]], source: str) -> list[dict]:
+    """The evaluated runs of an earlier leaderboard ``record`` (read from ``source``) of the same protocol, except
+    those of the (algorithm, training env) groups in ``replaced`` (re-run now): a row re-made without re-training
+    the others. Each kept run names ``kept_from``.
+
+    Raises:
+        ValueError: ``record`` was measured on another protocol (network, states, T, γ) than ``protocol``.
+    """
+    if record.get("protocol") != protocol:
+        raise ValueError(f"{source} was measured on protocol {record.get('protocol')}, not the gap table's "
+                         f"{protocol}: its runs cannot be kept")
+    return [{**r, "kept_from": r.get("kept_from", source)} for r in record.get("runs", [])
+            if (r["algorithm"], r["surrogate"]) not in replaced]
+
+
+def build(network: str, run_dirs: list[str | Path], gap_table: dict | None = None,
+          keep: str | Path | None = None) -> dict:
+    """The leaderboard record of ``network``: baseline rows, trained rows, ratios. ``keep``: an earlier record
+    whose runs of the groups not in ``run_dirs`` are kept (:func:`kept_runs`)."""
     gap_table = gap_table if gap_table is not None else json.loads(gap_table_path(network).read_text())
     protocol = gap_table["protocol"]
     runs = [evaluate_run(d, protocol) for d in run_dirs]
+    if keep is not None:
+        replaced = {(r["algorithm"], r["surrogate"]) for r in runs}
+        runs = kept_runs(json.loads(Path(keep).read_text()), protocol, replaced, str(keep)) + runs
     rows = baseline_rows(gap_table) + trained_rows(runs)
     by = {r["row"]: r["discounted_return"] for r in rows}
     if "optimal" not in by or "do_nothing" not in by:
