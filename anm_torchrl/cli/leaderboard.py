@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 from pathlib import Path
 
 from anm_torchrl.experiments import leaderboard
@@ -34,7 +35,7 @@ def main(argv: list[str] | None = None) -> None:
 
     torch.set_num_threads(args.threads)
     record = leaderboard.build(args.network, args.runs, keep=args.keep)
-    record["command"] = "python -m anm_torchrl.cli.leaderboard " + " ".join(argv if argv is not None else [])
+    record["command"] = "python -m anm_torchrl.cli.leaderboard " + " ".join(argv if argv is not None else sys.argv[1:])
     text = leaderboard.markdown(record)
     if args.out:
         from anm_torchrl.artifacts import atomic_write
