@@ -37,8 +37,8 @@ def test_default_configs_pass():
 @pytest.mark.parametrize("override, message", [
     ("collector.total_frames=-5", "collector.total_frames must be an integer >= 1, got -5"),
     ("collector.frames_per_batch=0", "collector.frames_per_batch must be an integer >= 1, got 0"),
-    ("loss.gamma=1.5", "loss.gamma must be in (0, 1], got 1.5"),
-    ("loss.gamma=0", "loss.gamma must be in (0, 1], got 0"),
+    ("loss.gamma=1.5", "loss.gamma must be in [0, 1], got 1.5"),
+    ("loss.gamma=-0.1", "loss.gamma must be in [0, 1], got -0.1"),  # 0 is PPO's contextual bandit (no storage)
     ("eval.gamma=-0.1", "eval.gamma must be in (0, 1], got -0.1"),
     ("loss.gae_lambda=1.1", "loss.gae_lambda must be in [0, 1], got 1.1"),
     ("eval.max_steps=0", "eval.max_steps must be an integer >= 1, got 0"),

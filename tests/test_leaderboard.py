@@ -69,3 +69,16 @@ def test_keep_takes_the_other_groups_runs_of_an_earlier_record_of_the_same_proto
     other = {**protocol, "steps": 6}
     with pytest.raises(ValueError, match="cannot be kept"):
         leaderboard.build("anm6_easy", [], gap_table={**table, "protocol": other}, keep=earlier)
+
+
+def test_a_run_through_a_models_gradients_says_so_and_shows_its_model_frames():
+    runs = [{"algorithm": "shac", "surrogate": s, "seed": 0, "discounted_return": -1.0, "true_env_frames": 0,
+             "model_frames": 1000, "wall_s": 1.0} for s in ("none", "pinn")]
+    rows = {r["row"]: r for r in leaderboard.trained_rows(runs)}
+    assert rows["shac_none"]["policy"] == "SHAC through the exact simulator's gradients"
+    assert rows["shac_pinn"]["policy"] == "SHAC through the pinn surrogate's gradients"
+    for r in rows.values():
+        r.update(loss_ratio=1.0, gain_pct=100.0)
+    text = leaderboard.markdown({"network": "anm6_easy", "rows": list(rows.values()),
+                                 "protocol": {"episodes": 1, "seed": 0, "steps": 5, "gamma": 0.995}})
+    assert "| 0 (1,000 model) |" in text

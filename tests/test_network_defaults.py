@@ -10,7 +10,7 @@ from omegaconf import OmegaConf, open_dict
 
 from recipe_utils import compose
 
-from anm_torchrl.training.config_checks import check_ppo_config, check_sac_config
+from anm_torchrl.training.config_checks import check_ppo_config, check_sac_config, check_shac_config
 from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
 
 
@@ -59,7 +59,8 @@ def test_a_network_without_entry_gets_default(network):
     assert info["entry"] == "default" and cfg.model.init_action == "do_nothing" and cfg.loss.reward_scale == "auto"
 
 
-@pytest.mark.parametrize("config,check", [("config", check_ppo_config), ("sac", check_sac_config)])
+@pytest.mark.parametrize("config,check", [("config", check_ppo_config), ("sac", check_sac_config),
+                                          ("shac", check_shac_config)])
 def test_every_entry_is_a_valid_config(config, check):
     """Each entry, applied, passes the recipe's own checks (a typo in the table would fail here, not in a run).
     ``default`` is applied for an unregistered name, then checked as ANM6-Easy (the check resolves the name)."""
@@ -70,6 +71,17 @@ def test_every_entry_is_a_valid_config(config, check):
         if entry == "default":
             cfg.network = "anm6_easy"
         check(cfg)
+
+
+def test_shac_backpropagates_one_step_on_the_storage_free_feeder_only():
+    # simbench_mv_semiurb has no storage: horizon 1, gamma 0 is its exact objective; networks with storage keep 32
+    cfg = compose("shac", ["network=simbench_mv_semiurb"])
+    apply_network_defaults(cfg)
+    assert (cfg.loss.horizon, cfg.loss.gamma, cfg.env.num_envs) == (1, 0.0, 256)
+    for network in ("case33bw", "cigre_mv", "my_feeder.npz"):
+        cfg = compose("shac", [f"network={network}"])
+        apply_network_defaults(cfg)
+        assert (cfg.loss.horizon, cfg.loss.gamma, cfg.model.init_action) == (32, 0.995, "do_nothing")
 
 
 def test_bad_tables_name_what_is_wrong():

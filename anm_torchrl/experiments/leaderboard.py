@@ -7,7 +7,8 @@ perfect-foresight AC optimum, AC-MPC, DC-MPC, do-nothing on ``protocol.episodes`
 (``summary.json`` + ``checkpoints/best.pt``, chosen on that run's validation states): its ``best.pt`` is evaluated
 here on the gap table's states with the same protocol, so every number of a row is measured on identical
 episodes. Runs of one (algorithm, training env) are one row: mean and spread over seeds, true-env training frames
-(a surrogate-trained run used 0), wall time (surrogate training included when it happened in the run).
+(a surrogate-trained run used 0; SHAC's model transitions are shown beside them), wall time (surrogate training
+included when it happened in the run).
 
 Columns: discounted return; loss ratio to the optimum (returns < 0: R / R_opt, 1 is optimal); share of the
 optimum's gain over do-nothing, 100 (R − R_dn) / (R_opt − R_dn).
@@ -58,10 +59,13 @@ def evaluate_run(run_dir: str | Path, protocol: dict) -> dict:
     actor = load_actor(ckpt, env=make_true_env(1, network=network))
     result = evaluate_policy(actor, states, max_steps=int(protocol["steps"]), gamma=float(protocol["gamma"]), env=env)
     surrogate = ckpt["config"]["surrogate"]["name"]
+    if (ckpt["config"].get("model") or {}).get("dynamics") == "pinn":  # SHAC through the PINN (surrogate unread)
+        surrogate = "pinn"
     return {"run_dir": str(run_dir), "algorithm": ckpt["algorithm"], "surrogate": surrogate,
             "seed": int(ckpt["config"]["seed"]), "discounted_return": float(result.discounted_returns.mean()),
             "per_episode": result.discounted_returns.tolist(), "best_frames": int(ckpt["frames"]),
             "frames": int(summary["frames"]), "true_env_frames": int(summary["frames"]) if surrogate == "none" else 0,
+            "model_frames": summary.get("model_frames"),  # SHAC: transitions of the model it differentiates
             "wall_s": float(summary["wall_time"]), "stopped_early": bool(summary["stopped_early"])}
 
 
@@ -73,8 +77,15 @@ def trained_rows(runs: list[dict]) -> list[dict]:
     rows = []
     for (algorithm, surrogate), rs in sorted(groups.items()):
         values = [r["discounted_return"] for r in rs]
-        where = "the true env" if surrogate == "none" else f"the {surrogate} surrogate"
-        rows.append({"policy": f"{algorithm.upper()} trained on {where}", "row": f"{algorithm}_{surrogate}",
+        model_frames = [r["model_frames"] for r in rs if r.get("model_frames") is not None]
+        if model_frames:  # trained through a differentiable model's gradients, not on its sampled rewards
+            where = "the exact simulator" if surrogate == "none" else f"the {surrogate} surrogate"
+            policy = f"{algorithm.upper()} through {where}'s gradients"
+        else:
+            where = "the true env" if surrogate == "none" else f"the {surrogate} surrogate"
+            policy = f"{algorithm.upper()} trained on {where}"
+        rows.append({"policy": policy, "row": f"{algorithm}_{surrogate}",
+                     "model_frames": statistics.fmean(model_frames) if model_frames else None,
                      "discounted_return": statistics.fmean(values),
                      "std_over_seeds": statistics.stdev(values) if len(values) > 1 else None,
                      "seeds": sorted(r["seed"] for r in rs), "per_seed": values,
@@ -134,6 +145,8 @@ def markdown(record: dict) -> str:
         spread = f" ± {r['std_over_seeds']:.{dec}f}" if r.get("std_over_seeds") is not None else ""
         ratio = f"{r['loss_ratio']:.3f}×" if r["loss_ratio"] is not None else "–"
         frames = f"{r['frames']:,.0f}" if r["frames"] is not None else "–"
+        if r.get("model_frames") is not None:
+            frames += f" ({r['model_frames']:,.0f} model)"
         wall = f"{r['wall_s']:,.0f} s" if r["wall_s"] is not None else "–"
         seeds = ", ".join(map(str, r["seeds"])) if r["seeds"] else "–"
         lines.append(f"| {r['policy']} | {r['discounted_return']:.{dec}f}{spread} | {ratio} | {r['gain_pct']:.2f} % | "

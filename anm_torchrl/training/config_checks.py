@@ -171,7 +171,7 @@ def check_ppo_config(cfg: Mapping) -> None:
     check_protocol_config(cfg)
     _check_model(cfg)
     fpb = _check_collector(cfg)
-    _in_range(cfg, "loss.gamma", 0, 1, True, False)
+    _in_range(cfg, "loss.gamma", 0, 1, False, False)  # 0: a contextual bandit (no storage)
     _in_range(cfg, "loss.gae_lambda", 0, 1, False, False)
     _in_range(cfg, "loss.clip_epsilon", 0, math.inf, True, True)
     _int(cfg, "loss.ppo_epochs")
@@ -255,7 +255,7 @@ def check_shac_config(cfg: Mapping) -> None:
     _check_model(cfg)
     _choice(cfg, "model.dynamics", ("exact", "pinn"))
     _int(cfg, "loss.horizon")
-    _in_range(cfg, "loss.gamma", 0, 1, True, False)
+    _in_range(cfg, "loss.gamma", 0, 1, False, False)  # 0 with horizon 1: a contextual bandit
     _in_range(cfg, "loss.td_lambda", 0, 1, False, False)
     _in_range(cfg, "loss.target_tau", 0, 1, True, False)
     _int(cfg, "loss.critic_epochs")
