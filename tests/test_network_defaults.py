@@ -84,6 +84,26 @@ def test_shac_backpropagates_one_step_on_the_storage_free_feeder_only():
         assert (cfg.loss.horizon, cfg.loss.gamma, cfg.model.init_action) == (32, 0.995, "do_nothing")
 
 
+def test_without_storage_an_action_changes_only_its_own_step():
+    # why gamma 0 is exact on simbench_mv_semiurb: the step after an action does not depend on it
+    import torch
+
+    from anm_torchrl.training.factory import make_true_env
+
+    sim = make_true_env(1, network="simbench_mv_semiurb").sim
+    assert sim.n_des == 0
+    lo, hi = sim.action_bounds()
+    state = torch.zeros(2, sim.state_dim, dtype=torch.float64)
+    state[:, -1] = 40.0  # the time index
+    first = torch.stack([lo, hi]).to(state) * 0.3 + torch.stack([hi, lo]).to(state) * 0.7
+    after, tr = sim.step(state, first)
+    assert not torch.allclose(tr.reward[0], tr.reward[1])  # the two actions differ in their own step
+    same = ((lo + hi) / 2).to(state).expand(2, -1)
+    nxt, tr2 = sim.step(after, same)
+    assert bool(tr.converged.all() and tr2.converged.all())  # not two terminal (all-zero) states
+    assert torch.equal(nxt[0], nxt[1]) and torch.equal(tr2.reward[0], tr2.reward[1])
+
+
 def test_bad_tables_name_what_is_wrong():
     cfg = compose("config", ["network=case33bw"])
     with open_dict(cfg):
