@@ -57,8 +57,8 @@ def test_evaluate_baseline_json_and_output_folder(evaluate, tmp_path, capsys):
 
 
 def test_optimal_plans_over_the_evaluated_steps(evaluate, tmp_path, monkeypatch, capsys):
-    # on a user's network file: a 12-step evaluation solves a 12-step plan (~1 s), not the default T = 3,000 (which
-    # ran over 15 min on this 12-bus network before evaluate.py passed `steps` as the plan's horizon)
+    # on a user's network file: a 6-step evaluation solves a 6-step plan (seconds), not the default T = 3,000 (on a
+    # 12-bus network that ran over 10 min without a result before evaluate.py passed `steps` as the plan's horizon)
     from anm_torchrl.networks import save_network
     from anm_torchrl.networks.random import generate
 
