@@ -15,6 +15,9 @@ Five guarantees:
 4. **Exclusive writers.** :func:`exclusive_lock` creates a lock file atomically with its content (written and
    synced in a temporary file, then hard-linked into place): two writers of one path (e.g. two ``make_dataset``
    runs) cannot both write; the second fails with the holder's pid and host. A lock is never seen empty.
+   Not ``filelock``: its locks wait or time out without saying who holds them, and its ``fcntl`` lock is advisory
+   per host (a cache on a shared filesystem written from two hosts); here the second writer fails at once with the
+   holder's pid and host, and the lock of a killed writer on this host is recognised and removed.
 5. **Full disks are errors, not crashes.** :func:`reserve_space` allocates the blocks of files that are then
    filled through memory maps (a full disk there is a SIGBUS, not an exception); every saver that meets
    ``ENOSPC`` raises :class:`DiskFullError` naming the path and the space needed and free, leaving nothing behind.

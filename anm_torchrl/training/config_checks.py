@@ -117,6 +117,7 @@ def check_protocol_config(cfg: Mapping) -> None:
     _int(cfg, "eval.max_steps")
     _int(cfg, "eval.test_max_steps", optional=True)
     _in_range(cfg, "eval.gamma", 0, 1, True, False)
+    _choice(cfg, "eval.track_test", (False, True))
     if _int(cfg, "eval.render_interval", low=0) and _get(cfg, "logger.backend") != "tensorboard":
         raise ValueError(f"eval.render_interval > 0 logs figures to TensorBoard: it needs logger.backend=tensorboard, "
                          f"got {_get(cfg, 'logger.backend')!r}")

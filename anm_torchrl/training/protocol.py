@@ -140,12 +140,18 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     n_evals = 0
     last_eval = None
     wall_before = float(resume.get("wall_time", 0.0)) if resume else 0.0
+    # learning curve (summary.json "curve"): validation and, with eval.track_test, test returns per validation point
+    curve: list[dict] = list(resume.get("curve", [])) if resume else []
+    track_s = float(resume.get("track_seconds", 0.0)) if resume else 0.0
+    # the budget counts training-env frames; an algorithm that trains on a model (SHAC) counts model transitions
+    # instead (budget_unit) and reports the true-env frames it used for training (env_frames) as "frames"
+    unit = getattr(algorithm_cls, "budget_unit", "frames")
 
     def checkpoint_payload() -> dict:
         return {"algorithm": algorithm_cls.name, "config": config, "actor": actor.state_dict(),
                 "obs_norm": algo.normalizer.stats(), "state": algo.state_dict(), "frames": frames, "update": update,
                 "logger_step": frames, "best_eval": best, "evals_since_best": evals_since_best,
-                "wall_time": wall_before + time.perf_counter() - t_start}
+                "wall_time": wall_before + time.perf_counter() - t_start, "curve": curve, "track_seconds": track_s}
 
     test_max_steps = int(cfg.eval.max_steps if cfg.eval.test_max_steps is None else cfg.eval.test_max_steps)
 
@@ -189,6 +195,18 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                     save_checkpoint(ckpt_dir / "best.pt", checkpoint_payload())
                 else:
                     evals_since_best += 1
+                point = {"frames": frames, "true_env_frames": frames if unit == "frames" else
+                         int(getattr(algo, "env_frames", 0)), "update": update,
+                         "wall_s": wall_before + time.perf_counter() - t_start - track_s,
+                         "validation": last_eval["discounted_return"]}
+                if cfg.eval.track_test:  # a measurement only: nothing below reads it
+                    t_track = time.perf_counter()
+                    tracked = run_eval(actor, test_states, test_env, steps=test_max_steps)
+                    track_s += time.perf_counter() - t_track
+                    point["test"] = tracked["discounted_return"]
+                    eval_metrics.update({f"track/{k}": tracked[k] for k in EVAL_KEYS})
+                    eval_metrics["time/track"] = tracked["seconds"]
+                curve.append(point)
                 if render_interval and n_evals % render_interval == 0:
                     log_episode_figure(logger, actor, val_states[:1], cfg, frames)
                 pbar.set_postfix(eval=f"{last_eval['discounted_return']:.4g}", best=f"{best['discounted_return']:.4g}")
@@ -236,9 +254,6 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
         interrupted = True
         log.warning("test evaluation interrupted (Ctrl-C): summary.json has no test figures")
 
-    # the budget counts training-env frames; an algorithm that trains on a model (SHAC) counts model transitions
-    # instead (budget_unit) and reports the true-env frames it used for training (env_frames) as "frames"
-    unit = getattr(algorithm_cls, "budget_unit", "frames")
     unit_keys = {} if unit == "frames" else {"budget_unit": unit, unit: frames}
     summary = {"algorithm": algorithm_cls.name, "best_eval": best, "final_eval": last_eval,
                "frames": frames if unit == "frames" else int(getattr(algo, "env_frames", 0)), **unit_keys,
@@ -247,7 +262,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                "run_dir": str(run_dir),
                "validation": {"seed": int(cfg.eval.seed), "num_episodes": int(cfg.eval.num_episodes),
                               "max_steps": int(cfg.eval.max_steps), "gamma": float(cfg.eval.gamma)},
-               "test": test, "reward_scale": reward_scale, "network_defaults": network_defaults,
+               "test": test, "curve": curve, "track_seconds": track_s, "reward_scale": reward_scale,
+               "network_defaults": network_defaults,
                "checkpoints": {name: str(ckpt_dir / f"{name}.pt") if (ckpt_dir / f"{name}.pt").is_file() else None
                                for name in ("best", "last")},
                "config": config}

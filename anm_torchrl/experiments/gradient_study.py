@@ -1,0 +1,259 @@
+"""When a differentiable model pays off: true-env frames, model frames and wall time until a policy reaches a share
+of the perfect-foresight optimum, for SHAC through the exact simulator, SHAC through the PINN, PPO and SAC, in one
+campaign (issue 26, item 3).
+
+Every cell is a recipe's documented command at its defaults with only ``seed`` set, plus the measurement keys:
+``eval.track_test=true`` evaluates the network's gap-table test states (the leaderboard's: ``protocol.episodes``
+states of seed ``protocol.seed``, T = ``protocol.steps``, γ = ``protocol.gamma``) at every validation point, as
+a measurement only (``best.pt`` is still chosen on the validation states; the tracking's time is kept out of the
+curve's wall time). A threshold is a discounted return on those states:
+
+* ANM6-Easy: a loss ratio to the optimum, R ≥ r · R_opt (R_opt < 0), r = 1.5 and 1.1;
+* a feeder: a share of the optimum's gain over do-nothing, R ≥ R_dn + s (R_opt − R_dn), s = 90 % and 97 %.
+
+A run's time to a threshold is its first validation point whose tracked test return reaches it; a run that never
+does is censored at its end (Kaplan–Meier median over seeds, :mod:`.time_to_return`). SHAC through the PINN adds the
+PINN's training (``recipes/train_pinn.py`` wall time, measured once in the campaign) to every one of its times.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from anm_torchrl.experiments.leaderboard import ANM6, gap_table_path
+from anm_torchrl.experiments.time_to_return import censored_summary
+
+RECIPES = Path(__file__).resolve().parents[2] / "recipes"
+
+#: method -> (recipe, its overrides, label); ``{pinn}`` is the campaign's PINN file
+METHODS: dict[str, tuple[str, tuple[str, ...], str]] = {
+    "shac_exact": ("shac.py", ("model=exact",), "SHAC through the exact simulator's gradients"),
+    "shac_pinn": ("shac.py", ("model=pinn", "surrogate=pinn", "surrogate.path={pinn}"),
+                  "SHAC through the PINN's gradients (PINN training counted)"),
+    "ppo": ("ppo.py", ("surrogate=none",), "PPO on the true env"),
+    "sac": ("sac.py", (), "SAC on the true env"),
+}
+
+
+def thresholds(network: str, gap_table: dict) -> list[dict[str, Any]]:
+    """The study's thresholds on ``network``'s gap-table states: ``[{"name", "kind", "level", "return"}]``."""
+    by = {r["row"]: r["discounted_return"] for r in gap_table["rows"]
+          if r.get("states") == int(gap_table["protocol"]["episodes"]) and r.get("source") == "gap"}
+    if "optimal" not in by or "do_nothing" not in by:
+        raise ValueError(f"the gap table of {network!r} has no optimum or do-nothing row on all its states")
+    opt, dn = by["optimal"], by["do_nothing"]
+    if network == ANM6:
+        return [{"name": f"{r}× the optimum's loss", "kind": "loss_ratio", "level": r, "return": r * opt}
+                for r in (1.5, 1.1)]
+    return [{"name": f"{s:.0%} of the optimum's gain", "kind": "gain_share", "level": s, "return": dn + s * (opt - dn)}
+            for s in (0.90, 0.97)]
+
+
+def cell_command(method: str, network: str, seed: int, run_dir: Path, protocol: dict, pinn: Path | None,
+                 overrides: tuple[str, ...] = ()) -> list[str]:
+    """The recipe command of one cell (its defaults, ``seed``, the tracking of the gap-table states, then
+    ``overrides``: keys every cell of a campaign shares, e.g. a smaller budget for a smoke test)."""
+    recipe, method_keys, _ = METHODS[method]
+    return [sys.executable, str(RECIPES / recipe), f"network={network}", f"seed={seed}",
+            *(k.format(pinn=pinn) for k in method_keys), "eval.track_test=true",
+            f"eval.test_episodes={protocol['episodes']}", f"eval.test_seed={protocol['seed']}",
+            f"eval.test_max_steps={protocol['steps']}", "logger.progress=false", *overrides, f"hydra.run.dir={run_dir}"]
+
+
+def _shown(command: list[str]) -> str:
+    """``command`` as the README writes it (``python recipes/<x>.py ...``, the run directory left out)."""
+    args = [a for a in command[2:] if not a.startswith("hydra.run.dir=")]
+    return " ".join(["python", f"recipes/{Path(command[1]).name}", *args])
+
+
+def run_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
+    """Run one cell unless ``run_dir`` holds a finished run of the same command; returns how it went."""
+    marker = run_dir / "study_cell.json"
+    if (run_dir / "summary.json").is_file() and marker.is_file() \
+            and json.loads(marker.read_text())["command"] == command:
+        return {"run_dir": str(run_dir), "reused": True, "returncode": 0}
+    t0, load = time.perf_counter(), os.getloadavg()[0]
+    proc = subprocess.run(command, capture_output=True, text=True)
+    if proc.returncode != 0:
+        return {"run_dir": str(run_dir), "reused": False, "returncode": proc.returncode,
+                "error": (proc.stderr or proc.stdout)[-2000:]}
+    marker.write_text(json.dumps({"command": command, "process_wall_s": time.perf_counter() - t0,
+                                  "load_avg_1min": [load, os.getloadavg()[0]]}) + "\n")
+    return {"run_dir": str(run_dir), "reused": False, "returncode": 0}
+
+
+def train_pinn(network: str, folder: Path) -> float:
+    """Train ``network``'s default PINN into ``folder`` (unless there) and return its training wall time (s),
+    measured once and kept in ``folder/study_pinn.json``."""
+    marker = folder / "study_pinn.json"
+    if marker.is_file() and (folder / "pinn.safetensors").is_file():
+        return float(json.loads(marker.read_text())["wall_s"])
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, str(RECIPES / "train_pinn.py"), f"network={network}", f"path={folder}",
+                    f"hydra.run.dir={folder / 'run'}"], check=True, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    marker.write_text(json.dumps({"network": network, "wall_s": wall}) + "\n")
+    return wall
+
+
+def read_run(run_dir: Path, protocol: dict) -> dict[str, Any]:
+    """A finished cell: its curve (validation and tracked test returns), budget and test figures."""
+    s = json.loads((run_dir / "summary.json").read_text())
+    test = s["test"]
+    got = {"episodes": test["num_episodes"], "seed": test["seed"], "steps": test["max_steps"], "gamma": test["gamma"]}
+    want = {k: protocol[k] for k in got}
+    if got != want or not s.get("curve") or any("test" not in p for p in s["curve"]):
+        raise ValueError(f"{run_dir}: not a study cell (tracked test states {got}, the gap table's {want})")
+    return {"run_dir": str(run_dir), "algorithm": s["algorithm"], "seed": int(s["config"]["seed"]),
+            "curve": s["curve"], "frames": s.get("model_frames", s["frames"]), "true_env_frames": s["frames"],
+            "budget_unit": s.get("budget_unit", "frames"), "wall_s": s["curve"][-1]["wall_s"],
+            "stopped_early": s["stopped_early"], "test_best": test["best"]["discounted_return"],
+            "command": json.loads((run_dir / "study_cell.json").read_text())["command"]}
+
+
+def time_to(curve: list[dict], level: float) -> dict[str, float | None]:
+    """The first point of ``curve`` whose tracked test return reaches ``level``: its clocks (None if never)."""
+    for p in curve:
+        if p["test"] >= level:
+            return {"wall_s": p["wall_s"], "frames": p["frames"], "true_env_frames": p["true_env_frames"]}
+    return {"wall_s": None, "frames": None, "true_env_frames": None}
+
+
+def summarize(runs: list[dict], levels: list[dict], offset_s: float) -> list[dict[str, Any]]:
+    """Per threshold, the censored summaries (wall time, frames of the budget's unit) over ``runs``."""
+    out = []
+    for th in levels:
+        cells = [{"time_to_threshold": time_to(r["curve"], th["return"]), "curve": r["curve"]} for r in runs]
+        out.append({"threshold": th["name"], "wall_s": censored_summary(cells, "wall_s", offset_s=offset_s),
+                    "frames": censored_summary(cells, "frames"),
+                    "per_seed": [c["time_to_threshold"] for c in cells]})
+    return out
+
+
+def campaign(network: str, methods: list[str], seeds: list[int], runs_dir: Path, jobs: int = 2,
+             overrides: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Run (or reuse) every cell, then the record: thresholds, per method its runs and time-to-threshold."""
+    unknown = sorted(set(methods) - set(METHODS))
+    if unknown:
+        raise ValueError(f"unknown methods {unknown}; choose from {sorted(METHODS)}")
+    gap = json.loads(gap_table_path(network).read_text())
+    protocol, levels = gap["protocol"], thresholds(network, gap)
+    runs_dir = Path(runs_dir).resolve()
+    pinn_dir = runs_dir / f"pinn_{network}"
+    pinn_s = train_pinn(network, pinn_dir) if "shac_pinn" in methods else 0.0
+    cells = [(m, s, runs_dir / f"{network}_{m}_s{s}") for m in methods for s in seeds]
+    commands = {d: cell_command(m, network, s, d, protocol, pinn_dir / "pinn.safetensors", tuple(overrides))
+                for m, s, d in cells}
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        outcomes = list(pool.map(lambda d: run_cell(commands[d], d), [d for _, _, d in cells]))
+    failed = [o for o in outcomes if o["returncode"] != 0]
+    rows = []
+    for m in methods:
+        runs = [read_run(d, protocol) for mm, _, d in cells if mm == m and (d / "summary.json").is_file()]
+        offset = pinn_s if m == "shac_pinn" else 0.0
+        first = next(commands[d] for mm, _, d in cells if mm == m)
+        rows.append({"method": m, "label": METHODS[m][2], "command": _shown(first), "pinn_training_s": offset or None,
+                     "runs": runs, "thresholds": summarize(runs, levels, offset)})
+    return {"what": __doc__.split("\n\n")[0].replace("\n", " "), "network": network, "protocol": protocol,
+            "optimum": next(r["discounted_return"] for r in gap["rows"] if r["row"] == "optimal"),
+            "thresholds": levels, "seeds": seeds, "jobs": jobs, "overrides": list(overrides),
+            "campaign_wall_s": time.perf_counter() - t0, "failed": failed, "methods": rows,
+            "machine": {"cpus": os.cpu_count(), "threads_per_run": 1, "concurrent_runs": jobs}}
+
+
+def _t(x: float | None, unit: str = "s") -> str:
+    if x is None:
+        return "–"
+    return f"{x:,.0f} s" if unit == "s" else f"{x / 1e6:.2f}M" if x >= 1e5 else f"{x:,.0f}"
+
+
+def markdown(record: dict) -> str:
+    """The study's table of ``record`` (one network)."""
+    p = record["protocol"]
+    lines = [f"{record['network']}: {p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, "
+             f"γ = {p['gamma']}; optimum {record['optimum']:.4g}; {len(record['seeds'])} seeds, "
+             f"{record['jobs']} runs at a time on {record['machine']['cpus']} cores. Median (Kaplan–Meier) over seeds; `–`: fewer than half "
+             "reached it.",
+             "", "| method | threshold | reached | median wall time | median frames (unit) | best.pt test return |",
+             "|---|---|---:|---:|---:|---:|"]
+    for row in record["methods"]:
+        unit = "model" if any(r["budget_unit"] != "frames" for r in row["runs"]) else "true-env"
+        best = [r["test_best"] for r in row["runs"]]
+        best_s = f"{sum(best) / len(best):.4g}" if best else "–"
+        for th in row["thresholds"]:
+            w, f = th["wall_s"], th["frames"]
+            lines.append(f"| {row['label']} | {th['threshold']} | {w['reached']}/{w['runs']} | {_t(w['median'])} | "
+                         f"{_t(f['median'], 'f')} ({unit}) | {best_s} |")
+    return "\n".join(lines) + "\n"
+
+
+def verdict(records: list[dict]) -> str:
+    """The generated verdict over the networks' records: where SHAC reached each threshold with fewer transitions
+    and less wall time than PPO, and where not."""
+    out = []
+    for rec in records:
+        by = {row["method"]: row for row in rec["methods"]}
+        if "ppo" not in by:
+            continue
+        for i, th in enumerate(rec["thresholds"]):
+            ppo = by["ppo"]["thresholds"][i]
+            for m in ("shac_exact", "shac_pinn"):
+                if m not in by:
+                    continue
+                sh = by[m]["thresholds"][i]
+                head = f"{rec['network']}, {th['name']}: {by[m]['label']}"
+                if sh["frames"]["median"] is None:
+                    out.append(f"{head}: not reached by half its runs ({sh['frames']['reached']}/"
+                               f"{sh['frames']['runs']}); PPO {ppo['frames']['reached']}/{ppo['frames']['runs']}.")
+                elif ppo["frames"]["median"] is None:
+                    out.append(f"{head}: reached ({sh['frames']['reached']}/{sh['frames']['runs']}, median "
+                               f"{_t(sh['wall_s']['median'])}, {_t(sh['frames']['median'], 'f')} model frames, 0 "
+                               f"true-env frames); PPO did not within its budget ({ppo['frames']['reached']}/"
+                               f"{ppo['frames']['runs']}).")
+                else:
+                    ratio = ppo["frames"]["median"] / sh["frames"]["median"]
+                    speed = ppo["wall_s"]["median"] / sh["wall_s"]["median"]
+                    out.append(f"{head}: median {_t(sh['frames']['median'], 'f')} model frames and "
+                               f"{_t(sh['wall_s']['median'])} against PPO's {_t(ppo['frames']['median'], 'f')} "
+                               f"true-env frames and {_t(ppo['wall_s']['median'])}: {ratio:.2g}× fewer transitions, "
+                               f"{speed:.2g}× the wall-clock speed.")
+    return "\n".join(f"- {x}" for x in out) + "\n"
+
+
+MARKERS = ("<!-- gradients:begin (generated by anm_torchrl.experiments.gradient_study from "
+           "results/gradient_study/*.json) -->", "<!-- gradients:end -->")
+
+
+def render(records: list[dict]) -> str:
+    """The docs block: the verdict, then each network's table."""
+    parts = ["## When does a differentiable model pay off? (issue 26, item 3)", "",
+             "True-env frames, model frames and wall time to reach a share of the optimum on the leaderboard's test "
+             "states, one campaign per network (`python -m anm_torchrl.cli.gradient_study --network <n>`; "
+             "`anm_torchrl/experiments/gradient_study.py` says how a time is measured).", "", verdict(records)]
+    for rec in records:
+        parts += [markdown(rec), f"_From `results/gradient_study/{rec['network']}.json`._", ""]
+    return "\n".join(parts)
+
+
+def update_page(page: str | Path, records: list[dict]) -> None:
+    """Replace the gradients block of ``page`` with :func:`render` of ``records``.
+
+    Raises:
+        ValueError: ``page`` has no such block (nothing is written).
+    """
+    from anm_torchrl.artifacts import atomic_write
+
+    pattern = re.compile(f"({re.escape(MARKERS[0])}\n)(.*?)({re.escape(MARKERS[1])})", re.S)
+    text = Path(page).read_text()
+    if not pattern.search(text):
+        raise ValueError(f"no {MARKERS[0]} ... {MARKERS[1]} block in {page}")
+    atomic_write(Path(page), pattern.sub(lambda m: m.group(1) + render(records) + m.group(3), text).encode())

@@ -1,0 +1,132 @@
+"""The time-to-threshold study (anm_torchrl.experiments.gradient_study) and the learning curve it reads: the
+protocol's tracked test returns (eval.track_test), thresholds from the gap tables, censored times, the generated
+verdict and the docs block that must equal its rendering from the committed records."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from anm_torchrl.experiments import gradient_study as gs
+from anm_torchrl.experiments.leaderboard import gap_table_path
+from tests.test_recipes_ppo import ROOT, run, scalars
+from tests.test_recipes_shac import SHAC, TINY_SHAC
+
+PROTOCOL = {"episodes": 2, "seed": 0, "steps": 5, "gamma": 0.995}
+
+
+@pytest.fixture(scope="module")
+def tracked_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("tracked") / "run"
+    run(SHAC, "model=exact", *TINY_SHAC, "eval.track_test=true", "eval.test_max_steps=5", f"hydra.run.dir={run_dir}",
+        cwd=run_dir.parent)
+    (run_dir / "study_cell.json").write_text(json.dumps({"command": ["python", "recipes/shac.py"]}))
+    return run_dir
+
+
+def test_a_tracked_run_records_its_curve_on_the_test_states(tracked_run):
+    summary = json.loads((tracked_run / "summary.json").read_text())
+    curve = summary["curve"]
+    assert [p["frames"] for p in curve] == [32, 64], "one point per validation (eval.interval=1, 2 iterations)"
+    assert all(p["true_env_frames"] == 0 for p in curve), "SHAC trains on its model: 0 true-env frames"
+    assert all(math.isfinite(p["test"]) and math.isfinite(p["validation"]) for p in curve)
+    assert curve[0]["wall_s"] < curve[1]["wall_s"] and summary["track_seconds"] > 0
+    assert "track/discounted_return" in scalars(tracked_run)
+    run_ = gs.read_run(tracked_run, PROTOCOL)
+    assert run_["frames"] == 64 and run_["true_env_frames"] == 0 and run_["budget_unit"] == "model_frames"
+    with pytest.raises(ValueError, match="not a study cell"):
+        gs.read_run(tracked_run, {**PROTOCOL, "steps": 3000})
+
+
+def test_tracking_is_checked_like_every_key():
+    from hydra import compose, initialize_config_dir
+
+    from anm_torchrl.training.algorithms import check_algorithm_config
+
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
+        cfg = compose(config_name="shac", overrides=[*TINY_SHAC, "eval.track_test=sometimes"])
+    with pytest.raises(ValueError, match="eval.track_test must be one of False, True; got 'sometimes'"):
+        check_algorithm_config(cfg)
+
+
+def test_thresholds_come_from_the_gap_tables():
+    anm6 = json.loads(gap_table_path("anm6_easy").read_text())
+    opt = next(r["discounted_return"] for r in anm6["rows"] if r["row"] == "optimal")
+    assert [t["return"] for t in gs.thresholds("anm6_easy", anm6)] == pytest.approx([1.5 * opt, 1.1 * opt])
+    feeder = json.loads(gap_table_path("case33bw").read_text())
+    by = {r["row"]: r["discounted_return"] for r in feeder["rows"] if r.get("source") == "gap"}
+    t90, t97 = (t["return"] for t in gs.thresholds("case33bw", feeder))
+    assert t90 == pytest.approx(by["do_nothing"] + 0.9 * (by["optimal"] - by["do_nothing"]))
+    assert by["do_nothing"] < t90 < t97 < by["optimal"]
+
+
+def test_a_cell_is_the_recipes_default_command_with_its_seed_and_the_tracking(tmp_path):
+    cmd = gs.cell_command("shac_pinn", "case33bw", 2, tmp_path / "r", PROTOCOL, tmp_path / "p.safetensors")
+    assert cmd[1].endswith("recipes/shac.py") and "seed=2" in cmd and "network=case33bw" in cmd
+    assert {"model=pinn", "surrogate=pinn", f"surrogate.path={tmp_path / 'p.safetensors'}", "eval.track_test=true",
+            "eval.test_episodes=2", "eval.test_seed=0", "eval.test_max_steps=5"} <= set(cmd)
+    assert gs._shown(cmd).startswith("python recipes/shac.py network=case33bw seed=2 model=pinn")
+
+
+def _curve(tests: list[float], step: int = 100) -> list[dict]:
+    return [{"frames": step * (i + 1), "true_env_frames": 0, "wall_s": 10.0 * (i + 1), "validation": t, "test": t}
+            for i, t in enumerate(tests)]
+
+
+def test_times_to_a_threshold_count_runs_that_never_reach_it_as_censored():
+    levels = [{"name": "a", "return": -2.0}, {"name": "b", "return": -1.0}]
+    runs = [{"curve": _curve([-5, -3, -1.5])}, {"curve": _curve([-4, -1.8, -0.9, -0.8])}]
+    a, b = gs.summarize(runs, levels, offset_s=100.0)
+    assert a["per_seed"][0]["frames"] == 300 and a["per_seed"][1]["frames"] == 200
+    assert a["wall_s"]["median"] == 120.0 and a["wall_s"]["reached"] == 2, "KM median of 120 s and 130 s (+100 s)"
+    # b: one run reaches it at 30 s (+100), the other is censored at its end (30 s + 100): the median is the event
+    assert b["frames"]["reached"] == 1 and b["frames"]["censored_at"] == [300] and b["frames"]["median"] == 300
+
+
+def _record(network: str, shac_frames: list[float | None], ppo_frames: list[float | None]) -> dict:
+    def row(method, frames):
+        th = {"wall_s": {"median": None if frames[0] is None else frames[0] / 10, "reached": 3, "runs": 3},
+              "frames": {"median": frames[0], "reached": 3 if frames[0] else 1, "runs": 3}}
+        return {"method": method, "label": gs.METHODS[method][2], "runs": [],
+                "thresholds": [{**th, "threshold": "t1"}]}
+    return {"network": network, "thresholds": [{"name": "1.5× the optimum's loss"}],
+            "methods": [row("shac_exact", shac_frames), row("ppo", ppo_frames)]}
+
+
+def test_the_verdict_says_how_many_times_fewer_transitions_or_that_it_was_not_reached():
+    text = gs.verdict([_record("anm6_easy", [1e5], [1e6])])
+    assert "10× fewer transitions" in text and "anm6_easy, 1.5× the optimum's loss" in text
+    assert "not reached by half its runs (1/3)" in gs.verdict([_record("anm6_easy", [None], [1e6])])
+    assert "PPO did not within its budget" in gs.verdict([_record("anm6_easy", [1e5], [None])])
+
+
+def test_the_docs_block_is_refused_on_a_page_without_it_and_rewritten_in_place(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("# results\n")
+    with pytest.raises(ValueError, match="no <!-- gradients:begin"):
+        gs.update_page(page, [])
+    page.write_text(f"before\n{gs.MARKERS[0]}\nstale\n{gs.MARKERS[1]}\nafter\n")
+    gs.update_page(page, [])
+    text = page.read_text()
+    assert "stale" not in text and text.startswith("before\n") and text.endswith("after\n")
+    assert "When does a differentiable model pay off?" in text
+
+
+def test_the_committed_docs_block_is_rendered_from_the_committed_records():
+    records = [json.loads(p.read_text()) for p in sorted((ROOT / "results" / "gradient_study").glob("*.json"))]
+    text = (ROOT / "docs" / "RESULTS.md").read_text()
+    start, end = text.index(gs.MARKERS[0]) + len(gs.MARKERS[0]) + 1, text.index(gs.MARKERS[1])
+    if not records:
+        pytest.skip("no study record committed yet")
+    assert text[start:end] == gs.render(records)
+
+
+def test_the_cli_refuses_a_bad_job_count(capsys):
+    from anm_torchrl.cli import gradient_study as cli
+
+    with pytest.raises(SystemExit):
+        cli.main(["--jobs", "0"])
+    assert "--jobs must be >= 1, got 0" in capsys.readouterr().err
