@@ -181,8 +181,8 @@ def markdown(record: dict) -> str:
     p = record["protocol"]
     lines = [f"{record['network']}: {p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, "
              f"γ = {p['gamma']}; optimum {record['optimum']:.4g}; {len(record['seeds'])} seeds, "
-             f"{record['jobs']} runs at a time on {record['machine']['cpus']} cores. Median (Kaplan–Meier) over seeds; `–`: fewer than half "
-             "reached it.",
+             f"{record['jobs']} runs at a time on {record['machine']['cpus']} cores. Median (Kaplan–Meier) over "
+             "seeds; `–`: fewer than half reached it.",
              "", "| method | threshold | reached | median wall time | median frames (unit) | best.pt test return |",
              "|---|---|---:|---:|---:|---:|"]
     for row in record["methods"]:
