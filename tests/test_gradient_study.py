@@ -130,3 +130,28 @@ def test_the_cli_refuses_a_bad_job_count(capsys):
     with pytest.raises(SystemExit):
         cli.main(["--jobs", "0"])
     assert "--jobs must be >= 1, got 0" in capsys.readouterr().err
+
+
+def test_a_campaign_reuses_finished_cells_and_renders_its_record(tracked_run, tmp_path, monkeypatch):
+    import shutil
+
+    gap = {"protocol": PROTOCOL, "rows": [{"row": "optimal", "discounted_return": -1.0, "states": 2, "source": "gap"},
+                                          {"row": "do_nothing", "discounted_return": -9.0, "states": 2,
+                                           "source": "gap"}]}
+    (tmp_path / "gap.json").write_text(json.dumps(gap))
+    monkeypatch.setattr(gs, "gap_table_path", lambda network: tmp_path / "gap.json")
+    runs = (tmp_path / "runs").resolve()
+    cell = runs / "anm6_easy_shac_exact_s0"
+    shutil.copytree(tracked_run, cell)
+    command = gs.cell_command("shac_exact", "anm6_easy", 0, cell, PROTOCOL, runs / "pinn_anm6_easy" / "pinn.safetensors")
+    (cell / "study_cell.json").write_text(json.dumps({"command": command, "process_wall_s": 1.0,
+                                                      "load_avg_1min": [0.5, 0.7]}))
+    monkeypatch.setattr(gs.subprocess, "run", lambda *a, **k: pytest.fail("a finished cell was run again"))
+    record = gs.campaign("anm6_easy", ["shac_exact"], [0], runs, jobs=1)
+    assert record["failed"] == [] and record["optimum"] == -1.0
+    (row,) = record["methods"]
+    assert row["runs"][0]["load_avg_1min"] == [0.5, 0.7] and len(row["thresholds"]) == 2
+    table = gs.markdown(record)
+    assert "| SHAC through the exact simulator's gradients | 1.5× the optimum's loss |" in table
+    assert "(model) |" in table and "load average at the cells' starts and ends: 0.5–0.7" in table
+    assert gs.render([record]).count("| SHAC through") == 2

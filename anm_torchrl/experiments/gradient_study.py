@@ -107,6 +107,7 @@ def train_pinn(network: str, folder: Path) -> float:
 def read_run(run_dir: Path, protocol: dict) -> dict[str, Any]:
     """A finished cell: its curve (validation and tracked test returns), budget and test figures."""
     s = json.loads((run_dir / "summary.json").read_text())
+    cell = json.loads((run_dir / "study_cell.json").read_text())
     test = s["test"]
     got = {"episodes": test["num_episodes"], "seed": test["seed"], "steps": test["max_steps"], "gamma": test["gamma"]}
     want = {k: protocol[k] for k in got}
@@ -116,7 +117,7 @@ def read_run(run_dir: Path, protocol: dict) -> dict[str, Any]:
             "curve": s["curve"], "frames": s.get("model_frames", s["frames"]), "true_env_frames": s["frames"],
             "budget_unit": s.get("budget_unit", "frames"), "wall_s": s["curve"][-1]["wall_s"],
             "stopped_early": s["stopped_early"], "test_best": test["best"]["discounted_return"],
-            "command": json.loads((run_dir / "study_cell.json").read_text())["command"]}
+            **{k: cell[k] for k in ("command", "process_wall_s", "load_avg_1min") if k in cell}}
 
 
 def time_to(curve: list[dict], level: float) -> dict[str, float | None]:
@@ -193,6 +194,15 @@ def markdown(record: dict) -> str:
             w, f = th["wall_s"], th["frames"]
             lines.append(f"| {row['label']} | {th['threshold']} | {w['reached']}/{w['runs']} | {_t(w['median'])} | "
                          f"{_t(f['median'], 'f')} ({unit}) | {best_s} |")
+    loads = [x for row in record["methods"] for r in row["runs"] for x in r.get("load_avg_1min", [])]
+    pinn = [row["pinn_training_s"] for row in record["methods"] if row.get("pinn_training_s")]
+    notes = []
+    if pinn:
+        notes.append(f"The PINN's training ({pinn[0]:,.0f} s, `recipes/train_pinn.py`, once) is added to every time "
+                     "of SHAC through the PINN.")
+    if loads:
+        notes.append(f"1-minute load average at the cells' starts and ends: {min(loads):.1f}–{max(loads):.1f}.")
+    lines += ["", " ".join(notes)] if notes else []
     return "\n".join(lines) + "\n"
 
 
