@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> dict:
     record["command"] = "python -m anm_torchrl.cli.gradient_study " + " ".join(argv if argv is not None
                                                                                else sys.argv[1:])
     for f in record["failed"]:
-        log.error("cell %s failed (status %s):\n%s", f["run_dir"], f["returncode"], f.get("error", ""))
+        log.error("cell %s failed:\n%s", f["run_dir"], f["error"])
     if record["failed"]:  # a record missing cells would report censored times for runs that never ran
         sys.exit(f"gradient_study: {len(record['failed'])} cell(s) failed (above); no record written. Finished "
                  f"cells are reused by the next run of the same command")

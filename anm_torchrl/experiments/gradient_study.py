@@ -2,7 +2,9 @@
 of the perfect-foresight optimum, for SHAC through the exact simulator, SHAC through the PINN, PPO and SAC, in one
 campaign (issue 26, item 3).
 
-Every cell is a recipe's documented command at its defaults with only ``seed`` set, plus the measurement keys:
+Every cell is a recipe's documented command at its defaults with only ``seed`` set, plus the measurement keys
+(run in-process through the recipe's own config and :func:`anm_torchrl.training.protocol.train`, one worker process
+per cell, ``--jobs`` at a time; the record names the equivalent command line):
 ``eval.track_test=true`` evaluates the network's gap-table test states (the leaderboard's: ``protocol.episodes``
 states of seed ``protocol.seed``, T = ``protocol.steps``, γ = ``protocol.gamma``) at every validation point, as
 a measurement only (``best.pt`` is still chosen on the validation states; the tracking's time is kept out of the
@@ -19,12 +21,13 @@ PINN's training (``recipes/train_pinn.py`` wall time, measured once in the campa
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import re
-import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+import traceback
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +35,8 @@ from anm_torchrl.experiments.leaderboard import ANM6, gap_table_path
 from anm_torchrl.experiments.time_to_return import censored_summary
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
+#: a recipe's config name under recipes/conf
+RECIPE_CONFIGS = {"ppo.py": "config", "sac.py": "sac", "shac.py": "shac"}
 
 #: method -> (recipe, its overrides, label); ``{pinn}`` is the campaign's PINN file
 METHODS: dict[str, tuple[str, tuple[str, ...], str]] = {
@@ -74,31 +79,64 @@ def _shown(command: list[str]) -> str:
     return " ".join(["python", f"recipes/{Path(command[1]).name}", *args])
 
 
-def run_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
-    """Run one cell unless ``run_dir`` holds a finished run of the same command; returns how it went."""
-    marker = run_dir / "study_cell.json"
-    if (run_dir / "summary.json").is_file() and marker.is_file() \
-            and json.loads(marker.read_text())["command"] == command:
-        return {"run_dir": str(run_dir), "reused": True, "returncode": 0}
+def _train_cell(command: list[str]) -> dict[str, Any]:
+    """Train one cell in this (worker) process: the recipe's config composed with the command's overrides, the
+    network's defaults applied to the keys it does not set (as the recipe does), then the shared protocol."""
+    from anm_torchrl.experiments.ppo_runs import compose_ppo_config
+    from anm_torchrl.training import protocol
+    from anm_torchrl.training.algorithms import check_algorithm_config
+    from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
+
+    overrides = [a for a in command[2:] if not a.startswith("hydra.run.dir=")]
+    run_dir = Path(next(a for a in command if a.startswith("hydra.run.dir=")).split("=", 1)[1])
     t0, load = time.perf_counter(), os.getloadavg()[0]
-    proc = subprocess.run(command, capture_output=True, text=True)
-    if proc.returncode != 0:
-        return {"run_dir": str(run_dir), "reused": False, "returncode": proc.returncode,
-                "error": (proc.stderr or proc.stdout)[-2000:]}
-    marker.write_text(json.dumps({"command": command, "process_wall_s": time.perf_counter() - t0,
-                                  "load_avg_1min": [load, os.getloadavg()[0]]}) + "\n")
-    return {"run_dir": str(run_dir), "reused": False, "returncode": 0}
+    cfg = compose_ppo_config(overrides, config_name=RECIPE_CONFIGS[Path(command[1]).name])
+    defaults = apply_network_defaults(cfg, explicit_keys(overrides))
+    check_algorithm_config(cfg)
+    protocol.train(cfg, run_dir, network_defaults=defaults)
+    return {"process_wall_s": time.perf_counter() - t0, "load_avg_1min": [load, os.getloadavg()[0]]}
+
+
+def _finished(command: list[str], run_dir: Path) -> bool:
+    marker = run_dir / "study_cell.json"
+    return (run_dir / "summary.json").is_file() and marker.is_file() and \
+        json.loads(marker.read_text())["command"] == command
+
+
+def run_cells(commands: dict[Path, list[str]], jobs: int) -> list[dict[str, Any]]:
+    """Train every cell of ``commands`` (run directory -> command) not already finished with the same command,
+    ``jobs`` at a time, each in a fresh process; returns how each went (``error`` holds a failed cell's traceback)."""
+    todo = {d: c for d, c in commands.items() if not _finished(c, d)}
+    outcomes = [{"run_dir": str(d), "reused": True, "error": None} for d in commands if d not in todo]
+    if not todo:
+        return outcomes
+    ctx = multiprocessing.get_context("spawn")  # no forked torch state; one cell per process
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, max_tasks_per_child=1) as pool:
+        futures = {d: pool.submit(_train_cell, c) for d, c in todo.items()}
+        for d, fut in futures.items():
+            try:
+                info = fut.result()
+            except Exception as err:  # noqa: BLE001 - a failed cell is reported, the others go on
+                outcomes.append({"run_dir": str(d), "reused": False,
+                                 "error": "".join(traceback.format_exception(err))[-2000:]})
+                continue
+            (d / "study_cell.json").write_text(json.dumps({"command": todo[d], **info}) + "\n")
+            outcomes.append({"run_dir": str(d), "reused": False, "error": None})
+    return outcomes
 
 
 def train_pinn(network: str, folder: Path) -> float:
-    """Train ``network``'s default PINN into ``folder`` (unless there) and return its training wall time (s),
-    measured once and kept in ``folder/study_pinn.json``."""
+    """Train ``network``'s default PINN preset into ``folder`` (unless there) and return its training wall time
+    (s), measured once and kept in ``folder/study_pinn.json``."""
     marker = folder / "study_pinn.json"
     if marker.is_file() and (folder / "pinn.safetensors").is_file():
         return float(json.loads(marker.read_text())["wall_s"])
+    from anm_torchrl.networks import simulator
+    from anm_torchrl.surrogates.pinn import cache, presets
+
+    sim = simulator(network)
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, str(RECIPES / "train_pinn.py"), f"network={network}", f"path={folder}",
-                    f"hydra.run.dir={folder / 'run'}"], check=True, capture_output=True, text=True)
+    cache.train_and_save(presets.preset_for("default", sim), sim, path=folder / "pinn.safetensors")
     wall = time.perf_counter() - t0
     marker.write_text(json.dumps({"network": network, "wall_s": wall}) + "\n")
     return wall
@@ -154,9 +192,7 @@ def campaign(network: str, methods: list[str], seeds: list[int], runs_dir: Path,
     commands = {d: cell_command(m, network, s, d, protocol, pinn_dir / "pinn.safetensors", tuple(overrides))
                 for m, s, d in cells}
     t0 = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=jobs) as pool:
-        outcomes = list(pool.map(lambda d: run_cell(commands[d], d), [d for _, _, d in cells]))
-    failed = [o for o in outcomes if o["returncode"] != 0]
+    failed = [o for o in run_cells(commands, jobs) if o["error"]]
     rows = []
     for m in methods:
         runs = [read_run(d, protocol) for mm, _, d in cells if mm == m and (d / "summary.json").is_file()]

@@ -22,8 +22,9 @@ REPO = Path(__file__).resolve().parents[2]
 CONF_DIR = REPO / "recipes" / "conf"
 
 
-def compose_ppo_config(overrides: list[str], conf_dir: str | Path = CONF_DIR):
-    """The PPO recipe's config (``config.yaml`` in ``conf_dir``) with Hydra ``overrides``, composed in-process.
+def compose_ppo_config(overrides: list[str], conf_dir: str | Path = CONF_DIR, config_name: str = "config"):
+    """The PPO recipe's config (``config.yaml`` in ``conf_dir``; another recipe's with ``config_name``, e.g.
+    ``"shac"``) with Hydra ``overrides``, composed in-process.
 
     Works inside another Hydra app (``reproduce.py``): its global Hydra state is set aside and restored.
     """
@@ -35,7 +36,7 @@ def compose_ppo_config(overrides: list[str], conf_dir: str | Path = CONF_DIR):
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(str(Path(conf_dir).resolve()), version_base="1.3"):
-            return compose(config_name="config", overrides=list(overrides))
+            return compose(config_name=config_name, overrides=list(overrides))
     finally:
         restore_gh_from_backup(backup)
 
