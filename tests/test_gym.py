@@ -5,6 +5,8 @@ from __future__ import annotations
 import warnings
 
 import gymnasium
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -307,6 +309,42 @@ def test_record_video_films_an_episode(tmp_path):
     env.close()
     videos = list((tmp_path / "videos").glob("*.mp4"))
     assert len(videos) == 1 and videos[0].stat().st_size > 0
+
+
+def test_record_video_collects_every_frame_without_moviepy(tmp_path, monkeypatch):
+    # RecordVideo needs moviepy only to encode: a stand-in ImageSequenceClip receives the frames it collected, so the
+    # part that is ours (one rgb_array frame per reset and step) runs in every test run
+    import sys
+    import types
+
+    from gymnasium.wrappers import RecordVideo
+
+    clips = []
+
+    class Clip:
+        def __init__(self, frames, fps):
+            clips.append((list(frames), fps))
+
+        def write_videofile(self, path, logger=None):
+            Path(path).write_bytes(b"stand-in")
+
+    fake = types.ModuleType("moviepy")
+    io = types.ModuleType("moviepy.video.io.ImageSequenceClip")
+    io.ImageSequenceClip = Clip
+    for name, mod in {"moviepy": fake, "moviepy.video": types.ModuleType("moviepy.video"),
+                      "moviepy.video.io": types.ModuleType("moviepy.video.io"),
+                      "moviepy.video.io.ImageSequenceClip": io}.items():
+        monkeypatch.setitem(sys.modules, name, mod)
+    env = RecordVideo(gymnasium.make(ID, render_mode="rgb_array", max_episode_steps=6), str(tmp_path / "videos"),
+                      episode_trigger=lambda k: True, disable_logger=True)
+    env.reset(seed=0)
+    for _ in range(6):
+        env.step(np.zeros(6))
+    env.close()
+    (frames, fps), = clips
+    assert len(frames) == 7, "the reset's frame and one per step"
+    assert all(f.shape == (480, 640, 3) and f.dtype == np.uint8 for f in frames) and fps > 0
+    assert (frames[0] != frames[-1]).any()
 
 
 def test_normalised_spaces_through_gymnasium_wrappers():
