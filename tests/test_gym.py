@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import gymnasium
-from pathlib import Path
 
 import numpy as np
 import pytest
