@@ -6,7 +6,6 @@ import warnings
 from pathlib import Path
 
 import gymnasium
-
 import numpy as np
 import pytest
 import torch
