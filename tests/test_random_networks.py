@@ -73,16 +73,18 @@ def test_battery_passes_on_one_network_per_size_class(tmp_path):
     assert (tmp_path / "battery.md").read_text().count("## ") == 3
 
 
-def test_battery_entry_on_a_small_network_with_few_steps(tmp_path):
-    """One battery entry end to end (5 buses, 100 steps per module): it builds, the Newton refinement meets its rule,
-    the metrics and the table are written, and a failed target comes with its reason."""
+@pytest.mark.parametrize("seed, n_bus, topology", [(6, 5, "radial"), (9, 7, "meshed")])
+def test_battery_entry_on_a_small_network_with_few_steps(tmp_path, seed, n_bus, topology):
+    """One battery entry end to end on each of two small networks (100 steps per module): it builds, the Newton
+    refinement meets its rule, the metrics and the table are written, and a failed target comes with its reason."""
     from anm_torchrl.surrogates.pinn import battery
 
     steps = {"max_steps": 100, "eval_every": 50}
-    e = battery.measure(6, tmp_path, n_random=300, overrides={m: steps for m in ("generator", "storage",
-                                                                                "power_balance")})
+    e = battery.measure(seed, tmp_path, n_random=300, overrides={m: steps for m in ("generator", "storage",
+                                                                                   "power_balance")})
     assert "error" not in e, e.get("traceback")
-    assert e["n_bus"] == 5 and e["refine"]["rule"] == "sobol_box_quantile_v2" and e["refine"]["met"]
+    assert e["n_bus"] == n_bus and e["topology"] == topology
+    assert e["refine"]["rule"] == "sobol_box_quantile_v2" and e["refine"]["met"]
     assert set(e["meets"]) == set(battery.TARGETS) and (e["passed"] or e["why"])
     assert 0.0 <= e["terminal_agreement"] <= 1.0 and e["vmag_mae_pu"] < 1e-2
     rec = {"created": "now", "command": "c", "machine": {"cpus": 1, "platform": "p", "torch": "t",
