@@ -112,6 +112,8 @@ def _record(network: str, shac_frames: list[float | None], ppo_frames: list[floa
 def test_the_verdict_says_how_many_times_fewer_transitions_or_that_it_was_not_reached():
     text = gs.verdict([_record("anm6_easy", [1e5], [1e6])])
     assert "10× fewer transitions" in text and "anm6_easy, 1.5× the optimum's loss" in text
+    slower = gs.verdict([_record("anm6_easy", [1e5], [1e4])])
+    assert "10× more transitions, PPO 10× faster in wall time" in slower
     assert "not reached by half its runs (1/3)" in gs.verdict([_record("anm6_easy", [None], [1e6])])
     assert "PPO did not within its budget" in gs.verdict([_record("anm6_easy", [1e5], [None])])
 
