@@ -166,7 +166,9 @@ def test_a_campaign_reuses_finished_cells_and_renders_its_record(campaign, monke
 
 def test_a_failed_cell_is_reported_with_its_error(tmp_path):
     run_dir = tmp_path / "bad"
+    (run_dir / "logs").mkdir(parents=True)
+    (run_dir / "logs" / "stale").write_text("an unfinished earlier attempt")
     command = gs.cell_command("shac_exact", "anm6_easy", 0, run_dir, PROTOCOL, None, ("loss.horizon=0",))
     (out,) = gs.run_cells({run_dir: command}, jobs=1)
     assert "loss.horizon must be an integer >= 1, got 0" in out["error"]
-    assert not (run_dir / "study_cell.json").exists()
+    assert not (run_dir / "study_cell.json").exists() and not (run_dir / "logs" / "stale").exists()

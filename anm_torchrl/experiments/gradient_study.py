@@ -24,6 +24,7 @@ import json
 import multiprocessing
 import os
 import re
+import shutil
 import sys
 import time
 import traceback
@@ -89,6 +90,7 @@ def _train_cell(command: list[str]) -> dict[str, Any]:
 
     overrides = [a for a in command[2:] if not a.startswith("hydra.run.dir=")]
     run_dir = Path(next(a for a in command if a.startswith("hydra.run.dir=")).split("=", 1)[1])
+    shutil.rmtree(run_dir, ignore_errors=True)  # an unfinished earlier attempt: its logs would mix with these
     t0, load = time.perf_counter(), os.getloadavg()[0]
     cfg = compose_ppo_config(overrides, config_name=RECIPE_CONFIGS[Path(command[1]).name])
     defaults = apply_network_defaults(cfg, explicit_keys(overrides))
