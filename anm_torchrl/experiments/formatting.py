@@ -1,5 +1,6 @@
 """Markdown pieces shared by the results page (:mod:`.report`), README's blocks (:mod:`.readme_blocks`) and the
-claims (:mod:`.claims`): table cells, tables, and recorded paths made portable (no machine's folders)."""
+claims (:mod:`.claims`): table cells, tables, recorded paths made portable (no machine's folders), and the generated
+blocks between two HTML-comment markers that the studies rewrite in README and the docs."""
 
 from __future__ import annotations
 
@@ -47,3 +48,27 @@ def portable(path: str) -> str:
 def portable_command(cmd: str) -> str:
     """A recorded command line or message with its absolute paths made portable (:func:`_portable`)."""
     return re.sub(r"(?<![\w.])(/(?:[\w.\-]+/)*[\w.\-]+)", lambda m: portable(m.group(1)), str(cmd))
+
+
+def marked_block(start: str, end: str) -> re.Pattern:
+    """A page's generated block between the markers ``start`` and ``end``: groups (``start`` and its newline, the
+    body, ``end``)."""
+    return re.compile(f"({re.escape(start)}\n)(.*?)({re.escape(end)})", re.S)
+
+
+def replace_marked_blocks(pages: list[str | Path], start: str, end: str, body: str) -> None:
+    """Replace the body of the ``start`` ... ``end`` block of every page with ``body``. Every page is checked for the
+    block before any is written, so no page is left half-updated; each is written atomically.
+
+    Raises:
+        ValueError: the pages without the block, named (nothing is written).
+    """
+    from anm_torchrl.artifacts import atomic_write
+
+    block = marked_block(start, end)
+    texts = {Path(p): Path(p).read_text() for p in pages}
+    missing = [str(p) for p, text in texts.items() if not block.search(text)]
+    if missing:
+        raise ValueError(f"{', '.join(missing)}: no {start} ... {end} block")
+    for path, text in texts.items():
+        atomic_write(path, block.sub(lambda m: m.group(1) + body + m.group(3), text).encode())

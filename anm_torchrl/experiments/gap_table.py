@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from anm_torchrl.experiments.formatting import marked_block, replace_marked_blocks
 from anm_torchrl.experiments.gap import ANM6, MPC_MARGIN, MPC_ROW, MPC_VARIANT, covered, table
 from anm_torchrl.experiments.records import current_path
 
@@ -33,8 +34,7 @@ def block_markers(network: str = ANM6) -> tuple[str, str]:
 
 def readme_block(network: str = ANM6) -> re.Pattern:
     """A page's gap block of ``network``: groups (opening marker and newline, body, closing marker)."""
-    start, end = block_markers(network)
-    return re.compile(f"({re.escape(start)}\n)(.*?)({re.escape(end)})", re.S)
+    return marked_block(*block_markers(network))
 
 
 README_BLOCK = readme_block(ANM6)
@@ -269,13 +269,5 @@ def render_block(table_rec: dict) -> str:
 
 def update_pages(pages: list[str | Path], table_rec: dict) -> None:
     """Rewrite the network's gap block (:func:`readme_block`) of every page; a page without it is an error."""
-    body = render_block(table_rec)
-    net = network_of(table_rec["protocol"])
-    block = readme_block(net)
-    texts = {page: page.read_text() for page in map(Path, pages)}
-    missing = [str(page) for page, text in texts.items() if not block.search(text)]
-    if missing:  # checked on every page before any is written: no page is left half-updated
-        raise ValueError(f"{', '.join(missing)}: no {' ... '.join(block_markers(net))} block for {net}")
-    for page, text in texts.items():
-        page.write_text(block.sub(lambda m: m.group(1) + body + m.group(3), text))
+    replace_marked_blocks(pages, *block_markers(network_of(table_rec["protocol"])), render_block(table_rec))
 

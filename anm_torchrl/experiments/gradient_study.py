@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
-import re
 import shutil
 import sys
 import time
@@ -32,6 +31,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from anm_torchrl.experiments.formatting import replace_marked_blocks
 from anm_torchrl.experiments.leaderboard import ANM6, gap_table_path
 from anm_torchrl.experiments.time_to_return import censored_summary
 
@@ -302,10 +302,4 @@ def update_page(page: str | Path, records: list[dict]) -> None:
     Raises:
         ValueError: ``page`` has no such block (nothing is written).
     """
-    from anm_torchrl.artifacts import atomic_write
-
-    pattern = re.compile(f"({re.escape(MARKERS[0])}\n)(.*?)({re.escape(MARKERS[1])})", re.S)
-    text = Path(page).read_text()
-    if not pattern.search(text):
-        raise ValueError(f"no {MARKERS[0]} ... {MARKERS[1]} block in {page}")
-    atomic_write(Path(page), pattern.sub(lambda m: m.group(1) + render(records) + m.group(3), text).encode())
+    replace_marked_blocks([page], *MARKERS, render(records))

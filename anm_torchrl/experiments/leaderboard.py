@@ -17,11 +17,11 @@ optimum's gain over do-nothing, 100 (R − R_dn) / (R_opt − R_dn).
 from __future__ import annotations
 
 import json
-import re
 import statistics
 from pathlib import Path
 
 from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+from anm_torchrl.experiments.formatting import replace_marked_blocks
 from anm_torchrl.experiments.records import RESULTS
 
 ANM6 = "anm6_easy"
@@ -166,14 +166,5 @@ def update_pages(pages: list[str | Path], record: dict) -> None:
     Raises:
         ValueError: a page without the block (nothing is written then).
     """
-    from anm_torchrl.artifacts import atomic_write
-
-    start, end = block_markers(record["network"])
-    pattern = re.compile(f"({re.escape(start)}\n)(.*?)({re.escape(end)})", re.S)
-    texts = {Path(p): Path(p).read_text() for p in pages}
-    missing = [str(p) for p, t in texts.items() if not pattern.search(t)]
-    if missing:
-        raise ValueError(f"no {start} ... {end} block in {', '.join(missing)}")
     body = markdown(record) + f"\n_From `results/leaderboard/{record['network']}.json`._\n"
-    for path, text in texts.items():
-        atomic_write(path, pattern.sub(lambda m: m.group(1) + body + m.group(3), text).encode())
+    replace_marked_blocks(pages, *block_markers(record["network"]), body)
