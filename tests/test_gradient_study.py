@@ -18,8 +18,9 @@ from tests.test_recipes_shac import SHAC, TINY_SHAC
 PROTOCOL = {"episodes": 2, "seed": 0, "steps": 5, "gamma": 0.995}
 
 
-GAP = {"protocol": PROTOCOL, "rows": [{"row": "optimal", "discounted_return": -1.0, "states": 2, "source": "gap"},
-                                      {"row": "do_nothing", "discounted_return": -9.0, "states": 2, "source": "gap"}]}
+GAP = {"protocol": PROTOCOL, "rows": [
+    {"policy": "optimum", "row": "optimal", "discounted_return": -1.0, "states": 2, "source": "gap"},
+    {"policy": "do-nothing", "row": "do_nothing", "discounted_return": -9.0, "states": 2, "source": "gap"}]}
 #: every cell key of the tiny SHAC run but the test states', which the campaign sets from the gap table
 TINY = tuple(k for k in TINY_SHAC if not k.startswith("eval.test_episodes="))
 

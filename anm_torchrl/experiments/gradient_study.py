@@ -32,12 +32,15 @@ from pathlib import Path
 from typing import Any
 
 from anm_torchrl.experiments.formatting import replace_marked_blocks
-from anm_torchrl.experiments.leaderboard import ANM6, gap_table_path
+from anm_torchrl.experiments.leaderboard import ANM6, gap_table_path, reference_returns
+from anm_torchrl.experiments.ppo_runs import time_to_reach
 from anm_torchrl.experiments.time_to_return import censored_summary
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 #: a recipe's config name under recipes/conf
 RECIPE_CONFIGS = {"ppo.py": "config", "sac.py": "sac", "shac.py": "shac"}
+#: the clocks of a time to a threshold (a curve point's keys)
+CLOCKS = ("wall_s", "frames", "true_env_frames")
 
 #: method -> (recipe, its overrides, label); ``{pinn}`` is the campaign's PINN file
 METHODS: dict[str, tuple[str, tuple[str, ...], str]] = {
@@ -51,11 +54,7 @@ METHODS: dict[str, tuple[str, tuple[str, ...], str]] = {
 
 def thresholds(network: str, gap_table: dict) -> list[dict[str, Any]]:
     """The study's thresholds on ``network``'s gap-table states: ``[{"name", "kind", "level", "return"}]``."""
-    by = {r["row"]: r["discounted_return"] for r in gap_table["rows"]
-          if r.get("states") == int(gap_table["protocol"]["episodes"]) and r.get("source") == "gap"}
-    if "optimal" not in by or "do_nothing" not in by:
-        raise ValueError(f"the gap table of {network!r} has no optimum or do-nothing row on all its states")
-    opt, dn = by["optimal"], by["do_nothing"]
+    opt, dn = reference_returns(network, gap_table)
     if network == ANM6:
         return [{"name": f"{r}× the optimum's loss", "kind": "loss_ratio", "level": r, "return": r * opt}
                 for r in (1.5, 1.1)]
@@ -74,28 +73,29 @@ def cell_command(method: str, network: str, seed: int, run_dir: Path, protocol: 
             f"eval.test_max_steps={protocol['steps']}", "logger.progress=false", *overrides, f"hydra.run.dir={run_dir}"]
 
 
+def _keys(command: list[str]) -> list[str]:
+    """The config keys of a cell's ``command`` (the run directory's left out)."""
+    return [a for a in command[2:] if not a.startswith("hydra.run.dir=")]
+
+
 def _shown(command: list[str]) -> str:
     """``command`` as the README writes it (``python recipes/<x>.py ...``, the run directory left out)."""
-    args = [a for a in command[2:] if not a.startswith("hydra.run.dir=")]
-    return " ".join(["python", f"recipes/{Path(command[1]).name}", *args])
+    return " ".join(["python", f"recipes/{Path(command[1]).name}", *_keys(command)])
 
 
-def _train_cell(command: list[str]) -> dict[str, Any]:
-    """Train one cell in this (worker) process: the recipe's config composed with the command's overrides, the
-    network's defaults applied to the keys it does not set (as the recipe does), then the shared protocol."""
+def _train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
+    """Train one cell into ``run_dir`` in this (worker) process: the recipe's config composed with the command's
+    keys, the network's defaults applied to the keys it does not set (as the recipe does), then the shared protocol
+    (which checks the config first)."""
     from anm_torchrl.experiments.ppo_runs import compose_ppo_config
     from anm_torchrl.training import protocol
-    from anm_torchrl.training.algorithms import check_algorithm_config
     from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
 
-    overrides = [a for a in command[2:] if not a.startswith("hydra.run.dir=")]
-    run_dir = Path(next(a for a in command if a.startswith("hydra.run.dir=")).split("=", 1)[1])
+    keys = _keys(command)
     shutil.rmtree(run_dir, ignore_errors=True)  # an unfinished earlier attempt: its logs would mix with these
     t0, load = time.perf_counter(), os.getloadavg()[0]
-    cfg = compose_ppo_config(overrides, config_name=RECIPE_CONFIGS[Path(command[1]).name])
-    defaults = apply_network_defaults(cfg, explicit_keys(overrides))
-    check_algorithm_config(cfg)
-    protocol.train(cfg, run_dir, network_defaults=defaults)
+    cfg = compose_ppo_config(keys, config_name=RECIPE_CONFIGS[Path(command[1]).name])
+    protocol.train(cfg, run_dir, network_defaults=apply_network_defaults(cfg, explicit_keys(keys)))
     return {"process_wall_s": time.perf_counter() - t0, "load_avg_1min": [load, os.getloadavg()[0]]}
 
 
@@ -114,7 +114,7 @@ def run_cells(commands: dict[Path, list[str]], jobs: int) -> list[dict[str, Any]
         return outcomes
     ctx = multiprocessing.get_context("spawn")  # no forked torch state; one cell per process
     with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, max_tasks_per_child=1) as pool:
-        futures = {d: pool.submit(_train_cell, c) for d, c in todo.items()}
+        futures = {d: pool.submit(_train_cell, c, d) for d, c in todo.items()}
         for d, fut in futures.items():
             try:
                 info = fut.result()
@@ -160,19 +160,12 @@ def read_run(run_dir: Path, protocol: dict) -> dict[str, Any]:
             **{k: cell[k] for k in ("command", "process_wall_s", "load_avg_1min") if k in cell}}
 
 
-def time_to(curve: list[dict], level: float) -> dict[str, float | None]:
-    """The first point of ``curve`` whose tracked test return reaches ``level``: its clocks (None if never)."""
-    for p in curve:
-        if p["test"] >= level:
-            return {"wall_s": p["wall_s"], "frames": p["frames"], "true_env_frames": p["true_env_frames"]}
-    return {"wall_s": None, "frames": None, "true_env_frames": None}
-
-
 def summarize(runs: list[dict], levels: list[dict], offset_s: float) -> list[dict[str, Any]]:
     """Per threshold, the censored summaries (wall time, frames of the budget's unit) over ``runs``."""
     out = []
     for th in levels:
-        cells = [{"time_to_threshold": time_to(r["curve"], th["return"]), "curve": r["curve"]} for r in runs]
+        cells = [{"time_to_threshold": time_to_reach(r["curve"], th["return"], key="test", clocks=CLOCKS),
+                  "curve": r["curve"]} for r in runs]
         out.append({"threshold": th["name"], "wall_s": censored_summary(cells, "wall_s", offset_s=offset_s),
                     "frames": censored_summary(cells, "frames"),
                     "per_seed": [c["time_to_threshold"] for c in cells]})
@@ -203,7 +196,7 @@ def campaign(network: str, methods: list[str], seeds: list[int], runs_dir: Path,
         rows.append({"method": m, "label": METHODS[m][2], "command": _shown(first), "pinn_training_s": offset or None,
                      "runs": runs, "thresholds": summarize(runs, levels, offset)})
     return {"what": __doc__.split("\n\n")[0].replace("\n", " "), "network": network, "protocol": protocol,
-            "optimum": next(r["discounted_return"] for r in gap["rows"] if r["row"] == "optimal"),
+            "optimum": reference_returns(network, gap)[0],
             "thresholds": levels, "seeds": seeds, "jobs": jobs, "overrides": list(overrides),
             "invocation_wall_s": time.perf_counter() - t0, "failed": failed, "methods": rows,
             "machine": {"cpus": os.cpu_count(), "threads_per_run": 1, "concurrent_runs": jobs}}

@@ -42,6 +42,18 @@ def baseline_rows(gap_table: dict) -> list[dict]:
             for r in gap_table["rows"] if r.get("states") == n and r.get("source") == "gap"]
 
 
+def reference_returns(network: str, gap_table: dict) -> tuple[float, float]:
+    """The optimum's and do-nothing's discounted returns in ``network``'s gap table (rows on all its states).
+
+    Raises:
+        ValueError: the table lacks either row on all its states.
+    """
+    by = {r["row"]: r["discounted_return"] for r in baseline_rows(gap_table)}
+    if "optimal" not in by or "do_nothing" not in by:
+        raise ValueError(f"the gap table of {network!r} has no optimum or do-nothing row on all its states")
+    return by["optimal"], by["do_nothing"]
+
+
 def evaluate_run(run_dir: str | Path, protocol: dict) -> dict:
     """``best.pt`` of a training run evaluated on the gap table's states; with the run's frames and wall time."""
     from anm_torchrl.training.checkpoint import load_actor, load_checkpoint
@@ -119,11 +131,8 @@ def build(network: str, run_dirs: list[str | Path], gap_table: dict | None = Non
     if keep is not None:
         replaced = {(r["algorithm"], r["surrogate"]) for r in runs}
         runs = kept_runs(json.loads(Path(keep).read_text()), protocol, replaced, str(keep)) + runs
+    opt, dn = reference_returns(network, gap_table)
     rows = baseline_rows(gap_table) + trained_rows(runs)
-    by = {r["row"]: r["discounted_return"] for r in rows}
-    if "optimal" not in by or "do_nothing" not in by:
-        raise ValueError(f"the gap table of {network!r} has no optimum or do-nothing row on all its states")
-    opt, dn = by["optimal"], by["do_nothing"]
     for r in rows:
         r["loss_ratio"] = r["discounted_return"] / opt if opt < 0 else None
         r["gain_pct"] = 100 * (r["discounted_return"] - dn) / (opt - dn)

@@ -143,9 +143,11 @@ def last_mean(curve: list[dict[str, float]], key: str = "return", k: int = 10) -
     return sum(vals) / len(vals) if vals else None
 
 
-def time_to_reach(curve: list[dict[str, float]], threshold: float, key: str = "return") -> dict[str, float | None]:
-    """First evaluation whose ``key`` ≥ ``threshold``: its frames, wall time and training time (None if never)."""
+def time_to_reach(curve: list[dict[str, float]], threshold: float, key: str = "return",
+                  clocks: tuple[str, ...] = ("frames", "wall_s", "train_s")) -> dict[str, float | None]:
+    """First evaluation whose ``key`` ≥ ``threshold``: its ``clocks`` (by default frames, wall time and training
+    time; None if never)."""
     for c in curve:
         if c.get(key) is not None and c[key] >= threshold:
-            return {"frames": c["frames"], "wall_s": c["wall_s"], "train_s": c["train_s"]}
-    return {"frames": None, "wall_s": None, "train_s": None}
+            return {k: c[k] for k in clocks}
+    return dict.fromkeys(clocks)

@@ -147,6 +147,9 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     # instead (budget_unit) and reports the true-env frames it used for training (env_frames) as "frames"
     unit = getattr(algorithm_cls, "budget_unit", "frames")
 
+    def true_env_frames() -> int:
+        return frames if unit == "frames" else int(getattr(algo, "env_frames", 0))
+
     def checkpoint_payload() -> dict:
         return {"algorithm": algorithm_cls.name, "config": config, "actor": actor.state_dict(),
                 "obs_norm": algo.normalizer.stats(), "state": algo.state_dict(), "frames": frames, "update": update,
@@ -195,8 +198,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                     save_checkpoint(ckpt_dir / "best.pt", checkpoint_payload())
                 else:
                     evals_since_best += 1
-                point = {"frames": frames, "true_env_frames": frames if unit == "frames" else
-                         int(getattr(algo, "env_frames", 0)), "update": update,
+                point = {"frames": frames, "true_env_frames": true_env_frames(), "update": update,
                          "wall_s": wall_before + time.perf_counter() - t_start - track_s,
                          "validation": last_eval["discounted_return"]}
                 if cfg.eval.track_test:  # a measurement only: nothing below reads it
@@ -256,7 +258,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
 
     unit_keys = {} if unit == "frames" else {"budget_unit": unit, unit: frames}
     summary = {"algorithm": algorithm_cls.name, "best_eval": best, "final_eval": last_eval,
-               "frames": frames if unit == "frames" else int(getattr(algo, "env_frames", 0)), **unit_keys,
+               "frames": true_env_frames(), **unit_keys,
                "updates": update, "stopped_early": stopped_early, "out_of_time": out_of_time,
                "interrupted": interrupted, "wall_time": wall_before + time.perf_counter() - t_start,
                "run_dir": str(run_dir),
