@@ -48,12 +48,10 @@ def main(argv: list[str] | None = None) -> dict:
                  f"cells are reused by the next run of the same command")
     text = gradient_study.markdown(record)
     if args.out:
-        from anm_torchrl.artifacts import atomic_write
+        from anm_torchrl.experiments.io import write_record
 
         out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write(out / f"{args.network}.json", (json.dumps(record, indent=1) + "\n").encode())
-        atomic_write(out / f"{args.network}.md", text.encode())
+        write_record(out, args.network, record, text)
         if args.docs:
             records = [json.loads(p.read_text()) for p in sorted(out.glob("*.json"))]
             gradient_study.update_page(args.docs, records)

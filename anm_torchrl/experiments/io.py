@@ -49,6 +49,18 @@ def write_json(path: str | Path, obj: Any) -> Path:
     return path
 
 
+def write_record(out_dir: str | Path, stem: str, record: dict, text: str) -> Path:
+    """Write a committed record ``<out_dir>/<stem>.json`` (``indent=1``, the format of ``results/``) and its table
+    ``<stem>.md``, each atomically; returns the JSON's path."""
+    from anm_torchrl.artifacts import atomic_write
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(out / f"{stem}.json", (json.dumps(record, indent=1) + "\n").encode())
+    atomic_write(out / f"{stem}.md", text.encode())
+    return out / f"{stem}.json"
+
+
 def read_json(path: str | Path) -> Any:
     """The JSON document at ``path``.
 
