@@ -81,6 +81,14 @@ class EvalResult:
         }
 
 
+def reset_to(env: EnvBase, states: torch.Tensor) -> TensorDict:
+    """``env`` (batch E) reset into ``states`` (E, state_dim) MW/MVAr/MWh (``reset(..., set_state=True)``, which the
+    package's true and surrogate envs honour); returns the reset TensorDict."""
+    states = torch.as_tensor(states)
+    td = TensorDict({"state": states.to(env.device, torch.float64)}, [len(states)], device=env.device)
+    return env.reset(td, set_state=True)
+
+
 def draw_initial_states(num_episodes: int, seed: int, sim: GridSimulator | None = None,
                         init: str = "gym_anm") -> torch.Tensor:
     """``num_episodes`` initial states (E, state_dim) float64 MW/MVAr/MWh from a reset distribution.
@@ -163,8 +171,7 @@ def evaluate_policy(policy: TensorDictModuleBase, initial_states: torch.Tensor, 
     sim = getattr(env, "sim", None)
     clipping = tuple(sim.costs_clipping) if sim is not None else (1.0, 100.0)
     t0 = time.perf_counter()
-    td = env.reset(TensorDict({"state": initial_states.to(env.device, torch.float64)}, [n], device=env.device),
-                   set_state=True)
+    td = reset_to(env, initial_states)
     with set_exploration_type(exploration_type):
         # auto-resets after a termination are harmless: everything after the first termination is masked
         roll = env.rollout(int(max_steps), policy, tensordict=td, auto_reset=False, break_when_any_done=False)

@@ -32,7 +32,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from anm_torchrl.baselines.nlp_model import (ACHorizonNLP, NLPResult, PowerFlowOffsets, exogenous, rollout,
                                              storage_direction, time_indices)
-from anm_torchrl.evaluation import EVAL_GAMMA, EVAL_MAX_STEPS
+from anm_torchrl.evaluation import EVAL_GAMMA, EVAL_MAX_STEPS, reset_to
 from anm_torchrl.grid.simulator import GridSimulator
 
 log = logging.getLogger(__name__)
@@ -228,8 +228,6 @@ def replay_in_env(setpoints: np.ndarray, state: np.ndarray, gamma: float = EVAL_
         sim: simulator of the default env, ``ANM6Env(1, sim=sim)`` (None: ANM6-Easy's).
         env: an env of batch size 1 to replay in instead (e.g. ``ANMEnv`` of another network); not with ``sim``.
     """
-    from tensordict import TensorDict
-
     from anm_torchrl.envs import ANM6Env
 
     if env is not None and sim is not None:
@@ -238,8 +236,7 @@ def replay_in_env(setpoints: np.ndarray, state: np.ndarray, gamma: float = EVAL_
         env = ANM6Env(1, seed=0, sim=sim)
     elif tuple(env.batch_size) != (1,):
         raise ValueError(f"replay_in_env: env batch size must be (1,), got {tuple(env.batch_size)}")
-    td = env.reset(TensorDict({"state": torch.as_tensor(state, dtype=torch.float64).reshape(1, -1)}, [1]),
-                   set_state=True)
+    td = reset_to(env, torch.as_tensor(state, dtype=torch.float64).reshape(1, -1))
     rewards, terminated = [], False
     for a in np.asarray(setpoints, dtype=np.float64):
         td.set("action", torch.as_tensor(a).reshape(1, -1))

@@ -104,8 +104,9 @@ def load_model_on(spec: dict[str, Any], sim) -> Any:
 
 def set_state_and_step(env, state: torch.Tensor, action: torch.Tensor) -> TensorDict:
     """Put every env of the batch in ``state`` (N, 18) and take ``action`` (N, 6); returns the ``next`` TD."""
-    n = state.shape[0]
-    td = env.reset(TensorDict({"state": state.to(torch.float64)}, [n]), set_state=True)
+    from anm_torchrl.evaluation import reset_to
+
+    td = reset_to(env, state)
     td.set("action", action.to(torch.float32))
     return env.step(td).get("next")
 

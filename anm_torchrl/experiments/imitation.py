@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
@@ -55,10 +54,9 @@ def label_states(network: str, states: torch.Tensor, horizon: int = EXPERT_HORIZ
 
 def observe(env, states: torch.Tensor) -> torch.Tensor:
     """``env``'s observations (n, obs_dim) float32 at ``states`` (n, state_dim); ``env`` has a batch of n."""
-    from tensordict import TensorDict
+    from anm_torchrl.evaluation import reset_to
 
-    td = TensorDict({"state": states.to(torch.float64)}, [len(states)], device=env.device)
-    return env.reset(td, set_state=True)["observation"].float()
+    return reset_to(env, states)["observation"].float()
 
 
 def box_coordinates(actions: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
@@ -88,11 +86,11 @@ def fit(actor, obs: torch.Tensor, targets: torch.Tensor, epochs: int, batch: int
 def visited_states(actor, env, starts: torch.Tensor, steps: int, count: int, seed: int) -> torch.Tensor:
     """``count`` states (count, state_dim) drawn uniformly (seeded) from ``actor``'s deterministic rollouts of
     ``steps`` steps from ``starts`` on ``env`` (batch ``len(starts)``); terminal steps excluded."""
-    from tensordict import TensorDict
     from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-    td = env.reset(TensorDict({"state": starts.to(torch.float64)}, [len(starts)], device=env.device),
-                   set_state=True)
+    from anm_torchrl.evaluation import reset_to
+
+    td = reset_to(env, starts)
     seen = []
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(steps):
@@ -122,7 +120,7 @@ def study(network: str = "anm6_easy", labels: int = 1024, rounds: int = 3, visit
         ValueError: ``seed + r`` meets the validation or test seed.
     """
     from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
-    from anm_torchrl.experiments.leaderboard import gap_table_path, reference_returns
+    from anm_torchrl.experiments.leaderboard import against_optimum, gap_table_path, reference_returns
     from anm_torchrl.training.factory import make_true_env
     from anm_torchrl.training.models import make_ppo_models
 
@@ -171,7 +169,7 @@ def study(network: str = "anm6_easy", labels: int = 1024, rounds: int = 3, visit
     test_states = draw_initial_states(n_test, test_seed, test_env.sim, test_env.init)
     test = evaluate_policy(actor, test_states, max_steps=steps, gamma=gamma, env=test_env).metrics()
     opt, dn = reference_returns(network, gap)
-    ret = test["discounted_return"]
+    loss_ratio, gain_pct = against_optimum(test["discounted_return"], opt, dn)
     return {"what": "behaviour cloning of the AC-MPC expert with DAgger rounds (anm_torchrl.experiments.imitation)",
             "network": network, "expert": f"AC-MPC, perfect forecast, N = {horizon}, cold solves",
             "settings": {"labels": labels, "rounds": rounds, "visit_starts": visit_starts, "visit_steps": visit_steps,
@@ -180,8 +178,7 @@ def study(network: str = "anm6_easy", labels: int = 1024, rounds: int = 3, visit
             "validation": {"episodes": eval_episodes, "seed": eval_seed, "steps": eval_steps or steps, "gamma": gamma},
             "rounds": history, "chosen_round": best[0]["round"],
             "test": {**test, "episodes": n_test, "seed": test_seed,
-                     "loss_ratio": ret / opt if opt < 0 else None,
-                     "gain_share": (ret - dn) / (opt - dn) if not math.isclose(opt, dn) else None},
+                     "loss_ratio": loss_ratio, "gain_share": gain_pct / 100},
             "optimum": opt, "do_nothing": dn, "wall_s": time.perf_counter() - t0}
 
 

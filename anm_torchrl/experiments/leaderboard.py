@@ -54,6 +54,13 @@ def reference_returns(network: str, gap_table: dict) -> tuple[float, float]:
     return by["optimal"], by["do_nothing"]
 
 
+def against_optimum(ret: float, opt: float, dn: float) -> tuple[float | None, float]:
+    """(loss ratio, gain %) of the discounted return ``ret`` against the optimum's ``opt`` and do-nothing's ``dn``:
+    ``ret / opt`` where both are losses (``opt`` < 0, else None), and the share of the optimum's gain over
+    do-nothing in %."""
+    return (ret / opt if opt < 0 else None), 100 * (ret - dn) / (opt - dn)
+
+
 def evaluate_run(run_dir: str | Path, protocol: dict) -> dict:
     """``best.pt`` of a training run evaluated on the gap table's states; with the run's frames and wall time."""
     from anm_torchrl.training.checkpoint import load_actor, load_checkpoint
@@ -134,8 +141,7 @@ def build(network: str, run_dirs: list[str | Path], gap_table: dict | None = Non
     opt, dn = reference_returns(network, gap_table)
     rows = baseline_rows(gap_table) + trained_rows(runs)
     for r in rows:
-        r["loss_ratio"] = r["discounted_return"] / opt if opt < 0 else None
-        r["gain_pct"] = 100 * (r["discounted_return"] - dn) / (opt - dn)
+        r["loss_ratio"], r["gain_pct"] = against_optimum(r["discounted_return"], opt, dn)
     rows.sort(key=lambda r: -r["discounted_return"])
     return {"network": network, "protocol": protocol, "rows": rows, "runs": runs,
             "gap_table": str(gap_table_path(network).relative_to(RESULTS.parent))}

@@ -25,6 +25,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict
 
+from anm_torchrl.evaluation import reset_to
 from anm_torchrl.experiments.common import RunContext, label, make_env_or_reason, set_state_and_step
 from anm_torchrl.experiments.io import result
 
@@ -65,7 +66,7 @@ def true_episodes(policy, initial_states: torch.Tensor, steps: int, sim=None,
 
     n = initial_states.shape[0]
     env = ANM6Env(n, seed=0, action_mode="clip", sim=sim)
-    td = env.reset(TensorDict({"state": initial_states.to(torch.float64)}, [n]), set_state=True)
+    td = reset_to(env, initial_states)
     states, actions, rewards, alive = [td["state"].clone()], [], [], []
     ok = torch.ones(n, dtype=torch.bool)
     for _ in range(steps):
@@ -109,7 +110,7 @@ def one_step_errors(env, ep: dict[str, torch.Tensor]) -> dict[str, Any]:
 def free_running_errors(env, ep: dict[str, torch.Tensor]) -> dict[str, Any]:
     """Open-loop MAE of ``env`` started from s_0 and stepped with the episodes' action sequence."""
     T, n = ep["actions"].shape[:2]
-    td = env.reset(TensorDict({"state": ep["states"][0]}, [n]), set_state=True)
+    td = reset_to(env, ep["states"][0])
     preds = []
     for t in range(T):
         td.set("action", ep["actions"][t].float())

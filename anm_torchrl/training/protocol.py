@@ -286,14 +286,14 @@ def log_episode_figure(logger, actor, state, cfg: DictConfig, step: int) -> None
     """Log the episode figure (:func:`anm_torchrl.render.episode_figure`) of ``actor`` from one validation state
     (1, D) on the true simulator, ``eval.max_steps`` steps, to TensorBoard as ``eval/episode`` at ``step`` frames."""
     import torch
-    from tensordict import TensorDict
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+    from anm_torchrl.evaluation import reset_to
     from anm_torchrl.render import episode_figure, episode_from_rollout, network_tables
     from anm_torchrl.training.factory import make_true_env
 
     env = make_true_env(1, state.device, seed=int(cfg.eval.seed), network=cfg.network)
-    td = env.reset(TensorDict({"state": state.to(torch.float64)}, [1], device=env.device), set_state=True)
+    td = reset_to(env, state)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         roll = env.rollout(int(cfg.eval.max_steps), actor, tensordict=td, auto_reset=False, break_when_any_done=True)
     fig = episode_figure(episode_from_rollout(roll, env.sim.net.base_mva), network_tables(env.sim.net),
