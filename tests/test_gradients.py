@@ -172,3 +172,24 @@ def test_pinn_chain_gradients_vs_exact():
         pytest.fail("the PINN chain calls every transition terminal: no gradient to compare")
     m = compare(g_exact[both], g_pinn[both])
     assert m["cosine_median"] >= 0.5, m
+
+
+def test_parting_components_and_inside_differences():
+    """Where the PINN's gradient parts from the exact one, the record compares one-sided differences from inside
+    the action box: on min(a_0, 1) over the box [0, 1]^2 the kink sits on the upper bound, where the difference
+    stepping down is the slope 1 and, at the lower bound, the difference stepping up is 1 too (a step down would
+    leave the box); a smooth stand-in that halves the slope at the kink is what ``parting`` flags."""
+    from anm_torchrl.experiments.pinn_gradients import PART_FLOOR, inside_differences, parting
+
+    g_exact = torch.tensor([[1.0, 0.5], [1.0, 0.0]], dtype=torch.float64)
+    g_pinn = torch.tensor([[0.5, 0.5 + 0.5 * PART_FLOOR], [1.0 + 2 * PART_FLOOR, 0.0]], dtype=torch.float64)
+    rows, cols = parting(g_exact, g_pinn)
+    assert list(zip(rows.tolist(), cols.tolist())) == [(0, 0), (1, 0)]  # (0, 1) is off by half the floor only
+
+    lo, hi = torch.zeros(2, dtype=torch.float64), torch.ones(2, dtype=torch.float64)
+    action = torch.tensor([[1.0, 0.3], [0.0, 0.3], [0.5, 0.3]], dtype=torch.float64)
+    state = torch.zeros(3, 1, dtype=torch.float64)
+    fns = {"kinked": lambda s, a: torch.minimum(a[:, 0], torch.ones_like(a[:, 0])) + 2.0 * a[:, 1]}
+    d = inside_differences(fns, state, action, torch.tensor([0, 1, 2, 2]), torch.tensor([0, 0, 0, 1]), lo, hi,
+                           h=0.01)["kinked"]
+    torch.testing.assert_close(d, torch.tensor([1.0, 1.0, 1.0, 2.0], dtype=torch.float64))

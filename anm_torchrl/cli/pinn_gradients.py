@@ -26,6 +26,12 @@ def main(argv: list[str] | None = None) -> dict:
             print(f"{e['network']:>20} {name:>16}: cosine median {m['cosine_median']:.3f} (q10 {m['cosine_q10']:.3f}), "
                   f"relative error median {m['rel_error_median']:.3f}, sign agreement {m['sign_agreement']:.3f}, "
                   f"{m['rows']} rows ({m['terminal_rows']} terminal left out)")
+            for c, part in m["parting"]["by_action"].items():
+                print(f"{'':>38}parting at action {c}: {part['components']} components "
+                      f"({part['on_box_bound']:.0%} on the box's bound), autograd exact "
+                      f"{part['autograd_exact_median']:.3g} / PINN {part['autograd_pinn_median']:.3g}, "
+                      f"{m['parting']['step']} inside the box exact {part['inside_exact_median']:.3g} / PINN "
+                      f"{part['inside_pinn_median']:.3g} (medians)")
     return rec
 
 

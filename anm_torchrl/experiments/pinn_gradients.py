@@ -8,7 +8,11 @@ the network's reset distribution (``make_true_env(n, seed=0).reset()``), actions
 ``uniform`` (uniform in the box). Rows terminal in either model carry no gradient and are left out. Per set: the
 cosine similarity of the two gradient vectors (median, 10 % quantile), their relative error ‖g_pinn − g‖/‖g‖
 (median, 90 % quantile), and the sign agreement of the components whose exact gradient is not negligible
-(|g| > 1 % of the row's largest).
+(|g| > 1 % of the row's largest). Where they part (a component off by more than 10 % of its row's largest exact
+|g|), the record says which actions, how many sit on the action box's bound, and both models' one-sided differences
+from ``PART_STEP`` inside the box: at a kink (a cap meeting a bound or the potential) the exact model's gradient is one
+branch's derivative and the PINN's smooth chain may give a value between the branches, while the two models agree
+one step away from it.
 
 Command (the record ``results/shac/pinn_gradients.{json,png}``; each network's cached default PINN is used, trained
 first with ``--train`` when missing)::
@@ -30,6 +34,8 @@ from anm_torchrl.grid import differentiable
 from anm_torchrl.provenance import machine_info, versions
 
 SIGN_FLOOR = 0.01  # a component counts in the sign agreement when |g| > this share of its row's largest |g|
+PART_FLOOR = 0.10  # a component "parts" when |g_pinn - g| > this share of its row's largest exact |g|
+PART_STEP = 0.01  # MW/MVAr: the one-sided difference's step into the box at a parting component
 
 
 def action_sets(sim, n: int, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -69,6 +75,55 @@ def compare(g_exact: torch.Tensor, g_pinn: torch.Tensor) -> dict[str, float]:
             "sign_agreement": float(signs.double().mean()) if signs.numel() else float("nan")}
 
 
+def parting(g_exact: torch.Tensor, g_pinn: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (row, column) indices of the components where the two gradients (N, A) part (``PART_FLOOR``)."""
+    scale = g_exact.abs().amax(1, keepdim=True).clamp_min(1e-12)
+    return ((g_pinn - g_exact).abs() > PART_FLOOR * scale).nonzero(as_tuple=True)
+
+
+def inside_differences(reward_fns: dict, state: torch.Tensor, action: torch.Tensor, rows: torch.Tensor,
+                       cols: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, h: float = PART_STEP
+                       ) -> dict[str, torch.Tensor]:
+    """Per model of ``reward_fns`` (name -> (state, action) -> reward (N,)), the one-sided difference quotient
+    (r(a) - r(a - s h e_c)) / (s h) of each component (rows[k], cols[k]), stepping down (s = 1) unless the action
+    sits within ``h`` of its lower bound (then up, s = -1): a derivative taken from inside the box."""
+    a0, k = action[rows], torch.arange(len(cols))
+    s = torch.where(a0[k, cols] - h >= lo[cols] - 1e-12, 1.0, -1.0).to(action.dtype)
+    a1 = a0.clone()
+    a1[k, cols] = torch.minimum(torch.maximum(a0[k, cols] - s * h, lo[cols]), hi[cols])
+    out = {}
+    with torch.no_grad():
+        for name, fn in reward_fns.items():
+            out[name] = (fn(state[rows], a0) - fn(state[rows], a1)) / (s * h)
+    return out
+
+
+def parting_summary(chain, sim, state: torch.Tensor, action: torch.Tensor, g_exact: torch.Tensor,
+                    g_pinn: torch.Tensor) -> dict[str, Any]:
+    """Where the gradients part, per action index: how many components, the share on the box's bound, and the
+    medians of both models' autograd gradients and one-sided differences from inside the box (module docstring)."""
+    rows, cols = parting(g_exact, g_pinn)
+    out: dict[str, Any] = {"components": int(len(rows)), "of": int(g_exact.numel()), "floor": PART_FLOOR,
+                           "step": PART_STEP, "by_action": {}}
+    if not len(rows):
+        return out
+    lo, hi = (b.to(action.dtype) for b in sim.action_bounds())
+    a = action[rows, cols]
+    on_bound = ((a - lo[cols]).abs() < 1e-9) | ((a - hi[cols]).abs() < 1e-9)
+    fns = {"exact": lambda s, x: differentiable.step(sim, s, x)[1].reward,
+           "pinn": lambda s, x: chain(TensorDict({"state": s, "action": x}, [s.shape[0]]))["reward"].reshape(-1)}
+    inside = inside_differences(fns, state, action, rows, cols, lo, hi)
+    for c in torch.unique(cols).tolist():
+        m = cols == c
+        out["by_action"][str(c)] = {
+            "components": int(m.sum()), "on_box_bound": float(on_bound[m].double().mean()),
+            "autograd_exact_median": float(g_exact[rows[m], c].median()),
+            "autograd_pinn_median": float(g_pinn[rows[m], c].median()),
+            "inside_exact_median": float(inside["exact"][m].median()),
+            "inside_pinn_median": float(inside["pinn"][m].median())}
+    return out
+
+
 def measure(network: str, rows: int, train: bool = False, seed: int = 0) -> tuple[dict[str, Any], dict]:
     """One network's entry and the gradients of its ``near_do_nothing`` set (for the figure)."""
     from anm_torchrl.surrogates.pinn.cache import default_path
@@ -86,7 +141,8 @@ def measure(network: str, rows: int, train: bool = False, seed: int = 0) -> tupl
     kept = {}
     for name, action in action_sets(sim, rows, seed).items():
         g_exact, g_pinn, ok = reward_gradients(chain, sim, state, action)
-        entry["sets"][name] = {**compare(g_exact[ok], g_pinn[ok]), "terminal_rows": int((~ok).sum())}
+        entry["sets"][name] = {**compare(g_exact[ok], g_pinn[ok]), "terminal_rows": int((~ok).sum()),
+                               "parting": parting_summary(chain, sim, state[ok], action[ok], g_exact[ok], g_pinn[ok])}
         if name == "near_do_nothing":
             kept = {"exact": g_exact[ok], "pinn": g_pinn[ok]}
     return entry, kept
