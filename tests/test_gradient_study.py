@@ -145,7 +145,7 @@ def test_the_cli_refuses_a_bad_job_count(capsys):
 
     with pytest.raises(SystemExit):
         cli.main(["--jobs", "0"])
-    assert "--jobs must be >= 1, got 0" in capsys.readouterr().err
+    assert "argument --jobs: must be an integer >= 1, got 0" in capsys.readouterr().err
 
 
 def test_a_campaign_reuses_finished_cells_and_renders_its_record(campaign, monkeypatch):

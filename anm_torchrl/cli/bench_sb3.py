@@ -12,6 +12,7 @@ import logging
 from pathlib import Path
 
 from anm_torchrl.benchmarks import sb3
+from anm_torchrl.cli.args import count
 
 log = logging.getLogger(__name__)
 
@@ -19,11 +20,11 @@ log = logging.getLogger(__name__)
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.bench_sb3",
                                      description=sb3.__doc__.splitlines()[0])
-    parser.add_argument("--num-envs", type=int, default=64)
-    parser.add_argument("--n-steps", type=int, default=16, help="PPO rollout length per env")
-    parser.add_argument("--rollouts", type=int, default=16, help="timed rollouts on our env")
-    parser.add_argument("--gym-rollouts", type=int, default=1, help="timed rollouts on gym-anm (slow)")
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--num-envs", type=count, default=64)
+    parser.add_argument("--n-steps", type=count, default=16, help="PPO rollout length per env")
+    parser.add_argument("--rollouts", type=count, default=16, help="timed rollouts on our env")
+    parser.add_argument("--gym-rollouts", type=count, default=1, help="timed rollouts on gym-anm (slow)")
+    parser.add_argument("--threads", type=count, default=1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="results/benchmarks/bench_sb3.json")
     args = parser.parse_args(argv)

@@ -13,6 +13,7 @@ import time
 import torch
 
 from anm_torchrl.benchmarks.surrogates import DATASETS, KINDS, markdown_table, measure
+from anm_torchrl.cli.args import count, positive_float
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -21,11 +22,11 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--batch-sizes", default="1,4096", help="comma-separated batch sizes")
     parser.add_argument("--surrogates", default=",".join(KINDS), help="comma-separated surrogate names")
     parser.add_argument("--datasets", default=",".join(DATASETS), help="comma-separated training datasets")
-    parser.add_argument("--min-time", type=float, default=2.0, help="seconds of steady state per measurement")
-    parser.add_argument("--min-steps", type=int, default=3, help="at least this many batched steps")
-    parser.add_argument("--rounds", type=int, default=3, help="interleaved rounds (median reported)")
+    parser.add_argument("--min-time", type=positive_float, default=2.0, help="seconds of steady state per measurement")
+    parser.add_argument("--min-steps", type=count, default=3, help="at least this many batched steps")
+    parser.add_argument("--rounds", type=count, default=3, help="interleaved rounds (median reported)")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
+    parser.add_argument("--threads", type=count, default=1, help="torch.set_num_threads")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     batches = [int(b) for b in args.batch_sizes.split(",") if b.strip()]

@@ -12,6 +12,7 @@ import argparse
 import logging
 
 from anm_torchrl.benchmarks import training
+from anm_torchrl.cli.args import count
 
 log = logging.getLogger(__name__)
 
@@ -20,9 +21,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.bench_training",
                                      description=training.__doc__.splitlines()[0])
     parser.add_argument("--network", default="anm6_easy")
-    parser.add_argument("--envs", type=int, nargs="+", default=[256, 1024, 4096])
+    parser.add_argument("--envs", type=count, nargs="+", default=[256, 1024, 4096])
     parser.add_argument("--algorithms", nargs="+", default=["ppo", "sac"])
-    parser.add_argument("--iterations", type=int, default=3, help="timed iterations per row (after one warm-up)")
+    parser.add_argument("--iterations", type=count, default=3, help="timed iterations per row (after one warm-up)")
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE",
                         help="Hydra overrides of every algorithm's config, e.g. loss.mini_batch_size=8192")
     parser.add_argument("--out", default=None, help="write <out>.json and <out>.md (default: print only)")

@@ -8,6 +8,7 @@ import logging
 
 import torch
 
+from anm_torchrl.cli.args import count
 from anm_torchrl.experiments.data_driven_battery import PINN_RECORD, run
 
 
@@ -16,8 +17,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description="data-driven surrogates built on first use on random networks")
     ap.add_argument("--seeds", type=int, nargs="+", required=True, help="battery seeds (-1: issue 23's network)")
     ap.add_argument("--kinds", nargs="+", default=["lr", "dt", "xgb", "dnn"])
-    ap.add_argument("--n-random", type=int, default=4000)
-    ap.add_argument("--n-jobs", type=int, default=2, help="threads of xgboost / forests")
+    ap.add_argument("--n-random", type=count, default=4000)
+    ap.add_argument("--n-jobs", type=count, default=2, help="threads of xgboost / forests")
     ap.add_argument("--pinn-record", default=str(PINN_RECORD))
     ap.add_argument("--out", required=True, help="path stem of the record (.json) and table (.md)")
     args = ap.parse_args(argv)

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from anm_torchrl.cli.args import count, index
 from anm_torchrl.evaluation import EVAL_GAMMA, EVAL_MAX_STEPS
 from anm_torchrl.experiments.gap import (ANM6, DEFAULT_ROWS, compare_formulations, evaluate_row, machine, markdown,
                                          merge_rows, stability, table, true_env, write_record)
@@ -33,14 +34,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.gap", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--network", default=ANM6, help="registered network (default anm6_easy)")
-    ap.add_argument("--episodes", type=int, default=4, help="number of test states (default 4)")
+    ap.add_argument("--episodes", type=count, default=4, help="number of test states (default 4)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the test states (default 0, the test seed)")
-    ap.add_argument("--steps", type=int, default=EVAL_MAX_STEPS, help=f"episode length T (default {EVAL_MAX_STEPS})")
+    ap.add_argument("--steps", type=count, default=EVAL_MAX_STEPS, help=f"episode length T (default {EVAL_MAX_STEPS})")
     ap.add_argument("--rows", default=",".join(DEFAULT_ROWS), help="comma-separated rows (default: all)")
     ap.add_argument("--only", default="", help="comma-separated state indices the rows run on (default: all)")
-    ap.add_argument("--stability", type=int, default=0,
+    ap.add_argument("--stability", type=index, default=0,
                     help="re-solve the optimum of this many first states from every warm start (default 0)")
-    ap.add_argument("--formulations", type=int, default=0,
+    ap.add_argument("--formulations", type=index, default=0,
                     help="time polar vs rectangular voltages on the first state over this many steps (default 0: no)")
     ap.add_argument("--merge", nargs="*", default=[],
                     help="records of the same protocol (e.g. rows measured in parallel runs) whose rows are merged "

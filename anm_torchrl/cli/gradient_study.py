@@ -15,6 +15,7 @@ import logging
 import sys
 from pathlib import Path
 
+from anm_torchrl.cli.args import count
 from anm_torchrl.experiments import gradient_study
 
 log = logging.getLogger(__name__)
@@ -27,15 +28,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--methods", nargs="+", default=list(gradient_study.METHODS),
                         choices=list(gradient_study.METHODS))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--jobs", type=int, default=2, help="runs at a time (one torch thread each)")
+    parser.add_argument("--jobs", type=count, default=2, help="runs at a time (one torch thread each)")
     parser.add_argument("--runs-dir", default="outputs/gradient_study", help="the cells' run directories")
     parser.add_argument("--override", nargs="*", default=[], help="recipe keys of every cell (key=value), e.g. a "
                         "smaller budget; the record lists them")
     parser.add_argument("--out", default=None, help="folder of <network>.json / .md (e.g. results/gradient_study)")
     parser.add_argument("--docs", default=None, help="a page whose gradients block is re-rendered from <out>")
     args = parser.parse_args(argv)
-    if args.jobs < 1:
-        parser.error(f"--jobs must be >= 1, got {args.jobs}")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     record = gradient_study.campaign(args.network, args.methods, args.seeds, Path(args.runs_dir), jobs=args.jobs,
                                      overrides=tuple(args.override))

@@ -10,6 +10,7 @@ import argparse
 import logging
 import sys
 
+from anm_torchrl.cli.args import count, index
 from anm_torchrl.experiments import imitation
 
 
@@ -17,22 +18,17 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.imitation",
                                      description=imitation.__doc__.splitlines()[0])
     parser.add_argument("--network", default="anm6_easy")
-    parser.add_argument("--labels", type=int, default=1024, help="states labelled by the expert per round")
-    parser.add_argument("--rounds", type=int, default=3, help="DAgger rounds after the first cloning")
-    parser.add_argument("--visit-starts", type=int, default=16, help="rollouts of a DAgger round")
-    parser.add_argument("--visit-steps", type=int, default=288, help="steps of each rollout")
-    parser.add_argument("--horizon", type=int, default=imitation.EXPERT_HORIZON, help="the expert's N")
-    parser.add_argument("--epochs", type=int, default=300)
+    parser.add_argument("--labels", type=count, default=1024, help="states labelled by the expert per round")
+    parser.add_argument("--rounds", type=index, default=3, help="DAgger rounds after the first cloning")
+    parser.add_argument("--visit-starts", type=count, default=16, help="rollouts of a DAgger round")
+    parser.add_argument("--visit-steps", type=count, default=288, help="steps of each rollout")
+    parser.add_argument("--horizon", type=count, default=imitation.EXPERT_HORIZON, help="the expert's N")
+    parser.add_argument("--epochs", type=count, default=300)
     parser.add_argument("--no-time-features", action="store_true")
     parser.add_argument("--seed", type=int, default=2)
-    parser.add_argument("--jobs", type=int, default=2, help="processes of expert solves")
+    parser.add_argument("--jobs", type=count, default=2, help="processes of expert solves")
     parser.add_argument("--out", default=None, help="folder of imitation_<network>.json / .md")
     args = parser.parse_args(argv)
-    for name in ("labels", "visit_starts", "visit_steps", "horizon", "epochs", "jobs"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if args.rounds < 0:
-        parser.error(f"--rounds must be >= 0, got {args.rounds}")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     from anm_torchrl.networks import check_network_name
 

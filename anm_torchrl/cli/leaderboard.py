@@ -14,6 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
+from anm_torchrl.cli.args import count
 from anm_torchrl.experiments import leaderboard
 
 log = logging.getLogger(__name__)
@@ -26,7 +27,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--runs", nargs="*", default=[], help="training run directories (summary.json, best.pt)")
     parser.add_argument("--keep", default=None, help="an earlier record of this network: its runs of the "
                         "(algorithm, training env) groups not given in --runs are kept, named by kept_from")
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--threads", type=count, default=1)
     parser.add_argument("--out", default=None, help="write <out>.json and <out>.md")
     parser.add_argument("--readme", nargs="*", default=[], help="pages whose leaderboard block is re-rendered")
     args = parser.parse_args(argv)

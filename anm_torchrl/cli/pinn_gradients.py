@@ -8,6 +8,7 @@ import logging
 
 import torch
 
+from anm_torchrl.cli.args import count
 from anm_torchrl.experiments.pinn_gradients import run
 
 
@@ -15,7 +16,7 @@ def main(argv: list[str] | None = None) -> dict:
     """Parse ``argv``, measure, write the record and the figure, print one line per network and set."""
     ap = argparse.ArgumentParser(description="PINN vs exact gradients of the reward with respect to the action")
     ap.add_argument("--networks", nargs="+", default=["anm6_easy"])
-    ap.add_argument("--rows", type=int, default=512, help="(state, action) rows per action set")
+    ap.add_argument("--rows", type=count, default=512, help="(state, action) rows per action set")
     ap.add_argument("--train", action="store_true", help="train a network's default PINN when it is not cached")
     ap.add_argument("--out", required=True, help="path stem of the record (.json) and the figure (.png)")
     args = ap.parse_args(argv)

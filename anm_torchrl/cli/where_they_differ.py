@@ -8,6 +8,7 @@ import logging
 
 import torch
 
+from anm_torchrl.cli.args import count, index
 from anm_torchrl.experiments.where_they_differ import GAP_RECORD, run
 
 
@@ -17,8 +18,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--checkpoint", default="pretrained:anm6_easy", help="a checkpoint or pretrained:<name>")
     ap.add_argument("--out", required=True, help="path stem of the record (.json) and the figure (.png)")
     ap.add_argument("--gap-record", default=str(GAP_RECORD), help="the gap study's record of the optimum")
-    ap.add_argument("--state", type=int, default=None, help="a test state index (default: the largest gap)")
-    ap.add_argument("--window-days", type=int, default=3, help="days shown in the time-series panels")
+    ap.add_argument("--state", type=index, default=None, help="a test state index (default: the largest gap)")
+    ap.add_argument("--window-days", type=count, default=3, help="days shown in the time-series panels")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     rec = run(args.checkpoint, args.out, args.gap_record, args.state, args.window_days)
