@@ -115,8 +115,26 @@ def test_the_verdict_says_how_many_times_fewer_transitions_or_that_it_was_not_re
     assert "10× fewer transitions" in text and "anm6_easy, 1.5× the optimum's loss" in text
     slower = gs.verdict([_record("anm6_easy", [1e5], [1e4])])
     assert "10× more transitions, PPO 10× faster in wall time" in slower
-    assert "not reached by half its runs (1/3)" in gs.verdict([_record("anm6_easy", [None], [1e6])])
+    assert "reached by fewer than half its runs (1/3)" in gs.verdict([_record("anm6_easy", [None], [1e6])])
     assert "PPO did not within its budget" in gs.verdict([_record("anm6_easy", [1e5], [None])])
+
+
+def test_the_verdict_reads_the_frames_to_ppos_best_return_off_the_test_curves():
+    """PPO's best is the mean of its best.pt test returns (-1.0 here); PPO's curves reach it at 2,000 and 3,000
+    frames (KM median 3,000 over 3 runs, one censored), SHAC's at 100 and 200 (median 200): 15x fewer."""
+    ppo = [{"curve": _curve([-3, -2, -1.0], step=1000), "test_best": -1.0},
+           {"curve": _curve([-3, -0.5], step=1000), "test_best": -0.5},
+           {"curve": _curve([-3, -2, -1.5], step=1000), "test_best": -1.5}]
+    shac = [{"curve": _curve([-2, -0.9]), "test_best": -0.9}, {"curve": _curve([-0.8]), "test_best": -0.8},
+            {"curve": _curve([-3, -2]), "test_best": -2.0}]
+    rec = {"network": "case33bw", "methods": [{"method": "shac_exact", "label": "SHAC", "runs": shac},
+                                               {"method": "ppo", "label": "PPO", "runs": ppo}]}
+    (line,) = gs.ppo_best_lines(rec)
+    assert "PPO's best return (-1, the mean of its best.pt test returns): SHAC reached it in 2/3 runs" in line
+    assert "median 200 model frames against PPO's 3,000 true-env frames (2/3 runs): 15× fewer" in line
+    shac[0]["curve"], shac[1]["curve"] = _curve([-2]), _curve([-2])
+    assert "reached it in 0/3 runs, fewer than half (PPO's own runs: 2/3)" in gs.ppo_best_lines(rec)[0]
+    assert gs.ppo_best_lines({"network": "x", "methods": [{"method": "shac_exact", "runs": shac}]}) == []
 
 
 def test_the_docs_block_is_refused_on_a_page_without_it_and_rewritten_in_place(tmp_path):
