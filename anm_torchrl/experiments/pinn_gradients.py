@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 from tensordict import TensorDict
@@ -50,17 +50,31 @@ def action_sets(sim, n: int, seed: int = 0) -> dict[str, torch.Tensor]:
     return {"near_do_nothing": torch.minimum(torch.maximum(near, lo), hi), "uniform": uniform}
 
 
+def models(chain, sim) -> dict[str, Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]]:
+    """The two models as ``(state (N, D), action (N, A)) -> (reward (N,), non-terminal (N,) bool)``: ``exact``
+    (the differentiable simulator) and ``pinn`` (``chain``)."""
+    def exact(state, action):
+        tr = differentiable.step(sim, state, action)[1]
+        return tr.reward, tr.converged
+
+    def pinn(state, action):
+        out = chain(TensorDict({"state": state, "action": action}, [state.shape[0]]))
+        return out["reward"].reshape(-1), ~out["terminated"].reshape(-1)
+
+    return {"exact": exact, "pinn": pinn}
+
+
 def reward_gradients(chain, sim, state: torch.Tensor, action: torch.Tensor
                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """d(reward)/d(action) (N, action_dim) of the exact model and of ``chain``, and the rows (N,) bool that are
     terminal in neither."""
-    a_exact = action.clone().requires_grad_(True)
-    _, tr = differentiable.step(sim, state, a_exact)
-    (g_exact,) = torch.autograd.grad(tr.reward.sum(), a_exact)
-    a_pinn = action.clone().requires_grad_(True)
-    out = chain(TensorDict({"state": state, "action": a_pinn}, [state.shape[0]]))
-    (g_pinn,) = torch.autograd.grad(out["reward"].sum(), a_pinn)
-    return g_exact, g_pinn, tr.converged & ~out["terminated"].reshape(-1)
+    grads, ok = [], torch.ones(state.shape[0], dtype=torch.bool)
+    for model in models(chain, sim).values():
+        a = action.clone().requires_grad_(True)
+        reward, alive = model(state, a)
+        grads.append(torch.autograd.grad(reward.sum(), a)[0])
+        ok = ok & alive
+    return grads[0], grads[1], ok
 
 
 def compare(g_exact: torch.Tensor, g_pinn: torch.Tensor) -> dict[str, float]:
@@ -110,9 +124,8 @@ def parting_summary(chain, sim, state: torch.Tensor, action: torch.Tensor, g_exa
     lo, hi = (b.to(action.dtype) for b in sim.action_bounds())
     a = action[rows, cols]
     on_bound = ((a - lo[cols]).abs() < 1e-9) | ((a - hi[cols]).abs() < 1e-9)
-    fns = {"exact": lambda s, x: differentiable.step(sim, s, x)[1].reward,
-           "pinn": lambda s, x: chain(TensorDict({"state": s, "action": x}, [s.shape[0]]))["reward"].reshape(-1)}
-    inside = inside_differences(fns, state, action, rows, cols, lo, hi)
+    rewards = {name: (lambda s, x, f=f: f(s, x)[0]) for name, f in models(chain, sim).items()}
+    inside = inside_differences(rewards, state, action, rows, cols, lo, hi)
     for c in torch.unique(cols).tolist():
         m = cols == c
         out["by_action"][str(c)] = {

@@ -12,10 +12,11 @@ from matplotlib.animation import PillowWriter
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.cm import ScalarMappable
 from matplotlib.figure import Figure
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from anm_torchrl.evaluation import reset_to
 from anm_torchrl.grid.network import Network
 from anm_torchrl.render.figure import WINDOW_HOURS, Episode, choose_window, episode_figure, episode_from_rollout, \
     snapshot_title
@@ -123,8 +124,7 @@ def render_episode(policy: Callable[[TensorDictBase], TensorDictBase], env: EnvB
     if int(steps) < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
     base = getattr(env, "base_env", env)
-    state = torch.as_tensor(initial_state, dtype=torch.float64, device=env.device).reshape(1, -1)
-    td = env.reset(TensorDict({"state": state}, [1], device=env.device), set_state=True)
+    td = reset_to(env, torch.as_tensor(initial_state, dtype=torch.float64).reshape(1, -1))
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     with torch.no_grad(), set_exploration_type(mode):
         rollout = env.rollout(int(steps), policy, tensordict=td, auto_reset=False, break_when_any_done=True)
