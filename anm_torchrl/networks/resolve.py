@@ -18,7 +18,7 @@ from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks.case import NetworkCase
 from anm_torchrl.networks.registry import builtin_networks, get_network
 from anm_torchrl.networks.user import DEFAULT_CONSTANTS
-from anm_torchrl.networks.validation import check_reward_args, device_ids, validate_network, validate_profile
+from anm_torchrl.networks.validation import check_reward_args, validate_network, validate_profiles
 
 _UNSET = object()  # "not given": a registered case's constant, or gym-anm's default (None means +inf clipping)
 
@@ -67,12 +67,7 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
     given = {"delta_t": delta_t, "gamma": gamma, "lamb": lamb, "costs_clipping": costs_clipping}
     c = {k: defaults[k] if v is _UNSET else v for k, v in given.items()}
     net = validate_network(network)
-    loads, gens = device_ids(net, (-1,)), device_ids(net, (1, 2))
-    load_p = validate_profile(load_p, "load_p", len(loads), f"loads {loads} in device-id order")
-    gen_p_max = validate_profile(gen_p_max, "gen_p_max", len(gens), f"non-slack generators {gens} in device-id order")
-    if load_p.shape[0] != gen_p_max.shape[0]:
-        raise ValueError(f"load_p and gen_p_max must have the same T rows, got {load_p.shape[0]} and "
-                         f"{gen_p_max.shape[0]}")
+    load_p, gen_p_max = validate_profiles(net, load_p, gen_p_max)
     clip = check_reward_args(c["delta_t"], c["gamma"], c["lamb"], c["costs_clipping"])
     if next_vars is not None and not callable(next_vars):
         raise ValueError(f"next_vars must be callable, got {next_vars!r}")

@@ -58,7 +58,7 @@ def checked_case(name: str, network: dict, load_p, gen_p_max, *, delta_t=None, g
         ValueError: an invalid table (naming table, row and column), profile (naming the profile and the device
             ids it must follow) or constant (naming it).
     """
-    from anm_torchrl.networks.validation import check_reward_args, device_ids, validate_network, validate_profile
+    from anm_torchrl.networks.validation import check_reward_args, validate_network, validate_profiles
 
     if not isinstance(network, dict):
         raise ValueError(f"network must be a gym-anm network dict, got {type(network).__name__}")
@@ -66,12 +66,7 @@ def checked_case(name: str, network: dict, load_p, gen_p_max, *, delta_t=None, g
     c = {k: DEFAULT_CONSTANTS[k] if v is None else v for k, v in given.items()}
     net = validate_network(network)  # gym-anm's checks; the case keeps the tables as given (NaN = None)
     given_net = {"baseMVA": float(network["baseMVA"]), **{k: np.asarray(network[k], np.float64) for k in TABLES}}
-    loads, gens = device_ids(net, (-1,)), device_ids(net, (1, 2))
-    load_p = validate_profile(load_p, "load_p", len(loads), f"loads {loads} in device-id order")
-    gen_p_max = validate_profile(gen_p_max, "gen_p_max", len(gens), f"non-slack generators {gens} in device-id order")
-    if load_p.shape[0] != gen_p_max.shape[0]:
-        raise ValueError(f"load_p and gen_p_max must have the same T rows, got {load_p.shape[0]} and "
-                         f"{gen_p_max.shape[0]}")
+    load_p, gen_p_max = validate_profiles(net, load_p, gen_p_max)
     check_reward_args(c["delta_t"], c["gamma"], c["lamb"], c["costs_clipping"])
     clip = tuple(None if v is None or math.isinf(float(v)) else float(v) for v in c["costs_clipping"])
     return make_case(name, given_net, load_p, gen_p_max, float(c["delta_t"]), float(c["gamma"]), float(c["lamb"]), clip,

@@ -319,6 +319,26 @@ def validate_profile(values, name: str, n_cols: int, what: str) -> np.ndarray:
     return arr
 
 
+def validate_profiles(network: Mapping, load_p, gen_p_max) -> tuple[np.ndarray, np.ndarray]:
+    """Check a normalized network's two exogenous profiles together (:func:`validate_profile` each).
+
+    Args:
+        network: a normalized gym-anm network (:func:`validate_network`).
+        load_p: (T, n_load) MW, loads in device-id order.
+        gen_p_max: (T, n_gen) MW, non-slack generators in device-id order; the same T as ``load_p``.
+
+    Returns:
+        (load_p, gen_p_max) as float64 arrays.
+    """
+    loads, gens = device_ids(network, (-1,)), device_ids(network, (1, 2))
+    load_p = validate_profile(load_p, "load_p", len(loads), f"loads {loads} in device-id order")
+    gen_p_max = validate_profile(gen_p_max, "gen_p_max", len(gens), f"non-slack generators {gens} in device-id order")
+    if load_p.shape[0] != gen_p_max.shape[0]:
+        raise ValueError(f"load_p and gen_p_max must have the same T rows, got {load_p.shape[0]} and "
+                         f"{gen_p_max.shape[0]}")
+    return load_p, gen_p_max
+
+
 def check_reward_args(delta_t, gamma, lamb, costs_clipping) -> tuple[float, float]:
     """gym-anm's ``check_env_args`` for the reward constants; returns the clipping with ``None`` entries as +inf.
 
