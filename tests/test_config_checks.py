@@ -57,6 +57,7 @@ def test_default_configs_pass():
     ("model.actor_cells=[64,0]", "model.actor_cells must be a list of positive layer widths"),
     ("logger.backend=foo", "logger.backend must be one of tensorboard, csv, wandb, mlflow, null; got 'foo'"),
     ("loss.gae_every_epoch=1", "loss.gae_every_epoch must be true or false, got 1"),
+    ("loss.compile=yes", "loss.compile must be true or false, got 'yes'"),
     ("eval.test_seed=1", "eval.seed (validation states) and eval.test_seed (test states) must differ"),
     ("eval.render_interval=-1", "eval.render_interval must be an integer >= 0, got -1"),
     ("collector.frames_per_batch=16383", "must be a positive multiple of env.num_envs (256)"),

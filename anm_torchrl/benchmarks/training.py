@@ -63,7 +63,9 @@ def time_algorithm(algorithm: str, network: str, n_envs: int, iterations: int = 
     cfg = _config(algorithm, network, n_envs, list(overrides or []))
     algo = get_algorithm(algorithm)(cfg, device=torch.device("cpu"), seed=0, budget=10**12,
                                     reward_scale=0.01, resume=None)
-    algo.iterate(10**12)  # warm-up
+    w0 = time.perf_counter()
+    algo.iterate(10**12)  # warm-up (numba caches, torch.compile's compilation)
+    warmup_s = time.perf_counter() - w0
     frames = 0
     wall = {"collect": 0.0, "update": 0.0}
     w0, c0 = _clock()
@@ -76,40 +78,49 @@ def time_algorithm(algorithm: str, network: str, n_envs: int, iterations: int = 
     algo.close()
     return {"frames": frames, "collect_fps": frames / wall["collect"], "update_fps": frames / wall["update"],
             "loop_fps": frames / (w1 - w0), "loop_cpu_fps": frames / max(c1 - c0, 1e-9),
-            "update_share": wall["update"] / (w1 - w0)}
+            "update_share": wall["update"] / (w1 - w0), "warmup_s": warmup_s}
 
 
 def measure(network: str = "anm6_easy", batch_sizes=(256, 1024, 4096), algorithms=("ppo", "sac"),
-            iterations: int = 3, overrides: tuple[str, ...] = ()) -> dict:
+            iterations: int = 3, overrides: tuple[str, ...] = (), compare: tuple[str, ...] = ()) -> dict:
     """Every row of the table (one dict per (algorithm, N)), measured in this one run; ``overrides`` (Hydra
-    ``key=value``) apply to every algorithm's config."""
+    ``key=value``) apply to every algorithm's config. With ``compare`` (more overrides), every row is measured
+    twice, without and with them, one after the other (``row["variant"]``: ``"base"`` or ``"compare"``), so their
+    ratio is read on the same load."""
     torch.set_num_threads(1)
+    variants = {"base": list(overrides), **({"compare": [*overrides, *compare]} if compare else {})}
     rows = []
     for n in batch_sizes:
         env = time_env(network, n)
         for algorithm in algorithms:
-            row = time_algorithm(algorithm, network, n, iterations, list(overrides))
-            rows.append({"algorithm": algorithm, "num_envs": n, "env_fps": env["wall_fps"],
-                         "env_cpu_fps": env["cpu_fps"], **row,
-                         "loop_over_env": row["loop_fps"] / env["wall_fps"],
-                         "loop_over_env_cpu": row["loop_cpu_fps"] / env["cpu_fps"]})
+            for variant, over in variants.items():
+                row = time_algorithm(algorithm, network, n, iterations, over)
+                rows.append({"algorithm": algorithm, "num_envs": n, "variant": variant, "env_fps": env["wall_fps"],
+                             "env_cpu_fps": env["cpu_fps"], **row,
+                             "loop_over_env": row["loop_fps"] / env["wall_fps"],
+                             "loop_over_env_cpu": row["loop_cpu_fps"] / env["cpu_fps"]})
     import os
 
     return {"network": network, "steps_per_env": STEPS, "threads": 1, "iterations": iterations,
-            "overrides": list(overrides), "load_avg_1min": os.getloadavg()[0], "torch": torch.__version__, "rows": rows}
+            "overrides": list(overrides), "compare": list(compare), "load_avg_1min": os.getloadavg()[0],
+            "torch": torch.__version__, "rows": rows}
 
 
 def markdown(record: dict) -> str:
     """The table of :func:`measure`'s record."""
+    compare = record.get("compare")
     lines = [f"Training loop throughput on {record['network']} ({record['steps_per_env']} steps per env per "
              f"iteration, 1 thread, load {record['load_avg_1min']:.1f}"
              + (f"; overrides: {' '.join(record['overrides'])}" if record.get("overrides") else "")
-             + "); frames/s of wall time (CPU time)",
-             "", "| algorithm | envs | env alone | collect | update | loop | loop / env |",
-             "|---|---:|---:|---:|---:|---:|---:|"]
+             + (f"; rows marked `compare` add {' '.join(compare)}" if compare else "")
+             + "); frames/s of wall time (CPU time)" + ("; warm-up: the first iteration's seconds" if compare else ""),
+             "", "| algorithm | envs |" + (" variant | warm-up |" if compare else "")
+             + " env alone | collect | update | loop | loop / env |",
+             "|---|---:|" + ("---|---:|" if compare else "") + "---:|---:|---:|---:|---:|"]
     for r in record["rows"]:
-        lines.append(f"| {r['algorithm']} | {r['num_envs']:,} | {r['env_fps']:,.0f} ({r['env_cpu_fps']:,.0f}) | "
-                     f"{r['collect_fps']:,.0f} | {r['update_fps']:,.0f} | {r['loop_fps']:,.0f} "
+        variant = f" {r.get('variant', 'base')} | {r.get('warmup_s', float('nan')):.1f} s |" if compare else ""
+        lines.append(f"| {r['algorithm']} | {r['num_envs']:,} |{variant} {r['env_fps']:,.0f} "
+                     f"({r['env_cpu_fps']:,.0f}) | {r['collect_fps']:,.0f} | {r['update_fps']:,.0f} | {r['loop_fps']:,.0f} "
                      f"({r['loop_cpu_fps']:,.0f}) | {r['loop_over_env']:.2f} ({r['loop_over_env_cpu']:.2f}) |")
     return "\n".join(lines) + "\n"
 

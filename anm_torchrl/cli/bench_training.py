@@ -3,7 +3,7 @@ goes (env alone, collection, update, loop) per algorithm and batch size, measure
 
     python -m anm_torchrl.cli.bench_training [--network anm6_easy] [--envs 256 1024 4096] [--algorithms ppo sac]
                                              [--iterations 3] [--out results/benchmarks/bench_training]
-                                             [--override KEY=VALUE ...]
+                                             [--override KEY=VALUE ...] [--compare KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -26,11 +26,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--iterations", type=count, default=3, help="timed iterations per row (after one warm-up)")
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE",
                         help="Hydra overrides of every algorithm's config, e.g. loss.mini_batch_size=8192")
+    parser.add_argument("--compare", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="also measure every row with these overrides, right after it (same load), e.g. "
+                             "loss.compile=true")
     parser.add_argument("--out", default=None, help="write <out>.json and <out>.md (default: print only)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     record = training.measure(args.network, tuple(args.envs), tuple(args.algorithms), args.iterations,
-                              tuple(args.override))
+                              tuple(args.override), tuple(args.compare))
     if args.out:
         training.write(record, args.out)
     log.info("%s", training.markdown(record))

@@ -176,8 +176,9 @@ def check_ppo_config(cfg: Mapping) -> None:
     _in_range(cfg, "loss.gae_lambda", 0, 1, False, False)
     _in_range(cfg, "loss.clip_epsilon", 0, math.inf, True, True)
     _int(cfg, "loss.ppo_epochs")
-    if not isinstance(_get(cfg, "loss.gae_every_epoch"), bool):
-        raise ValueError(f"loss.gae_every_epoch must be true or false, got {_get(cfg, 'loss.gae_every_epoch')!r}")
+    for key in ("loss.gae_every_epoch", "loss.compile"):
+        if not isinstance(_get(cfg, key), bool):
+            raise ValueError(f"{key} must be true or false, got {_get(cfg, key)!r}")
     mini = _int(cfg, "loss.mini_batch_size")
     if mini > fpb:
         raise ValueError(f"loss.mini_batch_size ({mini}) must be <= collector.frames_per_batch ({fpb})")
