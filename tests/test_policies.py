@@ -61,8 +61,9 @@ FEEDERS = [name for name in available_pretrained() if name != "anm6_easy"]
 def test_feeder_policy_beats_doing_nothing_on_a_test_state(name):
     """Each shipped feeder policy (SHAC, README of the policies folder: 96–99 % of the optimum's gain over do-nothing
     on its 4 test states) on its network's test state 0 over 300 steps (78 % of an episode's discounted weight).
-    Do-nothing loses there and the shipped policies gain, by more than do-nothing's whole return; a random,
-    untrained or wrong-network actor does not."""
+    The optimum's whole gain is 9 % of do-nothing's loss on the SimBench feeder (no storage: -0.661 against -0.731),
+    more than do-nothing's loss on the feeders with storage; beating do-nothing by 4 % of its return is half the
+    smallest of these, a bar that a random, untrained or wrong-network actor does not clear."""
     from anm_torchrl.baselines import make_baseline
     from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.factory import make_true_env
@@ -77,4 +78,4 @@ def test_feeder_policy_beats_doing_nothing_on_a_test_state(name):
     idle = evaluate_policy(make_baseline("do_nothing", idle_env.sim), state, max_steps=300, env=idle_env)
     assert not bool(policy.terminated.any())
     p, d = float(policy.discounted_returns), float(idle.discounted_returns)
-    assert p - d > abs(d), (p, d)
+    assert p - d > 0.04 * abs(d), (p, d)
