@@ -47,6 +47,7 @@ def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
 @pytest.mark.parametrize("override, message", [
     ("loss.horizon=0", "loss.horizon must be an integer >= 1, got 0"),
     ("model.dynamics=mlp", "model.dynamics must be one of exact, pinn; got 'mlp'"),
+    ("loss.noise=yes", "loss.noise must be true or false, got 'yes'"),
 ])
 def test_shac_config_errors_name_the_key(override, message):
     from hydra import compose, initialize_config_dir
@@ -57,3 +58,31 @@ def test_shac_config_errors_name_the_key(override, message):
         cfg = compose(config_name="shac", overrides=[*TINY_SHAC, override])
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         check_algorithm_config(cfg)
+
+
+def _tiny_shac(*overrides: str):
+    import torch
+    from hydra import compose, initialize_config_dir
+
+    from anm_torchrl.training.algorithms import get_algorithm
+
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
+        cfg = compose(config_name="shac", overrides=[*TINY_SHAC, *overrides])
+    return get_algorithm("shac")(cfg, device=torch.device("cpu"), seed=0, budget=64, reward_scale=1.0, resume=None)
+
+
+@pytest.mark.parametrize("noise", [False, True])
+def test_shac_rollouts_take_the_deterministic_action_unless_noise_is_asked(noise):
+    """Without noise the actor's loss does not depend on torch's random stream (the rollout acts with the mean that
+    evaluation scores) and no noise scale is logged; with ``loss.noise=true`` the sampled actions change it."""
+    import torch
+
+    losses = []
+    for draw in (1, 2):
+        torch.manual_seed(0)  # the same initial networks
+        algo = _tiny_shac(f"loss.noise={str(noise).lower()}")
+        torch.manual_seed(draw)  # the stream the rollout's samples would come from
+        _, metrics = algo.iterate(64)
+        losses.append(float(metrics["train/loss_actor"]))
+        assert (float(metrics["train/action_scale"]) > 0) == noise
+    assert (losses[0] != losses[1]) == noise, losses

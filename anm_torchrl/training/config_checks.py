@@ -45,6 +45,12 @@ def _int(cfg: Mapping, key: str, low: int = 1, optional: bool = False) -> int | 
     return value
 
 
+def _bool(cfg: Mapping, *keys: str) -> None:
+    """Each of ``keys`` is true or false (not a string or number that YAML or the command line would coerce)."""
+    for key in keys:
+        if not isinstance(_get(cfg, key), bool):
+            raise ValueError(f"{key} must be true or false, got {_get(cfg, key)!r}")
+
 def _in_range(cfg: Mapping, key: str, low: float, high: float, low_open: bool, high_open: bool,
               optional: bool = False) -> float | None:
     value = _number(cfg, key)
@@ -176,9 +182,7 @@ def check_ppo_config(cfg: Mapping) -> None:
     _in_range(cfg, "loss.gae_lambda", 0, 1, False, False)
     _in_range(cfg, "loss.clip_epsilon", 0, math.inf, True, True)
     _int(cfg, "loss.ppo_epochs")
-    for key in ("loss.gae_every_epoch", "loss.compile"):
-        if not isinstance(_get(cfg, key), bool):
-            raise ValueError(f"{key} must be true or false, got {_get(cfg, key)!r}")
+    _bool(cfg, "loss.gae_every_epoch", "loss.compile")
     mini = _int(cfg, "loss.mini_batch_size")
     if mini > fpb:
         raise ValueError(f"loss.mini_batch_size ({mini}) must be <= collector.frames_per_batch ({fpb})")
@@ -262,6 +266,7 @@ def check_shac_config(cfg: Mapping) -> None:
     _in_range(cfg, "loss.target_tau", 0, 1, True, False)
     _int(cfg, "loss.critic_epochs")
     _int(cfg, "loss.critic_batch_size")
+    _bool(cfg, "loss.noise")
     _in_range(cfg, "optim.actor_lr", 0, math.inf, True, True)
     _in_range(cfg, "optim.critic_lr", 0, math.inf, True, True)
     _in_range(cfg, "optim.eps", 0, math.inf, True, True)

@@ -1,6 +1,8 @@
 """SHAC (short-horizon actor-critic, Xu et al., ICLR 2022) behind the training protocol: the actor is trained by
 backpropagating the return of ``loss.horizon``-step rollouts through a differentiable model of the grid, with a
-learned value for the tail; the critic regresses TD(λ) targets of the same rollouts.
+learned value for the tail; the critic regresses TD(λ) targets of the same rollouts. The rollouts take the
+actor's deterministic action, the one evaluation scores (``loss.noise=true``: samples of its ``TanhNormal``, as Xu
+et al.).
 
 Model (``model.dynamics``): ``exact`` — the true transition with its gradients
 (:mod:`anm_torchrl.grid.differentiable`: implicit power-flow gradients, active-constraint projections), float64;
@@ -94,6 +96,7 @@ class SHAC(Algorithm):
         from anm_torchrl.training.models import make_ppo_models
 
         self.cfg, self.device, self.reward_scale = cfg, device, float(reward_scale)
+        self.noise = bool(cfg.loss.noise)
         self.env = make_true_env(int(cfg.env.num_envs), device, seed=seed, init=cfg.env.init, network=cfg.network,
                                  action_mode="clip")
         self.actor, self.critic, self.normalizer = make_ppo_models(
@@ -144,7 +147,7 @@ class SHAC(Algorithm):
         for t in range(horizon):
             td = TensorDict({"observation": obs}, [n])
             dist = self.actor.get_dist(td)  # writes "loc" and "scale" into td
-            action = dist.rsample()
+            action = dist.rsample() if self.noise else dist.deterministic_sample
             nxt, reward, term, next_obs = self.model(state, action)
             r = (reward * self.reward_scale).float()
             r = torch.where(term, r.detach(), r)  # the terminal reward is a constant
@@ -220,7 +223,9 @@ class SHAC(Algorithm):
                    "train/loss_critic": torch.stack(critic_losses).mean(), "train/value": flat_target.mean(),
                    "train/terminated": n_term / frames, "train/grad_norm": grad_norm.detach(),
                    "train/critic_grad_norm": torch.stack(critic_norms).mean(),
-                   "train/action_scale": torch.stack(scales).mean(), "train/model_frames": self.model_frames,
+                   # the exploration noise's scale (0: deterministic rollouts)
+                   "train/action_scale": torch.stack(scales).mean() * self.noise,
+                   "train/model_frames": self.model_frames,
                    "time/rollout": t_rollout, "time/update": t_update,
                    "time/fps": frames / max(t_rollout + t_update, 1e-9)}
         return frames, metrics
