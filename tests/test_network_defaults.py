@@ -39,6 +39,22 @@ def test_a_group_choice_protects_its_keys():
     assert cfg.model.init_action == "do_nothing"
 
 
+def test_a_group_choice_with_the_config_folder_protects_only_what_its_file_sets(tmp_path):
+    """``model=pinn`` (the SHAC recipe's model/pinn.yaml: the default model plus ``dynamics``) protects only
+    ``model.dynamics``: the network's entry still sets the rest of the model group (case33bw's do-nothing start),
+    as for ``python recipes/shac.py network=case33bw`` without the choice; ``eval=default`` still protects all."""
+    from pathlib import Path
+
+    conf = Path(__file__).resolve().parents[1] / "recipes" / "conf"
+    assert explicit_keys(["model=pinn", "network=case33bw"], conf) == {"model.dynamics", "network"}
+    assert {f"eval.{k}" for k in compose("config", []).eval} <= explicit_keys(["eval=default"], conf)
+    assert explicit_keys(["model=no_such_option"], conf) == {"model"}  # Hydra rejects it; nothing is guessed
+    overrides = ["network=case33bw", "model=pinn"]
+    cfg = compose("shac", overrides)
+    info = apply_network_defaults(cfg, explicit_keys(overrides, conf))
+    assert cfg.model.dynamics == "pinn" and info["applied"]["model.init_action"] == "do_nothing"
+
+
 def test_anm6_entry_changes_only_the_learning_rate():
     """ANM6-Easy keeps the groups' defaults but for its validated learning rate; a given lr is kept."""
     cfg = compose("config", [])

@@ -95,7 +95,7 @@ def _train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
     shutil.rmtree(run_dir, ignore_errors=True)  # an unfinished earlier attempt: its logs would mix with these
     t0, load = time.perf_counter(), os.getloadavg()[0]
     cfg = compose_ppo_config(keys, config_name=RECIPE_CONFIGS[Path(command[1]).name])
-    protocol.train(cfg, run_dir, network_defaults=apply_network_defaults(cfg, explicit_keys(keys)))
+    protocol.train(cfg, run_dir, network_defaults=apply_network_defaults(cfg, explicit_keys(keys, RECIPES / "conf")))
     return {"process_wall_s": time.perf_counter() - t0, "load_avg_1min": [load, os.getloadavg()[0]]}
 
 

@@ -101,7 +101,7 @@ def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None =
     t0 = time.perf_counter()
     try:
         cfg = compose_ppo_config(overrides)
-        defaults = apply_network_defaults(cfg, explicit_keys(overrides))  # as the recipe does: same command
+        defaults = apply_network_defaults(cfg, explicit_keys(overrides, CONF_DIR))  # as the recipe does
         if timeout_s is not None:  # the tighter of the run's own budget and the experiment's
             cfg.collector.max_minutes = min(float(cfg.collector.max_minutes or "inf"), float(timeout_s) / 60)
         protocol.train(cfg, run_dir, network_defaults=defaults)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -23,14 +24,28 @@ FALLBACK = "default"
 _MISSING = object()
 
 
-def explicit_keys(overrides: Iterable[str]) -> set[str]:
+def explicit_keys(overrides: Iterable[str], conf_dir: str | Path | None = None) -> set[str]:
     """The config keys a list of Hydra overrides sets (``key=value``, ``+key=value``, ``++key=value``,
-    ``~key``; a group choice ``env=sac`` names its group), e.g. ``HydraConfig.get().overrides.task``."""
+    ``~key``), e.g. ``HydraConfig.get().overrides.task``.
+
+    A group choice ``group=option`` names the keys its option file ``<conf_dir>/<group>/<option>.yaml`` sets itself:
+    ``eval=default`` all of eval's keys, ``model=pinn`` only ``model.dynamics`` (what the file takes from its defaults
+    list stays the group's default, which a network's entry may set). Without ``conf_dir``, or where no such file
+    is, the choice names its whole group.
+    """
     keys = set()
     for item in overrides:
-        key = str(item).split("=", 1)[0].lstrip("+~").strip()
-        if key:
-            keys.add(key.split("@", 1)[0])
+        key, _, value = str(item).partition("=")
+        key = key.lstrip("+~").strip().split("@", 1)[0]
+        if not key:
+            continue
+        option = Path(conf_dir, key, f"{value.strip()}.yaml") if conf_dir is not None and "." not in key else None
+        if option is not None and value.strip() and option.is_file():
+            own = OmegaConf.to_container(OmegaConf.load(option), resolve=False)
+            own.pop("defaults", None)
+            keys.update(f"{key}.{k}" for k in _flatten(own))
+        else:
+            keys.add(key)
     return keys
 
 

@@ -325,7 +325,10 @@ def run_recipe(cfg: DictConfig) -> dict:
         # a network file's path is relative to where the command was typed, not to the run directory
         cfg.network = network_argument(cfg.network, hydra.utils.get_original_cwd())
         check_network_name(cfg.network)  # before its defaults are applied (and logged)
-        defaults = apply_network_defaults(cfg, explicit_keys(HydraConfig.get().overrides.task))
+        hydra_cfg = HydraConfig.get()
+        conf_dir = next((src.path for src in hydra_cfg.runtime.config_sources
+                         if src.provider == "main" and src.schema == "file"), None)
+        defaults = apply_network_defaults(cfg, explicit_keys(hydra_cfg.overrides.task, conf_dir))
         check_algorithm_config(cfg)
         check_device(cfg.env.device)
         check_artifact_cache(cfg.surrogate)  # a surrogate trained on first use is saved under ANM_TORCHRL_HOME
