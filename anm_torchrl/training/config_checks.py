@@ -51,6 +51,7 @@ def _bool(cfg: Mapping, *keys: str) -> None:
         if not isinstance(_get(cfg, key), bool):
             raise ValueError(f"{key} must be true or false, got {_get(cfg, key)!r}")
 
+
 def _in_range(cfg: Mapping, key: str, low: float, high: float, low_open: bool, high_open: bool,
               optional: bool = False) -> float | None:
     value = _number(cfg, key)

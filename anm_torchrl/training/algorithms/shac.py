@@ -1,8 +1,8 @@
 """SHAC (short-horizon actor-critic, Xu et al., ICLR 2022) behind the training protocol: the actor is trained by
 backpropagating the return of ``loss.horizon``-step rollouts through a differentiable model of the grid, with a
-learned value for the tail; the critic regresses TD(λ) targets of the same rollouts. The rollouts take the
-actor's deterministic action, the one evaluation scores (``loss.noise=true``: samples of its ``TanhNormal``, as Xu
-et al.).
+learned value for the tail; the critic regresses TD(λ) targets of the same rollouts. The rollouts act with samples
+of the actor's ``TanhNormal`` (as Xu et al.; its scale is the model's ``init_log_std``, then learned) or, with
+``loss.noise=false``, with its deterministic action, the one evaluation scores.
 
 Model (``model.dynamics``): ``exact`` — the true transition with its gradients
 (:mod:`anm_torchrl.grid.differentiable`: implicit power-flow gradients, active-constraint projections), float64;
