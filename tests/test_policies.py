@@ -35,23 +35,24 @@ def test_unknown_or_corrupted_policies_fail_clearly(tmp_path, monkeypatch):
 
 
 def test_anm6_policy_beats_doing_nothing_on_a_test_state():
-    """The ANM6-Easy policy on test state 0 of the gap table, 500 steps: do-nothing's discounted return there is
-    about −5× the optimum's over the whole episode; the published policy is within 1.6× of it on all 8 states
-    (README of the policies folder), so 2× the do-nothing return is a loose bar that a broken or random actor fails."""
+    """The ANM6-Easy policy (SHAC through the exact simulator) on test state 0 of the gap table, 500 steps, must keep
+    its loss under half of do-nothing's there: do-nothing loses 66x the optimum's return over the 8 test states and
+    the published policy 1.12x (policies README), so a broken or random actor fails while noise in the policy's
+    training does not."""
     from anm_torchrl.baselines import make_baseline
     from anm_torchrl.envs import ANM6Env
     from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
 
     ckpt = load_checkpoint(pretrained_path("anm6_easy"))
-    assert ckpt["algorithm"] == "ppo" and ckpt["config"].get("network", "anm6_easy") == "anm6_easy"
+    assert ckpt["algorithm"] == "shac" and ckpt["config"].get("network", "anm6_easy") == "anm6_easy"
     actor = load_actor(ckpt)
     state = draw_initial_states(8, 0)[:1]
-    ppo = evaluate_policy(actor, state, max_steps=500, env=ANM6Env(1, seed=0))
+    policy = evaluate_policy(actor, state, max_steps=500, env=ANM6Env(1, seed=0))
     idle = evaluate_policy(make_baseline("do_nothing"), state, max_steps=500, env=ANM6Env(1, seed=0))
-    assert not bool(ppo.terminated.any())
-    assert torch.isfinite(ppo.discounted_returns).all()
-    assert float(ppo.discounted_returns) > 0.5 * float(idle.discounted_returns), (ppo.discounted_returns,
-                                                                                  idle.discounted_returns)
+    assert not bool(policy.terminated.any())
+    assert torch.isfinite(policy.discounted_returns).all()
+    assert float(policy.discounted_returns) > 0.5 * float(idle.discounted_returns), (policy.discounted_returns,
+                                                                                     idle.discounted_returns)
 
 
 FEEDERS = [name for name in available_pretrained() if name != "anm6_easy"]
