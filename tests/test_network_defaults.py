@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 from omegaconf import OmegaConf, open_dict
 
-from recipe_utils import compose
+from recipe_utils import CONF, compose
 
 from anm_torchrl.training.config_checks import check_ppo_config, check_sac_config, check_shac_config
 from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
@@ -39,19 +39,16 @@ def test_a_group_choice_protects_its_keys():
     assert cfg.model.init_action == "do_nothing"
 
 
-def test_a_group_choice_with_the_config_folder_protects_only_what_its_file_sets(tmp_path):
+def test_a_group_choice_with_the_config_folder_protects_only_what_its_file_sets():
     """``model=pinn`` (the SHAC recipe's model/pinn.yaml: the default model plus ``dynamics``) protects only
     ``model.dynamics``: the network's entry still sets the rest of the model group (case33bw's do-nothing start),
     as for ``python recipes/shac.py network=case33bw`` without the choice; ``eval=default`` still protects all."""
-    from pathlib import Path
-
-    conf = Path(__file__).resolve().parents[1] / "recipes" / "conf"
-    assert explicit_keys(["model=pinn", "network=case33bw"], conf) == {"model.dynamics", "network"}
-    assert {f"eval.{k}" for k in compose("config", []).eval} <= explicit_keys(["eval=default"], conf)
-    assert explicit_keys(["model=no_such_option"], conf) == {"model"}  # Hydra rejects it; nothing is guessed
+    assert explicit_keys(["model=pinn", "network=case33bw"], CONF) == {"model.dynamics", "network"}
+    assert {f"eval.{k}" for k in compose("config", []).eval} <= explicit_keys(["eval=default"], CONF)
+    assert explicit_keys(["model=no_such_option"], CONF) == {"model"}  # Hydra rejects it; nothing is guessed
     overrides = ["network=case33bw", "model=pinn"]
     cfg = compose("shac", overrides)
-    info = apply_network_defaults(cfg, explicit_keys(overrides, conf))
+    info = apply_network_defaults(cfg, explicit_keys(overrides, CONF))
     assert cfg.model.dynamics == "pinn" and info["applied"]["model.init_action"] == "do_nothing"
 
 

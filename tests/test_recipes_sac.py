@@ -83,12 +83,13 @@ def test_the_replay_buffer_stores_only_what_the_loss_reads():
     diagnostics) made a frame 17 kB on the 115-bus feeder, a 1M-frame buffer 17 GB, and two runs swapped a 24 GB
     machine to a halt. Keys only, so training is unchanged (the losses were compared bit for bit before and after)."""
     import torch
+    from recipe_utils import compose
 
-    from anm_torchrl.benchmarks.training import _config
     from anm_torchrl.training.algorithms import get_algorithm
 
-    # 4 envs x 16 steps per iteration (the benchmark's config): one random warm-up iteration
-    cfg = _config("sac", "anm6_easy", 4, ["collector.init_random_frames=64", "replay.batch_size=8"])
+    # 4 envs x 16 steps per iteration: one random warm-up iteration
+    cfg = compose("sac", ["network=anm6_easy", "env.num_envs=4", "collector.frames_per_batch=64",
+                          "collector.init_random_frames=64", "replay.batch_size=8"])
     algo = get_algorithm("sac")(cfg, device=torch.device("cpu"), seed=0, budget=64, reward_scale=1.0, resume=None)
     try:
         algo.iterate(64)

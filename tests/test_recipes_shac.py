@@ -62,12 +62,11 @@ def test_shac_config_errors_name_the_key(override, message):
 
 def _tiny_shac(*overrides: str):
     import torch
-    from hydra import compose, initialize_config_dir
+    from recipe_utils import compose
 
     from anm_torchrl.training.algorithms import get_algorithm
 
-    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
-        cfg = compose(config_name="shac", overrides=[*TINY_SHAC, *overrides])
+    cfg = compose("shac", [*TINY_SHAC, *overrides])
     return get_algorithm("shac")(cfg, device=torch.device("cpu"), seed=0, budget=64, reward_scale=1.0, resume=None)
 
 

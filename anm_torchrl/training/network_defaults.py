@@ -36,11 +36,11 @@ def explicit_keys(overrides: Iterable[str], conf_dir: str | Path | None = None) 
     keys = set()
     for item in overrides:
         key, _, value = str(item).partition("=")
-        key = key.lstrip("+~").strip().split("@", 1)[0]
+        key, choice = key.lstrip("+~").strip().split("@", 1)[0], value.strip()
         if not key:
             continue
-        option = Path(conf_dir, key, f"{value.strip()}.yaml") if conf_dir is not None and "." not in key else None
-        if option is not None and value.strip() and option.is_file():
+        option = Path(conf_dir, key, f"{choice}.yaml") if conf_dir is not None and choice and "." not in key else None
+        if option is not None and option.is_file():
             own = OmegaConf.to_container(OmegaConf.load(option), resolve=False)
             own.pop("defaults", None)
             keys.update(f"{key}.{k}" for k in _flatten(own))
