@@ -87,7 +87,7 @@ def _train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
     """Train one cell into ``run_dir`` in this (worker) process: the recipe's config composed with the command's
     keys, the network's defaults applied to the keys it does not set (as the recipe does), then the shared protocol
     (which checks the config first)."""
-    from anm_torchrl.experiments.ppo_runs import compose_ppo_config
+    from anm_torchrl.experiments.ppo_runs import CONF_DIR, compose_ppo_config
     from anm_torchrl.training import protocol
     from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
 
@@ -95,7 +95,7 @@ def _train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
     shutil.rmtree(run_dir, ignore_errors=True)  # an unfinished earlier attempt: its logs would mix with these
     t0, load = time.perf_counter(), os.getloadavg()[0]
     cfg = compose_ppo_config(keys, config_name=RECIPE_CONFIGS[Path(command[1]).name])
-    protocol.train(cfg, run_dir, network_defaults=apply_network_defaults(cfg, explicit_keys(keys, RECIPES / "conf")))
+    protocol.train(cfg, run_dir, network_defaults=apply_network_defaults(cfg, explicit_keys(keys, CONF_DIR)))
     return {"process_wall_s": time.perf_counter() - t0, "load_avg_1min": [load, os.getloadavg()[0]]}
 
 
