@@ -48,6 +48,7 @@ def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
     ("loss.horizon=0", "loss.horizon must be an integer >= 1, got 0"),
     ("model.dynamics=mlp", "model.dynamics must be one of exact, pinn; got 'mlp'"),
     ("loss.noise=yes", "loss.noise must be true or false, got 'yes'"),
+    ("optim.anneal_lr=1", "optim.anneal_lr must be true or false, got 1"),
 ])
 def test_shac_config_errors_name_the_key(override, message):
     from hydra import compose, initialize_config_dir
@@ -85,3 +86,17 @@ def test_shac_rollouts_take_the_deterministic_action_unless_noise_is_asked(noise
         losses.append(float(metrics["train/loss_actor"]))
         assert (float(metrics["train/action_scale"]) > 0) == noise
     assert (losses[0] != losses[1]) == noise, losses
+
+
+@pytest.mark.parametrize("anneal", [False, True])
+def test_shac_anneals_both_learning_rates_linearly_over_the_budget_when_asked(anneal):
+    """``optim.anneal_lr=true``: each iteration sets the actor's and the critic's Adam lr to the configured value
+    times the share of ``collector.total_frames`` still to run (1 at the first iteration, 0 once spent)."""
+    algo = _tiny_shac(f"optim.anneal_lr={str(anneal).lower()}", "optim.actor_lr=0.001", "optim.critic_lr=0.002")
+    frames, _ = algo.iterate(64)  # budget 64: the first iteration starts the schedule at its full value
+    assert [algo.actor_optim.param_groups[0]["lr"], algo.critic_optim.param_groups[0]["lr"]] == [0.001, 0.002]
+    assert frames < 64, "a second iteration is needed to see the decay"
+    algo.iterate(64 - frames)
+    left = 1.0 - frames / 64 if anneal else 1.0
+    assert algo.actor_optim.param_groups[0]["lr"] == pytest.approx(0.001 * left)
+    assert algo.critic_optim.param_groups[0]["lr"] == pytest.approx(0.002 * left)

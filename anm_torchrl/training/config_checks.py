@@ -267,7 +267,7 @@ def check_shac_config(cfg: Mapping) -> None:
     _in_range(cfg, "loss.target_tau", 0, 1, True, False)
     _int(cfg, "loss.critic_epochs")
     _int(cfg, "loss.critic_batch_size")
-    _bool(cfg, "loss.noise")
+    _bool(cfg, "loss.noise", "optim.anneal_lr")
     _in_range(cfg, "optim.actor_lr", 0, math.inf, True, True)
     _in_range(cfg, "optim.critic_lr", 0, math.inf, True, True)
     _in_range(cfg, "optim.eps", 0, math.inf, True, True)

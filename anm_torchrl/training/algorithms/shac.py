@@ -118,6 +118,7 @@ class SHAC(Algorithm):
         for p in self.target_critic.parameters():
             p.requires_grad_(False)
         self.model_frames = int(resume["frames"]) if resume else 0
+        self.total_frames = self.model_frames + int(budget)  # collector.total_frames (the schedule's end)
         self.env_frames = 0  # true-env transitions used for training: none (SHAC trains on the model)
         self.max_steps = None if cfg.env.max_steps is None else int(cfg.env.max_steps)
         td = self.env.reset()
@@ -138,6 +139,11 @@ class SHAC(Algorithm):
         horizon = max(1, min(int(cfg.loss.horizon), -(-remaining // n)))
         gamma, lam = float(cfg.loss.gamma), float(cfg.loss.td_lambda)
         t0 = time.perf_counter()
+        if cfg.optim.anneal_lr:
+            left = max(1.0 - self.model_frames / max(self.total_frames, 1), 0.0)
+            for optim, key in ((self.actor_optim, "actor_lr"), (self.critic_optim, "critic_lr")):
+                for group in optim.param_groups:
+                    group["lr"] = float(cfg.optim[key]) * left
         state, obs, steps = self.state, self.obs, self.steps
         ret = torch.zeros(n, device=state.device)
         disc = torch.ones(n, device=state.device)
