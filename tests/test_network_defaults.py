@@ -52,15 +52,17 @@ def test_a_group_choice_with_the_config_folder_protects_only_what_its_file_sets(
     assert cfg.model.dynamics == "pinn" and info["applied"]["model.init_action"] == "do_nothing"
 
 
-def test_anm6_entry_changes_only_the_learning_rate():
-    """ANM6-Easy keeps the groups' defaults but for its validated learning rate; a given lr is kept."""
+def test_anm6_entry_changes_only_the_learning_rate_and_the_start():
+    """ANM6-Easy keeps the groups' defaults but for its validated learning rate and gym-anm's initial distribution
+    (the true env's own default there; a surrogate's is uniform); a given key is kept."""
     cfg = compose("config", [])
     before = OmegaConf.to_container(cfg)
-    assert apply_network_defaults(cfg)["applied"] == {"optim.lr": 1.0e-4}
+    assert apply_network_defaults(cfg)["applied"] == {"optim.lr": 1.0e-4, "env.init": "gym_anm"}
     after = OmegaConf.to_container(cfg)
-    assert after["optim"].pop("lr") == 1.0e-4 and before["optim"].pop("lr") == 3.0e-4 and after == before
-    given = compose("config", ["optim.lr=3e-4"])
-    assert apply_network_defaults(given, explicit={"optim.lr"})["applied"] == {}
+    assert after["optim"].pop("lr") == 1.0e-4 and before["optim"].pop("lr") == 3.0e-4
+    assert after["env"].pop("init") == "gym_anm" and before["env"].pop("init") is None and after == before
+    given = compose("config", ["optim.lr=3e-4", "env.init=uniform"])
+    assert apply_network_defaults(given, explicit={"optim.lr", "env.init"})["applied"] == {}
 
 
 @pytest.mark.parametrize("network", ["my_feeder.npz", "my_registered_feeder"])
