@@ -51,12 +51,11 @@ def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
     ("optim.anneal_lr=1", "optim.anneal_lr must be true or false, got 1"),
 ])
 def test_shac_config_errors_name_the_key(override, message):
-    from hydra import compose, initialize_config_dir
+    from recipe_utils import compose
 
     from anm_torchrl.training.algorithms import check_algorithm_config
 
-    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
-        cfg = compose(config_name="shac", overrides=[*TINY_SHAC, override])
+    cfg = compose("shac", [*TINY_SHAC, override])
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         check_algorithm_config(cfg)
 

@@ -12,6 +12,12 @@ from typing import Any, ClassVar
 from omegaconf import DictConfig
 
 
+def anneal_lr(optimizer, lr: float, frames: int, total_frames: int) -> None:
+    """Set every group of ``optimizer`` to ``lr`` decayed linearly to 0 over ``total_frames`` (``frames`` done)."""
+    for group in optimizer.param_groups:
+        group["lr"] = float(lr) * max(1.0 - frames / total_frames, 0.0)
+
+
 class Algorithm:
     """One training algorithm. Subclasses set the class attributes and implement every method.
 

@@ -19,7 +19,7 @@ import torch
 from omegaconf import DictConfig
 from tensordict import TensorDict
 
-from anm_torchrl.training.algorithms.base import Algorithm
+from anm_torchrl.training.algorithms.base import Algorithm, anneal_lr
 
 
 # what ClipPPOLoss reads once GAE has written the advantage and value target
@@ -147,8 +147,7 @@ class PPO(Algorithm):
         # without replacement over the kept frames
         t0 = time.perf_counter()
         if cfg.optim.anneal_lr:
-            for group in optim.param_groups:
-                group["lr"] = float(cfg.optim.lr) * max(1.0 - self.frames / self.total_frames, 0.0)
+            anneal_lr(optim, cfg.optim.lr, self.frames, self.total_frames)
         mini = int(cfg.loss.mini_batch_size)
         losses = []
         for epoch in range(int(cfg.loss.ppo_epochs)):

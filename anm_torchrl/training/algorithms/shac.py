@@ -33,7 +33,7 @@ import torch
 from omegaconf import DictConfig
 from tensordict import TensorDict
 
-from anm_torchrl.training.algorithms.base import Algorithm
+from anm_torchrl.training.algorithms.base import Algorithm, anneal_lr
 from anm_torchrl.training.algorithms.ppo import model_options
 
 DYNAMICS = ("exact", "pinn")
@@ -118,7 +118,6 @@ class SHAC(Algorithm):
         for p in self.target_critic.parameters():
             p.requires_grad_(False)
         self.model_frames = int(resume["frames"]) if resume else 0
-        self.total_frames = self.model_frames + int(budget)  # collector.total_frames (the schedule's end)
         self.env_frames = 0  # true-env transitions used for training: none (SHAC trains on the model)
         self.max_steps = None if cfg.env.max_steps is None else int(cfg.env.max_steps)
         td = self.env.reset()
@@ -140,10 +139,9 @@ class SHAC(Algorithm):
         gamma, lam = float(cfg.loss.gamma), float(cfg.loss.td_lambda)
         t0 = time.perf_counter()
         if cfg.optim.anneal_lr:
-            left = max(1.0 - self.model_frames / max(self.total_frames, 1), 0.0)
-            for optim, key in ((self.actor_optim, "actor_lr"), (self.critic_optim, "critic_lr")):
-                for group in optim.param_groups:
-                    group["lr"] = float(cfg.optim[key]) * left
+            total = int(cfg.collector.total_frames)
+            anneal_lr(self.actor_optim, cfg.optim.actor_lr, self.model_frames, total)
+            anneal_lr(self.critic_optim, cfg.optim.critic_lr, self.model_frames, total)
         state, obs, steps = self.state, self.obs, self.steps
         ret = torch.zeros(n, device=state.device)
         disc = torch.ones(n, device=state.device)
