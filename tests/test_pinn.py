@@ -26,7 +26,7 @@ from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn import cache
 from anm_torchrl.surrogates.pinn import train as tr
-from anm_torchrl.surrogates.pinn.chain import build_chain
+from anm_torchrl.surrogates.pinn.chain import build_chain, run_chain
 from anm_torchrl.surrogates.pinn.load import load_pinn
 from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn, random_transitions
 from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT, clamp_to_polygon
@@ -148,9 +148,9 @@ def test_short_training_lowers_each_loss(sim, name):
         assert float(after[k]) < float(before[k]), (name, k, float(before[k]), float(after[k]))
 
 
-def test_outputs_respect_device_limits(sim, chain):
+def test_outputs_respect_device_limits(sim, smoke_file):
     """With the clamp safeguard every projected output lies in its polygon (even for a barely trained net)."""
-    td = chain(_batch(sim, 4000, seed=3))
+    td = load_pinn(path=smoke_file, duals=True)(_batch(sim, 4000, seed=3))
     gen_pq, des_pq = td.get((P, "gen_pq")), td.get((P, "des_pq"))
     hg = sim.generator_h(td.get((P, "p_pot")))
     hd = sim.storage_h(td.get((P, "soc")))
@@ -198,8 +198,46 @@ def test_chain_pieces_run_alone(sim, chain):
     td = des_part(_batch(sim, 16))
     torch.testing.assert_close(td.get((P, "des_pq")), full.get((P, "des_pq")), rtol=0, atol=0)
     # the plain modules work on tensors, too
-    pq, lam = chain[1].module(full.get((P, "gen_target")), full.get((P, "p_pot")))
+    pq = chain[1].module(full.get((P, "gen_target")), full.get((P, "p_pot")))
     torch.testing.assert_close(pq, full.get((P, "gen_pq")), rtol=0, atol=0)
+
+
+def _structured_modules(sim):
+    """Untrained modules with the ``default`` preset's structural options (hard constraints, gates, dual nets)."""
+    torch.manual_seed(0)
+    kw = dict(hidden=8, depth=1, hard_constraints=True, gated=True, separate_dual=True, dual_gate=0.01)
+    mods = tr.build_modules(tr.preset("smoke"), sim)
+    return GeneratorKKT(sim, **kw), StorageKKT(sim, **kw), mods["power_balance"]
+
+
+@pytest.mark.parametrize("structured", [False, True])
+def test_lean_chain_and_run_chain_match_the_chain_with_duals(sim, smoke_file, structured):
+    """``duals=False`` drops only the multipliers, and :func:`run_chain` computes the ``TensorDict`` chain's values
+    with the same modules: equal outputs (bit for bit) and equal action gradients (the hard-constraint clamp is
+    no longer applied twice, which at a binding bound splits a tie of min/max differently: round-off only)."""
+    if structured:
+        gen, sto, pb = _structured_modules(sim)
+    else:
+        mods, _, _ = tr.load_modules(smoke_file, sim)
+        gen, sto, pb = mods["generator"], mods["storage"], mods["power_balance"]
+    full = build_chain(sim, gen, sto, pb, duals=True)
+    lean = build_chain(sim, gen, sto, pb)
+    batch = _batch(sim, 256, seed=4)
+    a_full = batch.get("action").clone().requires_grad_(True)
+    a_lean = batch.get("action").clone().requires_grad_(True)
+    out_full = full(TensorDict({"state": batch.get("state"), "action": a_full}, [256]))
+    out_run = run_chain(lean, {"state": batch.get("state"), "action": a_lean})
+    assert set(lean.out_keys) == set(full.out_keys) - {(P, "gen_lambda"), (P, "des_lambda")}
+    assert set(out_run) == set(lean.out_keys) | {"state", "action"}
+    for key in lean.out_keys:
+        assert torch.equal(out_run[key], out_full.get(key)), key
+    keys = ("reward", (P, "p_dev_all"), (P, "v_magn"))  # the smoke chain's reward is mostly terminal (constant)
+    (g_full,) = torch.autograd.grad(sum(out_full.get(k).sum() for k in keys), a_full)
+    (g_run,) = torch.autograd.grad(sum(out_run[k].sum() for k in keys), a_lean)
+    assert g_full.abs().sum() > 0
+    torch.testing.assert_close(g_run, g_full, rtol=1e-12, atol=1e-12)
+    with pytest.raises(KeyError):
+        run_chain(lean, {"state": batch.get("state")})
 
 
 def test_save_load_round_trip_and_wrong_kind(sim, smoke_file, tmp_path):

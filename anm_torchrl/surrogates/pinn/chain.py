@@ -11,8 +11,8 @@ module                 reads                                      writes (all p.
                                                                   (N, n_des, 2), ``soc`` (N, n_des) p.u.·h,
                                                                   ``p_load``/``q_load`` (N, n_load) at t+1,
                                                                   ``t_next`` (N,) aux of the next state
-``generator`` KKT-NN   ``gen_target``, ``p_pot``                  ``gen_pq`` (N, n_gen, 2), ``gen_lambda`` (N, n_gen, 7)
-``storage`` KKT-NN     ``des_target``, ``soc``                    ``des_pq`` (N, n_des, 2), ``des_lambda`` (…, 10)
+``generator`` KKT-NN   ``gen_target``, ``p_pot``                  ``gen_pq`` (N, n_gen, 2) [, ``gen_lambda`` (N, n_gen, 7)]
+``storage`` KKT-NN     ``des_target``, ``soc``                    ``des_pq`` (N, n_des, 2) [, ``des_lambda`` (…, 10)]
 ``aggregation``        ``gen_pq``, ``des_pq``, ``p_load``,        ``p_dev``/``q_dev`` (N, n_dev) (slack 0),
                        ``q_load``                                 ``p_bus``/``q_bus`` (N, n_bus)
 ``power_balance`` PINN ``p_bus``, ``q_bus``                       ``v_magn`` (N, n_bus), ``v_ang`` (N, n_bus) rad
@@ -31,6 +31,10 @@ The slack injection, branch flows, SoC update, ΔE, λΦ, curtailment and the cl
 ``energy_loss``, ``penalty``, ``curtailment``, ``clipped_reward``); only the projections and the power flow are
 learned. Every piece is a ``TensorDictModule`` usable alone, e.g.
 ``chain.select_subsequence(in_keys=[("pinn", "p_bus"), ("pinn", "q_bus")], out_keys=[("pinn", "v_magn")])``.
+The multipliers λ (bracketed) are written only by a chain built with ``duals=True``: they are a training device
+(the KKT losses), and their networks would double the projections' inference cost. :func:`run_chain` runs the
+same modules on plain tensors, without the ``TensorDict`` bookkeeping (~20 % of a step at batch 64), for
+callers that differentiate through many steps (SHAC).
 
 Terminal states (``terminal="physics"``, the default, needs no simulator sample): a transition is terminal when
 the power-flow residual of the predicted voltages at the predicted injections exceeds ``residual_threshold``
@@ -72,7 +76,7 @@ from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.grid.identity import transition_key
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
-from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, StorageKKT
+from anm_torchrl.surrogates.pinn.kkt import GeneratorKKT, PrimalProjection, StorageKKT
 from anm_torchrl.surrogates.pinn.losses import power_balance_residuals
 from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
 from anm_torchrl.surrogates.pinn.presets import MODULES
@@ -211,7 +215,7 @@ class NextStateReward(nn.Module):
 def build_chain(sim: GridSimulator, generator: GeneratorKKT, storage: StorageKKT, power_balance: PowerBalanceNet,
                 terminal: str = "physics", classifier: Any = None,
                 residual_threshold: float = DEFAULT_RESIDUAL_THRESHOLD,
-                v_range: tuple[float, float] = DEFAULT_V_RANGE) -> TensorDictSequential:
+                v_range: tuple[float, float] = DEFAULT_V_RANGE, duals: bool = False) -> TensorDictSequential:
     """Assemble the PINN surrogate chain (see the module docstring) from trained modules.
 
     Args:
@@ -220,15 +224,23 @@ def build_chain(sim: GridSimulator, generator: GeneratorKKT, storage: StorageKKT
         terminal: ``"physics"`` (:class:`PhysicsTerminal`) or ``"classifier"`` (needs ``classifier``).
         classifier: an object with ``predict_terminated(state, action) -> (N,) bool``.
         residual_threshold, v_range: of the physics check.
+        duals: also write the KKT-NNs' multipliers ``gen_lambda`` / ``des_lambda`` (the other outputs are the same).
     """
     if terminal not in TERMINALS:
         raise ValueError(f"terminal must be one of {TERMINALS}, got {terminal!r}")
     k = lambda *names: [(P, n) for n in names]  # noqa: E731
+
+    def projection(module: nn.Module, name: str, theta: str) -> TensorDictModule:
+        ins = k(f"{name}_target", theta)
+        if duals:
+            return TensorDictModule(module, in_keys=ins, out_keys=k(f"{name}_pq", f"{name}_lambda"))
+        return TensorDictModule(PrimalProjection(module), in_keys=ins, out_keys=k(f"{name}_pq"))
+
     mods = [
         TensorDictModule(ExogenousInputs(sim), in_keys=["state", "action"],
                          out_keys=k("gen_target", "p_pot", "des_target", "soc", "p_load", "q_load", "t_next")),
-        TensorDictModule(generator, in_keys=k("gen_target", "p_pot"), out_keys=k("gen_pq", "gen_lambda")),
-        TensorDictModule(storage, in_keys=k("des_target", "soc"), out_keys=k("des_pq", "des_lambda")),
+        projection(generator, "gen", "p_pot"),
+        projection(storage, "des", "soc"),
         TensorDictModule(BusAggregation(sim), in_keys=k("gen_pq", "des_pq", "p_load", "q_load"),
                          out_keys=k("p_dev", "q_dev", "p_bus", "q_bus")),
         TensorDictModule(power_balance, in_keys=k("p_bus", "q_bus"), out_keys=k("v_magn", "v_ang")),
@@ -251,3 +263,21 @@ def build_chain(sim: GridSimulator, generator: GeneratorKKT, storage: StorageKKT
     chain = TensorDictSequential(*mods)
     chain.transition_key = transition_key(sim)  # SurrogateEnv refuses to run it on another network or other profiles
     return chain.eval()
+
+
+def run_chain(chain: TensorDictSequential, inputs: dict) -> dict:
+    """Run ``chain``'s modules in order on plain tensors: ``inputs`` maps its in-keys (e.g. ``"state"``,
+    ``"action"``) to tensors; returns every key the modules write (``("pinn", k)``, ``"next_state"``, ...) — the
+    values ``chain(TensorDict(inputs))`` holds, computed by the same modules, without building a ``TensorDict``.
+
+    Raises:
+        KeyError: an input a module reads is neither given nor written by an earlier module.
+    """
+    values = dict(inputs)
+    for mod in chain.module:
+        out = mod.module(*(values[key] for key in mod.in_keys))
+        out = out if isinstance(out, tuple) else (out,)
+        if len(out) != len(mod.out_keys):
+            raise ValueError(f"{type(mod.module).__name__} returned {len(out)} outputs for out_keys {mod.out_keys}")
+        values.update(zip(mod.out_keys, out))
+    return values

@@ -55,6 +55,7 @@ from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.grid import reset as grid_reset
+from anm_torchrl.surrogates.pinn.kkt import projection_net
 
 log = logging.getLogger(__name__)
 P = "pinn"
@@ -158,7 +159,8 @@ def evaluate_pinn(chain: TensorDictSequential, sim: GridSimulator, state: torch.
     nxt, tr = sim.step(state, action)
     t_sim = time.perf_counter() - t0
     ok = tr.converged
-    gen_mod, des_mod, pb_mod = chain[1].module, chain[2].module, chain[4].module
+    gen_mod, des_mod = (projection_net(chain[i].module) for i in (1, 2))
+    pb_mod = chain[4].module
     gen_t, p_pot = out.get((P, "gen_target")), out.get((P, "p_pot"))
     des_t, soc = out.get((P, "des_target")), out.get((P, "soc"))
     gen_ref, des_ref = sim.project_generators(gen_t, p_pot), sim.project_storage(des_t, soc)

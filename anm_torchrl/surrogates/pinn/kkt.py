@@ -147,15 +147,16 @@ class _ProjectionKKT(nn.Module):
         """Right-hand sides h (N, n, m) p.u. for the parameter θ (N, n)."""
         raise NotImplementedError
 
-    def predict_scaled(self, target: torch.Tensor, theta: torch.Tensor) -> dict[str, torch.Tensor]:
+    def predict_scaled(self, target: torch.Tensor, theta: torch.Tensor, duals: bool = True) -> dict[str, torch.Tensor]:
         """The raw network prediction in rating units, for the losses.
 
         Args:
             target: (N, n, 2) set-points (P, Q) p.u.; theta: (N, n) parameter (P_pot p.u. / SoC p.u.·h).
+            duals: also predict the multipliers (``False`` skips the dual network: inference needs only x).
 
         Returns:
-            ``x`` (N, n, 2) raw primal, ``lam`` (N, n, m) duals ≥ 0, ``target`` (N, n, 2), ``h`` (N, n, m) and
-            ``g`` (n, m, 2) — all float64, in rating units (divided by the device's ``scale``). With
+            ``x`` (N, n, 2) raw primal, ``lam`` (N, n, m) duals ≥ 0 (with ``duals``), ``target`` (N, n, 2), ``h``
+            (N, n, m) and ``g`` (n, m, 2) — all float64, in rating units (divided by the device's ``scale``). With
             ``hard_constraints`` the primal is already clamped into the polygon.
         """
         s = self.scale.unsqueeze(-1)
@@ -165,9 +166,6 @@ class _ProjectionKKT(nn.Module):
                            self.cond.expand(*theta.shape, -1)], -1)
         feats = feats.to(dtype)
         out = self.net(feats).to(torch.float64)
-        z = (out[..., 2:] if self.dual_net is None else self.dual_net(feats).to(torch.float64)) + DUAL_SHIFT
-        # the floor keeps collapsed multipliers (~1e-13) out of the float64 denormal range, which is very slow on CPU
-        lam = F.softplus(z.clamp(min=-30.0)) if self.dual_activation == "softplus" else torch.relu(z)
         t = target / s
         h = self.rhs(theta) / s
         if self.gated:  # correction per unit of the target's largest violation: x = t exactly on the set
@@ -177,26 +175,56 @@ class _ProjectionKKT(nn.Module):
             x = t + out[..., :2]
         if self.hard_constraints:
             x = clamp_to_polygon(x, self.g, h)
+        pred = {"x": x, "target": t, "h": h, "g": self.g}
+        if duals:
+            pred["lam"] = self._duals(feats, out, x, h)
+        return pred
+
+    def _duals(self, feats: torch.Tensor, out: torch.Tensor, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """Multipliers (N, n, m) ≥ 0 in rating units from the dual head (or network) and the activity gate."""
+        z = (out[..., 2:] if self.dual_net is None else self.dual_net(feats).to(torch.float64)) + DUAL_SHIFT
+        # the floor keeps collapsed multipliers (~1e-13) out of the float64 denormal range, which is very slow on CPU
+        lam = F.softplus(z.clamp(min=-30.0)) if self.dual_activation == "softplus" else torch.relu(z)
         if self.dual_gate > 0:  # complementary slackness by construction: λ_j → 0 off the boundary of row j
             slack = constraint_slack(x.detach(), self.g, h).clamp(max=0.0)
             lam = lam * torch.exp((slack / self.dual_gate).clamp(min=-20.0))  # floor: no denormals in backward
-        return {"x": x, "lam": lam, "target": t, "h": h, "g": self.g}
+        return lam
 
     def forward(self, target: torch.Tensor, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Projected (P, Q) (N, n, 2) p.u. (safeguarded if ``self.safeguard``) and duals λ (N, n, m) of
         ``min ½‖x − t‖²`` in p.u."""
+        return self._project(target, theta, duals=True)
+
+    def project(self, target: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        """Projected (P, Q) (N, n, 2) p.u. alone, as :meth:`forward`'s first output, without the dual network."""
+        return self._project(target, theta, duals=False)
+
+    def _project(self, target: torch.Tensor, theta: torch.Tensor, duals: bool):
         shape = target.shape
         if shape[-2] == 0:  # a network without devices of this kind
-            return target.new_zeros(shape, dtype=torch.float64), target.new_zeros(*shape[:-1], self.n_rows,
-                                                                                   dtype=torch.float64)
+            x = target.new_zeros(shape, dtype=torch.float64)
+            return (x, target.new_zeros(*shape[:-1], self.n_rows, dtype=torch.float64)) if duals else x
         target = target.reshape(-1, *shape[-2:]).to(torch.float64)
         theta = theta.reshape(-1, shape[-2]).to(torch.float64)
-        pred = self.predict_scaled(target, theta)
+        pred = self.predict_scaled(target, theta, duals=duals)
         x = pred["x"]
-        if self.safeguard:
+        if self.safeguard and not self.hard_constraints:  # with hard constraints x is in the polygon already
             x = clamp_to_polygon(x, pred["g"], pred["h"])
         s = self.scale.unsqueeze(-1)
-        return (x * s).reshape(shape), (pred["lam"] * s).reshape(*shape[:-1], self.n_rows)
+        x = (x * s).reshape(shape)
+        return (x, (pred["lam"] * s).reshape(*shape[:-1], self.n_rows)) if duals else x
+
+
+class PrimalProjection(nn.Module):
+    """A KKT-NN's projection alone (:meth:`_ProjectionKKT.project`): ``(target, theta) -> pq``, the inference
+    chain's module when the multipliers are not asked for (the dual network is a training device)."""
+
+    def __init__(self, kkt: _ProjectionKKT):
+        super().__init__()
+        self.kkt = kkt
+
+    def forward(self, target: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+        return self.kkt.project(target, theta)
 
 
 class GeneratorKKT(_ProjectionKKT):
@@ -256,3 +284,8 @@ class StorageKKT(_ProjectionKKT):
 
     def rhs(self, theta: torch.Tensor) -> torch.Tensor:
         return self.sim.storage_h(theta)
+
+
+def projection_net(module: nn.Module) -> _ProjectionKKT:
+    """The KKT-NN of a chain's projection module (the module itself, or the one a :class:`PrimalProjection` wraps)."""
+    return module.kkt if isinstance(module, PrimalProjection) else module

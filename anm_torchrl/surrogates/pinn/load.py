@@ -28,7 +28,8 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
               terminal: str = "physics", classifier_path: str | Path | None = None,
               residual_threshold: float | None = None, v_range: tuple[float, float] | None = None,
               train_if_missing: bool | None = None, preset: str = "default", overwrite_cache: bool = False,
-              progress: bool = True, log_dir: str | Path | None = None, seed: int = 0) -> TensorDictSequential:
+              progress: bool = True, log_dir: str | Path | None = None, seed: int = 0,
+              duals: bool = False) -> TensorDictSequential:
     """The PINN surrogate chain on ``sim``, loaded from ``path`` or trained (and cached) on first use.
 
     The chain reads everything exogenous — loads and renewable potentials of the next step — from ``sim``'s
@@ -52,6 +53,7 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
         progress: show a tqdm bar while training.
         log_dir: TensorBoard folder for that training (default ``<folder>/tb``).
         seed: training seed.
+        duals: the chain also writes the KKT-NNs' multipliers (:func:`.chain.build_chain`).
 
     Raises:
         ValueError: bad ``terminal`` / threshold / ``v_range`` / device, or a file that is not a PINN file,
@@ -90,4 +92,5 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
                              log_dir=log_dir if log_dir is not None else file.parent / "tb", progress=progress)
     modules, _, _ = tr.load_modules(file, sim)
     return build_chain(sim, modules["generator"], modules["storage"], modules["power_balance"], terminal=terminal,
-                       classifier=classifier, residual_threshold=residual_threshold, v_range=v_range)
+                       classifier=classifier, residual_threshold=residual_threshold, v_range=v_range,
+                       duals=duals)

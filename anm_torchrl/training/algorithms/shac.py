@@ -63,12 +63,14 @@ class PINNModel:
     """The PINN chain as a model (same call as :class:`ExactModel`); its observation must come from the state."""
 
     def __init__(self, env, cfg):
+        from anm_torchrl.surrogates.pinn.chain import run_chain
         from anm_torchrl.surrogates.pinn.load import load_pinn
 
         surrogate = cfg.get("surrogate", {})
         path = surrogate.get("path") if surrogate.get("name") == "pinn" else None
         # the default cache trains on first use (as ``ppo.py surrogate=pinn``); an explicit path must exist
         self.chain = load_pinn(env.sim, path=path, progress=False)
+        self._run = run_chain  # the chain's modules on plain tensors: no TensorDict per step
         for p in self.chain.parameters():
             p.requires_grad_(False)
         self.obs_map = env.obs_map
@@ -76,10 +78,10 @@ class PINNModel:
             raise ValueError("model.dynamics=pinn needs an observation computed from the state alone")
 
     def __call__(self, state, action):
-        td = self.chain(TensorDict({"state": state, "action": action.to(state.dtype)}, [state.shape[0]]))
-        term = td["terminated"].reshape(-1)
-        nxt = td["next_state"]
-        return nxt, td["reward"].reshape(-1), term, self.obs_map.observe(nxt, None, term)
+        out = self._run(self.chain, {"state": state, "action": action.to(state.dtype)})
+        term = out["terminated"].reshape(-1)
+        nxt = out["next_state"]
+        return nxt, out["reward"].reshape(-1), term, self.obs_map.observe(nxt, None, term)
 
 
 class SHAC(Algorithm):
