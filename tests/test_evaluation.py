@@ -30,3 +30,49 @@ def test_configs_spell_the_protocol_constants(file, gamma_key, steps_key):
     if steps_key is not None:
         assert OmegaConf.select(cfg, steps_key, throw_on_missing=True) == EVAL_MAX_STEPS, f"{file}: {steps_key}"
 
+
+
+def _rollout_reference(policy, states, steps, env):
+    """The metrics from ``env.rollout`` (the loop :func:`evaluate_policy` reproduces without its bookkeeping)."""
+    import torch
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from anm_torchrl.evaluation import episode_metrics, reset_to
+
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        roll = env.rollout(steps, policy, tensordict=reset_to(env, states), auto_reset=False,
+                           break_when_any_done=False)
+    nxt = roll.get("next")
+    return episode_metrics(nxt["reward"].squeeze(-1), nxt[("grid", "e_loss")].squeeze(-1),
+                           nxt[("grid", "penalty")].squeeze(-1), nxt["terminated"].squeeze(-1))
+
+
+@pytest.mark.parametrize("kind", ["actor", "plain"])
+def test_evaluation_equals_the_env_rollout(kind):
+    """The recipes' actor (its deterministic sample written directly) and a plain policy give, bit for bit, the
+    metrics of ``env.rollout``; the plain policy drives the first grid to voltage collapse (every device absorbing
+    reactive power, the storage charging at its limit), so an episode terminates and its later steps are masked."""
+    import torch
+    from tensordict.nn import TensorDictModule
+
+    from anm_torchrl.envs import ANM6Env
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.training.models import make_ppo_models
+
+    env = ANM6Env(4, seed=0)
+    states = draw_initial_states(4, seed=3)
+    if kind == "actor":
+        torch.manual_seed(0)
+        policy = make_ppo_models(env)[0]
+    else:
+        low, high = env.action_spec.space.low[0], env.action_spec.space.high[0]
+        collapse = torch.stack([high[0], high[1], low[2], low[3], high[4], low[5]])
+        first = (torch.arange(4) == 0).unsqueeze(1)
+        spread = lambda obs: low + (high - low) * torch.sigmoid(obs[:, :6])  # noqa: E731
+        policy = TensorDictModule(lambda obs: torch.where(first, collapse, spread(obs)), in_keys=["observation"],
+                                  out_keys=["action"])
+    got = evaluate_policy(policy, states, max_steps=40, env=env)
+    want = _rollout_reference(policy, states, 40, ANM6Env(4, seed=0))
+    assert bool(got.terminated[0]) == (kind == "plain") and not bool(got.terminated[1:].any())
+    for field in ("returns", "discounted_returns", "e_loss", "penalty", "steps", "terminated"):
+        assert torch.equal(getattr(got, field), getattr(want, field)), field

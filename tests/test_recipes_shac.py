@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -49,6 +50,7 @@ def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
     ("model.dynamics=mlp", "model.dynamics must be one of exact, pinn; got 'mlp'"),
     ("loss.noise=yes", "loss.noise must be true or false, got 'yes'"),
     ("optim.anneal_lr=1", "optim.anneal_lr must be true or false, got 1"),
+    ("optim.actor_ema=1.5", "optim.actor_ema must be in [0, 1], got 1.5"),
 ])
 def test_shac_config_errors_name_the_key(override, message):
     from recipe_utils import compose
@@ -56,7 +58,7 @@ def test_shac_config_errors_name_the_key(override, message):
     from anm_torchrl.training.algorithms import check_algorithm_config
 
     cfg = compose("shac", [*TINY_SHAC, override])
-    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+    with pytest.raises(ValueError, match=re.escape(message)):
         check_algorithm_config(cfg)
 
 
@@ -99,3 +101,25 @@ def test_shac_anneals_both_learning_rates_linearly_over_the_budget_when_asked(an
     left = 1.0 - frames / 64 if anneal else 1.0
     assert algo.actor_optim.param_groups[0]["lr"] == pytest.approx(0.001 * left)
     assert algo.critic_optim.param_groups[0]["lr"] == pytest.approx(0.002 * left)
+
+
+@pytest.mark.parametrize("ema", [0.0, 0.25])
+def test_shac_evaluates_a_running_average_of_the_actor_when_asked(ema):
+    """``optim.actor_ema=w``: the rollouts train ``learner``; ``actor`` (what the protocol evaluates and saves)
+    moves by ``w`` towards it after each actor step, and ``learner`` is saved to resume. 0: one actor."""
+    import torch
+
+    torch.manual_seed(0)
+    algo = _tiny_shac(f"optim.actor_ema={ema}")
+    start = [p.detach().clone() for p in algo.actor.parameters()]
+    algo.iterate(64)
+    if ema == 0:
+        assert algo.learner is algo.actor and "learner" not in algo.state_dict()
+        return
+    moved = False
+    for p0, p_avg, p in zip(start, algo.actor.parameters(), algo.learner.parameters()):
+        torch.testing.assert_close(p_avg, p0 + ema * (p - p0), rtol=0, atol=1e-7)  # float32 lerp round-off
+        moved |= not torch.equal(p, p0)
+    assert moved
+    saved = algo.state_dict()["learner"]
+    assert all(torch.equal(saved[k], v) for k, v in algo.learner.state_dict().items())

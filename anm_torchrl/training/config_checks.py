@@ -273,6 +273,7 @@ def check_shac_config(cfg: Mapping) -> None:
     _in_range(cfg, "optim.eps", 0, math.inf, True, True)
     _in_range(cfg, "optim.weight_decay", 0, math.inf, False, True)
     _in_range(cfg, "optim.max_grad_norm", 0, math.inf, True, True)
+    _in_range(cfg, "optim.actor_ema", 0, 1, False, False)
 
 
 def check_evaluate_config(cfg: Mapping) -> None:

@@ -11,7 +11,7 @@ module                 reads                                      writes (all p.
                                                                   (N, n_des, 2), ``soc`` (N, n_des) p.u.·h,
                                                                   ``p_load``/``q_load`` (N, n_load) at t+1,
                                                                   ``t_next`` (N,) aux of the next state
-``generator`` KKT-NN   ``gen_target``, ``p_pot``                  ``gen_pq`` (N, n_gen, 2) [, ``gen_lambda`` (N, n_gen, 7)]
+``generator`` KKT-NN   ``gen_target``, ``p_pot``                  ``gen_pq`` (N, n_gen, 2) [, ``gen_lambda`` (…, 7)]
 ``storage`` KKT-NN     ``des_target``, ``soc``                    ``des_pq`` (N, n_des, 2) [, ``des_lambda`` (…, 10)]
 ``aggregation``        ``gen_pq``, ``des_pq``, ``p_load``,        ``p_dev``/``q_dev`` (N, n_dev) (slack 0),
                        ``q_load``                                 ``p_bus``/``q_bus`` (N, n_bus)

@@ -104,13 +104,18 @@ class SHAC(Algorithm):
         self.actor, self.critic, self.normalizer = make_ppo_models(
             self.env, obs_stats=resume["obs_norm"] if resume else None, **actor_options(cfg))
         self.actor, self.critic = self.actor.to(device), self.critic.to(device)
+        # the actor the rollouts train; ``self.actor`` (evaluated, checkpointed) is it or its running average
+        self.ema = float(cfg.optim.actor_ema)
+        self.learner = copy.deepcopy(self.actor) if self.ema > 0 else self.actor
         dyn = str(cfg.model.dynamics)
         self.model = ExactModel(self.env) if dyn == "exact" else PINNModel(self.env, cfg)
         adam = dict(eps=float(cfg.optim.eps), weight_decay=float(cfg.optim.weight_decay), betas=(0.7, 0.95))
-        self.actor_optim = torch.optim.Adam(self.actor.parameters(), lr=float(cfg.optim.actor_lr), **adam)
+        self.actor_optim = torch.optim.Adam(self.learner.parameters(), lr=float(cfg.optim.actor_lr), **adam)
         self.critic_optim = torch.optim.Adam(self.critic.parameters(), lr=float(cfg.optim.critic_lr), **adam)
         if resume:
             self.actor.load_state_dict(resume["actor"])
+            if self.ema > 0:  # a run resumed without its learner (checkpoint of an ema-less run) starts it there
+                self.learner.load_state_dict(resume["state"].get("learner", resume["actor"]))
             self.critic.load_state_dict(resume["state"]["critic"])
             self.actor_optim.load_state_dict(resume["state"]["actor_optimizer"])
             self.critic_optim.load_state_dict(resume["state"]["critic_optimizer"])
@@ -152,7 +157,7 @@ class SHAC(Algorithm):
         n_term, rewards, scales = 0, [], []
         for t in range(horizon):
             td = TensorDict({"observation": obs}, [n])
-            dist = self.actor.get_dist(td)  # writes "loc" and "scale" into td
+            dist = self.learner.get_dist(td)  # writes "loc" and "scale" into td
             action = dist.rsample() if self.noise else dist.deterministic_sample
             nxt, reward, term, next_obs = self.model(state, action)
             r = (reward * self.reward_scale).float()
@@ -183,9 +188,13 @@ class SHAC(Algorithm):
         actor_loss = loss / (horizon * n)
         self.actor_optim.zero_grad(set_to_none=True)
         actor_loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(self.actor.parameters(), float(cfg.optim.max_grad_norm))
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.learner.parameters(), float(cfg.optim.max_grad_norm))
         if torch.isfinite(grad_norm):
             self.actor_optim.step()
+            if self.ema > 0:
+                with torch.no_grad():
+                    for p_avg, p in zip(self.actor.parameters(), self.learner.parameters()):
+                        p_avg.lerp_(p, self.ema)
         t_rollout = time.perf_counter() - t0
         self.state, self.obs, self.steps = state.detach(), obs.detach(), steps
 
@@ -237,8 +246,11 @@ class SHAC(Algorithm):
         return frames, metrics
 
     def state_dict(self) -> dict[str, Any]:
-        return {"critic": self.critic.state_dict(), "target_critic": self.target_critic.state_dict(),
-                "actor_optimizer": self.actor_optim.state_dict(), "critic_optimizer": self.critic_optim.state_dict()}
+        state = {"critic": self.critic.state_dict(), "target_critic": self.target_critic.state_dict(),
+                 "actor_optimizer": self.actor_optim.state_dict(), "critic_optimizer": self.critic_optim.state_dict()}
+        if self.ema > 0:
+            state["learner"] = self.learner.state_dict()
+        return state
 
     @staticmethod
     def build_actor(env, config: Mapping[str, Any], obs_stats: Mapping[str, Any]):
