@@ -573,6 +573,29 @@ def test_training_is_deterministic(sim):
             assert torch.equal(va, vb), (name, k)
 
 
+def test_two_processes_train_the_weights_of_one(sim, tmp_path):
+    """``jobs=2`` trains the power balance in a second interpreter beside the projections: the same weights and
+    validation errors as ``jobs=1``, its TensorBoard tags in the same folder, and the default picks one process for
+    a budget too short to pay for starting another."""
+    from anm_torchrl.surrogates.pinn import loop
+
+    sim.step(*random_transitions(sim, 4, 0))  # a simulator that has stepped (bound its kernels) is sent, too
+    cfg = tr.preset("smoke")
+    one, r1 = tr.train_pinn(cfg, sim, jobs=1)
+    two, r2 = tr.train_pinn(cfg, sim, jobs=2, log_dir=tmp_path / "tb")
+    assert (r1["jobs"], r2["jobs"]) == (1, 2)
+    for name in tr.MODULES:
+        assert r1[name]["val_loss"] == r2[name]["val_loss"], name
+        for key, value in one[name].state_dict().items():
+            assert torch.equal(two[name].state_dict()[key], value), (name, key)
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(tmp_path / "tb"))
+    acc.Reload()
+    assert {"surrogate/generator/loss", "surrogate/power_balance/loss"} <= set(acc.Tags()["scalars"])
+    assert loop.default_jobs(cfg) == 1 and cfg.power_balance.max_steps < loop.PARALLEL_MIN_STEPS
+
+
 def test_default_structure_options(sim):
     """The default preset's KKT-NN options: a feasible set-point is returned unchanged, duals are gated."""
     cfg = tr.preset("default")

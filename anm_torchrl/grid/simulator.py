@@ -344,6 +344,10 @@ class GridSimulator:
             self._transition = self.physics.bind(self)
         return self._transition(soc, p_load, p_pot, setpoints)
 
+    def __getstate__(self) -> dict:
+        """Picklable (e.g. for a training process): the bound transition is a cache, bound again on first use."""
+        return {**self.__dict__, "_transition": None}
+
     def operating_point(self, state: torch.Tensor) -> Transition:
         """Re-solve the power flow of the injections written in ``state`` (N, state_dim) MW… .
 

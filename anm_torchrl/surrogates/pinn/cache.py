@@ -50,8 +50,10 @@ def check_may_train_into(file: Path, cfg: PINNTrainConfig, sim: GridSimulator, o
 
 def train_and_save(cfg: PINNTrainConfig, sim: GridSimulator, path: str | Path | None = None,
                    overwrite_cache: bool = False, reject_path: str | Path | None = None,
-                   log_dir: str | Path | None = None, progress: bool = False) -> tuple[Path, dict[str, Any]]:
-    """Train ``cfg`` on ``sim`` (on its device) and save it to ``path`` (default: the cache) under the rules above.
+                   log_dir: str | Path | None = None, progress: bool = False,
+                   jobs: int | None = None) -> tuple[Path, dict[str, Any]]:
+    """Train ``cfg`` on ``sim`` (on its device) and save it to ``path`` (default: the cache) under the rules above;
+    ``jobs``: processes of the training (:func:`.loop.train_pinn`).
 
     Returns:
         ``(file, report)``.
@@ -63,7 +65,7 @@ def train_and_save(cfg: PINNTrainConfig, sim: GridSimulator, path: str | Path | 
     file = resolve_path(path) if path is not None else default_path(sim)
     check_may_train_into(file, cfg, sim, overwrite_cache)
     stages = file.parent / f".{file.stem}.stages"  # finished stages: a killed training resumes from them
-    modules, report = train_pinn(cfg, sim, log_dir=log_dir, progress=progress, stage_dir=stages)
+    modules, report = train_pinn(cfg, sim, log_dir=log_dir, progress=progress, stage_dir=stages, jobs=jobs)
     shutil.rmtree(stages, ignore_errors=True)  # the training is complete: its outcome is decided below
     if is_default(file, sim) and not report["accepted"] and not overwrite_cache:
         where = ""

@@ -21,6 +21,10 @@ from __future__ import annotations
 import copy
 import logging
 import math
+import os
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -215,8 +219,67 @@ def _resume_stage(stage_dir: Path, name: str, module: nn.Module, cfg: PINNTrainC
     return {**report, "resumed_from": str(file)}
 
 
+def _train_in_process(name: str, state: dict[str, torch.Tensor], sim: GridSimulator, cfg: PINNTrainConfig,
+                      log_dir: str | None, threads: int) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """:func:`train_module` of stage ``name`` from the initial weights ``state`` (the body of the stage process)."""
+    torch.set_num_threads(threads)  # the parent's: the same kernels, so the same weights
+    module = build_modules(cfg, sim)[name]
+    module.load_state_dict(state)
+    writer = None
+    if log_dir is not None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(log_dir)
+    try:
+        report = train_module(name, module, sim, getattr(cfg, name), seed=module_seed(cfg, name), writer=writer)
+    finally:
+        if writer is not None:
+            writer.close()
+    return module.state_dict(), report
+
+
+class _StageProcess:
+    """One stage trained by ``python -m anm_torchrl.surrogates.pinn.loop IN OUT`` (a fresh interpreter: unlike
+    ``multiprocessing``'s spawn, it never re-runs the caller's script), its input and output in a temp folder."""
+
+    def __init__(self, name: str, module: nn.Module, sim: GridSimulator, cfg: PINNTrainConfig,
+                 log_dir: str | Path | None):
+        self.tmp = tempfile.TemporaryDirectory(prefix="anm_torchrl_pinn_stage_")
+        self.inp, self.out = Path(self.tmp.name) / "in.pt", Path(self.tmp.name) / "out.pt"
+        torch.save({"name": name, "state": module.state_dict(), "sim": sim, "cfg": cfg,
+                    "threads": torch.get_num_threads(), "log_dir": None if log_dir is None else str(log_dir)},
+                   self.inp)
+        self.proc = subprocess.Popen([sys.executable, "-m", __name__, str(self.inp), str(self.out)],
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+    def result(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+        """Wait for the stage: its trained weights and report; ``RuntimeError`` with its stderr if it failed."""
+        _, err = self.proc.communicate()
+        if self.proc.returncode != 0:
+            raise RuntimeError(f"the PINN stage process failed (exit {self.proc.returncode}): "
+                               f"{err.decode(errors='replace')[-3000:]}")
+        return torch.load(self.out, weights_only=False)  # written by that process, in our own temp folder
+
+    def close(self) -> None:
+        if self.proc.poll() is None:  # an error here before the stage finished
+            self.proc.kill()
+            self.proc.wait()
+        self.tmp.cleanup()
+
+
+#: power-balance steps from which a second process pays: it takes ~4 s to start, the default preset's 10,000 steps ~60 s
+PARALLEL_MIN_STEPS = 1000
+
+
+def default_jobs(cfg: PINNTrainConfig) -> int:
+    """Processes of a training by default: 2 where this process may use 2 or more CPUs and the power balance trains
+    at least :data:`PARALLEL_MIN_STEPS` steps, else 1."""
+    return 2 if len(os.sched_getaffinity(0)) >= 2 and cfg.power_balance.max_steps >= PARALLEL_MIN_STEPS else 1
+
+
 def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = None, log_dir: str | Path | None = None,
-               progress: bool = False, stage_dir: str | Path | None = None) -> tuple[dict[str, nn.Module], dict[str, Any]]:
+               progress: bool = False, stage_dir: str | Path | None = None,
+               jobs: int | None = None) -> tuple[dict[str, nn.Module], dict[str, Any]]:
     """Train the three PINN modules from physics alone.
 
     Args:
@@ -227,6 +290,9 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
         stage_dir: keep each finished stage there, and resume from the stages an interrupted training of the same
             config on the same network kept (every stage has its own seed, so a resumed training gives the weights
             an uninterrupted one gives); None: no stages kept.
+        jobs: processes; with 2 or more the power balance (the longest stage) trains in a spawned process while
+            the projections train here, to the same weights as ``jobs=1`` (each stage starts from its own initial
+            weights and seed; the process runs this one's torch thread count). None: :func:`default_jobs`.
 
     Returns:
         the trained modules (``generator``, ``storage``, ``power_balance``) and a report (per-module steps,
@@ -252,21 +318,37 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
     report: dict[str, Any] = {}
     budget = {m: getattr(cfg, m).max_steps for m in MODULES}
     t0 = time.perf_counter()
+    kept = {m: None if stage_dir is None else _resume_stage(Path(stage_dir), m, modules[m], cfg, sim) for m in MODULES}
+    jobs = jobs if jobs is not None else default_jobs(cfg)
+    aside = "power_balance" if jobs > 1 and kept["power_balance"] is None else None
+    stage = None
     try:
+        if aside is not None:
+            stage = _StageProcess(aside, modules[aside], sim, cfg, log_dir)
         for i, name in enumerate(MODULES, 1):
             if bar is not None:
                 bar.set_postfix_str(name)
-            kept = None if stage_dir is None else _resume_stage(Path(stage_dir), name, modules[name], cfg, sim)
-            if kept is not None:
+            if kept[name] is not None:
                 log.info("PINN stage %d/%d: %s resumed from %s (trained before an interruption)", i, len(MODULES),
-                         name, kept["resumed_from"])
-                report[name] = kept
+                         name, kept[name]["resumed_from"])
+                report[name] = kept[name]
                 if bar is not None:
                     bar.update(budget[name])
                 continue
-            log.info("PINN stage %d/%d: %s, up to %d Adam steps", i, len(MODULES), name, budget[name])
-            report[name] = train_module(name, modules[name], sim, getattr(cfg, name), seed=module_seed(cfg, name),
-                                        writer=writer, progress=bar)
+            if name == aside:
+                log.info("PINN stage %d/%d: %s, up to %d Adam steps in a second process (started with the first "
+                         "stage)", i, len(MODULES), name, budget[name])
+                state, report[name] = stage.result()
+                modules[name].load_state_dict(state)
+                modules[name].eval()
+                if report[name].get("refine_steps") is not None:
+                    modules[name].set_refine_steps(int(report[name]["refine_steps"]))
+                if bar is not None:
+                    bar.update(budget[name])
+            else:
+                log.info("PINN stage %d/%d: %s, up to %d Adam steps", i, len(MODULES), name, budget[name])
+                report[name] = train_module(name, modules[name], sim, getattr(cfg, name),
+                                            seed=module_seed(cfg, name), writer=writer, progress=bar)
             if stage_dir is not None:
                 _save_stage(Path(stage_dir), name, modules[name], cfg, sim, report[name])
             elapsed, left = time.perf_counter() - t0, sum(budget[m] for m in MODULES[i:])
@@ -276,11 +358,19 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
                      f"; at this stage's {rate:.0f} steps/s, up to ~{left / max(rate, 1e-9):.0f} s left" if left else "")
             log.debug("%s report: %s", name, report[name])
     finally:
+        if stage is not None:
+            stage.close()
         if bar is not None:
             bar.close()
         if writer is not None:
             writer.close()
-    report["time_s"] = sum(report[m]["time_s"] for m in MODULES)
+    report["time_s"] = sum(report[m]["time_s"] for m in MODULES)  # the stages' own times
+    report["wall_s"], report["jobs"] = time.perf_counter() - t0, 1 if aside is None else 2
     report["acceptance_failures"] = check_acceptance(cfg, report)
     report["accepted"] = not report["acceptance_failures"]
     return modules, report
+
+
+if __name__ == "__main__":  # the stage process of :class:`_StageProcess`
+    args = torch.load(sys.argv[1], weights_only=False)  # written by the parent in its own temp folder
+    torch.save(_train_in_process(**args), sys.argv[2])
