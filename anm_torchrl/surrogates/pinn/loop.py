@@ -351,7 +351,7 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
                                             seed=module_seed(cfg, name), writer=writer, progress=bar)
             if stage_dir is not None:
                 _save_stage(Path(stage_dir), name, modules[name], cfg, sim, report[name])
-            elapsed, left = time.perf_counter() - t0, sum(budget[m] for m in MODULES[i:])
+            elapsed, left = time.perf_counter() - t0, sum(budget[m] for m in MODULES[i:] if m != aside)
             rate = report[name]["steps"] / max(report[name]["adam_time_s"], 1e-9)  # this stage's steps/s
             log.info("PINN stage %d/%d done: %s, %d steps in %.0f s (%.0f s so far%s)", i, len(MODULES), name,
                      report[name]["steps"], report[name]["time_s"], elapsed,
