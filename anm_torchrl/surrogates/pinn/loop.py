@@ -308,19 +308,18 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(log_dir))
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=sum(getattr(cfg, m).max_steps for m in MODULES), desc="training PINN surrogate",
-                   mininterval=1.0,
-                   unit="step")
-    report: dict[str, Any] = {}
     budget = {m: getattr(cfg, m).max_steps for m in MODULES}
-    t0 = time.perf_counter()
     kept = {m: None if stage_dir is None else _resume_stage(Path(stage_dir), m, modules[m], cfg, sim) for m in MODULES}
     jobs = jobs if jobs is not None else default_jobs(cfg)
     aside = "power_balance" if jobs > 1 and kept["power_balance"] is None else None
+    bar = None
+    if progress:  # the steps trained in this process
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=sum(budget[m] for m in MODULES if m != aside), mininterval=1.0, unit="step",
+                   desc="training PINN surrogate" + (f" ({aside} in a second process)" if aside else ""))
+    report: dict[str, Any] = {}
+    t0 = time.perf_counter()
     stage = None
     try:
         if aside is not None:
@@ -343,8 +342,6 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
                 modules[name].eval()
                 if report[name].get("refine_steps") is not None:
                     modules[name].set_refine_steps(int(report[name]["refine_steps"]))
-                if bar is not None:
-                    bar.update(budget[name])
             else:
                 log.info("PINN stage %d/%d: %s, up to %d Adam steps", i, len(MODULES), name, budget[name])
                 report[name] = train_module(name, modules[name], sim, getattr(cfg, name),
