@@ -198,11 +198,14 @@ def evaluate_policy(policy: TensorDictModuleBase, initial_states: torch.Tensor, 
 
 
 def _acting(policy: TensorDictModuleBase, exploration_type: ExplorationType):
-    """``td -> td`` with the policy's action written. A deterministic ``ProbabilisticTensorDictSequential`` (the
-    recipes' actors) writes its distribution's deterministic sample alone — the action ``policy(td)`` writes in that
-    mode, without the log-probability and the distribution's other outputs (~40 % of an evaluation step)."""
-    if exploration_type == ExplorationType.DETERMINISTIC and isinstance(policy, ProbabilisticTensorDictSequential):
-        (key,) = policy.module[-1].dist_sample_keys
+    """``td -> td`` with the policy's action written. A deterministic ``ProbabilisticTensorDictSequential`` of one
+    sampled key (the recipes' actors) writes its distribution's deterministic sample alone — the action
+    ``policy(td)`` writes in that mode, without the log-probability and the distribution's other outputs (~40 % of
+    an evaluation step)."""
+    keys = getattr(policy.module[-1], "dist_sample_keys", ()) if isinstance(
+        policy, ProbabilisticTensorDictSequential) else ()
+    if exploration_type == ExplorationType.DETERMINISTIC and len(keys) == 1:
+        key = keys[0]
 
         def act(td):
             td.set(key, policy.get_dist(td).deterministic_sample)
