@@ -596,6 +596,20 @@ def test_two_processes_train_the_weights_of_one(sim, tmp_path):
     assert loop.default_jobs(cfg) == 1 and cfg.power_balance.max_steps < loop.PARALLEL_MIN_STEPS
 
 
+def test_a_failed_stage_process_raises_its_error_and_leaves_no_folder(sim):
+    from anm_torchrl.surrogates.pinn import loop
+
+    cfg = tr.preset("smoke")
+    stage = loop._StageProcess("no_such_stage", tr.build_modules(cfg, sim)["power_balance"], sim, cfg, None)
+    folder = Path(stage.tmp.name)
+    try:
+        with pytest.raises(RuntimeError, match=r"the PINN stage process failed \(exit 1\)(.|\n)*no_such_stage"):
+            stage.result()
+    finally:
+        stage.close()
+    assert not folder.exists()
+
+
 def test_default_structure_options(sim):
     """The default preset's KKT-NN options: a feasible set-point is returned unchanged, duals are gated."""
     cfg = tr.preset("default")
