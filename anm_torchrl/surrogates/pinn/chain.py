@@ -272,6 +272,7 @@ def run_chain(chain: TensorDictSequential, inputs: dict) -> dict:
 
     Raises:
         KeyError: an input a module reads is neither given nor written by an earlier module.
+        ValueError: a module returned another number of outputs than its out-keys.
     """
     values = dict(inputs)
     for mod in chain.module:
