@@ -211,12 +211,27 @@ def _resume_stage(stage_dir: Path, name: str, module: nn.Module, cfg: PINNTrainC
         log.warning("PINN stage %s: the kept stage %s was trained for another config or network; training it again",
                     name, file)
         return None
-    module.load_state_dict(tensors)
-    module.eval()
     report = dict(meta["report"])
+    _load_trained(module, tensors, report)
+    return {**report, "resumed_from": str(file)}
+
+
+def _load_trained(module: nn.Module, state: dict[str, torch.Tensor], report: dict[str, Any]) -> None:
+    """Weights of a stage trained elsewhere (kept on disk, or by the stage process) into ``module``, with the
+    refinement steps its report chose (an attribute, not a weight)."""
+    module.load_state_dict(state)
+    module.eval()
     if report.get("refine_steps") is not None:
         module.set_refine_steps(int(report["refine_steps"]))
-    return {**report, "resumed_from": str(file)}
+
+
+def _writer(log_dir: str | Path | None):
+    """A TensorBoard ``SummaryWriter`` on ``log_dir`` (None: none); two processes may write in the same folder."""
+    if log_dir is None:
+        return None
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(str(log_dir))
 
 
 def _train_in_process(name: str, state: dict[str, torch.Tensor], sim: GridSimulator, cfg: PINNTrainConfig,
@@ -225,11 +240,7 @@ def _train_in_process(name: str, state: dict[str, torch.Tensor], sim: GridSimula
     torch.set_num_threads(threads)  # the parent's: the same kernels, so the same weights
     module = build_modules(cfg, sim)[name]
     module.load_state_dict(state)
-    writer = None
-    if log_dir is not None:
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(log_dir)
+    writer = _writer(log_dir)
     try:
         report = train_module(name, module, sim, getattr(cfg, name), seed=module_seed(cfg, name), writer=writer)
     finally:
@@ -303,11 +314,7 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
     cfg = cfg if cfg is not None else preset_for("default", sim)
     torch.manual_seed(cfg.seed)
     modules = build_modules(cfg, sim)
-    writer = None
-    if log_dir is not None:
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(str(log_dir))
+    writer = _writer(log_dir)
     budget = {m: getattr(cfg, m).max_steps for m in MODULES}
     kept = {m: None if stage_dir is None else _resume_stage(Path(stage_dir), m, modules[m], cfg, sim) for m in MODULES}
     jobs = jobs if jobs is not None else default_jobs(cfg)
@@ -338,10 +345,7 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
                 log.info("PINN stage %d/%d: %s, up to %d Adam steps in a second process (started with the first "
                          "stage)", i, len(MODULES), name, budget[name])
                 state, report[name] = stage.result()
-                modules[name].load_state_dict(state)
-                modules[name].eval()
-                if report[name].get("refine_steps") is not None:
-                    modules[name].set_refine_steps(int(report[name]["refine_steps"]))
+                _load_trained(modules[name], state, report[name])
             else:
                 log.info("PINN stage %d/%d: %s, up to %d Adam steps", i, len(MODULES), name, budget[name])
                 report[name] = train_module(name, modules[name], sim, getattr(cfg, name),

@@ -44,6 +44,14 @@ def actor_options(config) -> dict:
     return {k: v for k, v in model_options(config).items() if k != "dynamics"}
 
 
+@torch.no_grad()
+def _move_towards(average: torch.nn.Module, source: torch.nn.Module, weight: float) -> None:
+    """Polyak step of ``average``'s parameters: ``avg <- avg + weight (source - avg)`` (the target critic, the
+    actor's running average)."""
+    for p_avg, p in zip(average.parameters(), source.parameters()):
+        p_avg.lerp_(p, weight)
+
+
 class ExactModel:
     """The true transition with gradients: ``(state (N, D) float64, action (N, A) MW) -> (next state (N, D),
     reward (N,), terminated (N,) bool, observation (N, n_obs) float32)``."""
@@ -192,9 +200,7 @@ class SHAC(Algorithm):
         if torch.isfinite(grad_norm):
             self.actor_optim.step()
             if self.ema > 0:
-                with torch.no_grad():
-                    for p_avg, p in zip(self.actor.parameters(), self.learner.parameters()):
-                        p_avg.lerp_(p, self.ema)
+                _move_towards(self.actor, self.learner, self.ema)
         t_rollout = time.perf_counter() - t0
         self.state, self.obs, self.steps = state.detach(), obs.detach(), steps
 
@@ -227,10 +233,7 @@ class SHAC(Algorithm):
                                                                    float(cfg.optim.max_grad_norm)))
                 self.critic_optim.step()
                 critic_losses.append(c_loss.detach())
-        with torch.no_grad():
-            tau = float(cfg.loss.target_tau)
-            for p_t, p in zip(self.target_critic.parameters(), self.critic.parameters()):
-                p_t.lerp_(p, tau)
+        _move_towards(self.target_critic, self.critic, float(cfg.loss.target_tau))
         t_update = time.perf_counter() - t0
         frames = horizon * n
         self.model_frames += frames
