@@ -60,6 +60,7 @@ def test_default_configs_pass():
     ("loss.compile=yes", "loss.compile must be true or false, got 'yes'"),
     ("eval.test_seed=1", "eval.seed (validation states) and eval.test_seed (test states) must differ"),
     ("eval.render_interval=-1", "eval.render_interval must be an integer >= 0, got -1"),
+    ("eval.background=1", "eval.background must be auto, true or false; got 1"),
     ("collector.frames_per_batch=16383", "must be a positive multiple of env.num_envs (256)"),
     ("network=nowhere", "network: unknown network 'nowhere'; registered: ['anm6_easy', 'case33bw'"),
     ("eval.render_interval=2 logger.backend=csv", "eval.render_interval > 0 logs figures to TensorBoard"),

@@ -51,6 +51,7 @@ def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
     ("loss.noise=yes", "loss.noise must be true or false, got 'yes'"),
     ("optim.anneal_lr=1", "optim.anneal_lr must be true or false, got 1"),
     ("optim.actor_ema=1.5", "optim.actor_ema must be in [0, 1], got 1.5"),
+    ("optim.anneal_start=1", "optim.anneal_start must be in [0, 1), got 1"),
 ])
 def test_shac_config_errors_name_the_key(override, message):
     from recipe_utils import compose
@@ -101,6 +102,20 @@ def test_shac_anneals_both_learning_rates_linearly_over_the_budget_when_asked(an
     left = 1.0 - frames / 64 if anneal else 1.0
     assert algo.actor_optim.param_groups[0]["lr"] == pytest.approx(0.001 * left)
     assert algo.critic_optim.param_groups[0]["lr"] == pytest.approx(0.002 * left)
+
+
+def test_a_late_anneal_keeps_the_rate_until_its_start():
+    """``anneal_start=s``: the full rate until s x the budget, then a linear decay reaching 0 at the budget."""
+    import torch
+
+    from anm_torchrl.training.algorithms.base import anneal_lr
+
+    optim = torch.optim.Adam([torch.zeros(1, requires_grad=True)], lr=1.0)
+    got = []
+    for frames in (0, 50, 60, 80, 100, 120):
+        anneal_lr(optim, 0.5, frames, 100, start=0.6)
+        got.append(optim.param_groups[0]["lr"])
+    assert got == pytest.approx([0.5, 0.5, 0.5, 0.25, 0.0, 0.0])
 
 
 @pytest.mark.parametrize("ema", [0.0, 0.25])

@@ -125,6 +125,8 @@ def check_protocol_config(cfg: Mapping) -> None:
     _int(cfg, "eval.test_max_steps", optional=True)
     _in_range(cfg, "eval.gamma", 0, 1, True, False)
     _choice(cfg, "eval.track_test", (False, True))
+    if not (_get(cfg, "eval.background") == "auto" or isinstance(_get(cfg, "eval.background"), bool)):
+        raise ValueError(f"eval.background must be auto, true or false; got {_get(cfg, 'eval.background')!r}")
     if _int(cfg, "eval.render_interval", low=0) and _get(cfg, "logger.backend") != "tensorboard":
         raise ValueError(f"eval.render_interval > 0 logs figures to TensorBoard: it needs logger.backend=tensorboard, "
                          f"got {_get(cfg, 'logger.backend')!r}")
@@ -191,6 +193,7 @@ def check_ppo_config(cfg: Mapping) -> None:
     _in_range(cfg, "loss.entropy_coeff", 0, math.inf, False, True)
     _choice(cfg, "loss.loss_critic_type", ("l2", "l1", "smooth_l1"))
     _check_adam(cfg)
+    _in_range(cfg, "optim.anneal_start", 0, 1, False, True)
 
 
 def check_sac_config(cfg: Mapping) -> None:
@@ -274,6 +277,7 @@ def check_shac_config(cfg: Mapping) -> None:
     _in_range(cfg, "optim.weight_decay", 0, math.inf, False, True)
     _in_range(cfg, "optim.max_grad_norm", 0, math.inf, True, True)
     _in_range(cfg, "optim.actor_ema", 0, 1, False, False)
+    _in_range(cfg, "optim.anneal_start", 0, 1, False, True)
 
 
 def check_evaluate_config(cfg: Mapping) -> None:

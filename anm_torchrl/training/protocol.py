@@ -74,8 +74,9 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     from tqdm import tqdm
 
     from anm_torchrl.training.checkpoint import check_resume_config, load_checkpoint, save_checkpoint
-    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.evaluation import draw_initial_states
     from anm_torchrl.training.factory import make_true_env
+    from anm_torchrl.training.validation import BackgroundValidation, InlineValidation, evaluate, use_background
 
     t_start = time.perf_counter()
     config = OmegaConf.to_container(cfg, resolve=True)
@@ -162,11 +163,9 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                  ) -> dict:
         """Metrics of ``policy`` on ``states`` over ``steps`` steps, tagged with the (frames, update) it was trained
         for."""
-        policy.eval()
-        result = evaluate_policy(policy, states, max_steps=steps, gamma=float(cfg.eval.gamma), env=env)
-        policy.train()
         at_frames, at_update = trained if trained is not None else (frames, update)
-        return {**result.metrics(), "frames": at_frames, "update": at_update, "seconds": result.wall_time}
+        return {**evaluate(policy, states, env, steps, float(cfg.eval.gamma)), "frames": at_frames,
+                "update": at_update}
 
     # ---- training loop ----------------------------------------------------------------------------------------
     eval_interval, patience = cfg.eval.interval, cfg.eval.patience
@@ -178,6 +177,47 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                     total_frames)
     pbar = tqdm(total=total_frames, initial=frames, unit="frames", dynamic_ncols=True,
                 disable=not cfg.logger.progress)
+    # validation passes here, or beside the training in a second process (eval.background): the same results
+    background = eval_interval is not None and use_background(cfg.eval.background, device, int(cfg.threads))
+    validation = (BackgroundValidation if background else InlineValidation)(
+        actor, val_states, eval_env, int(cfg.eval.max_steps), float(cfg.eval.gamma))
+    if background:
+        log.info("validation passes run in a second process beside the training (eval.background=%s)",
+                 cfg.eval.background)
+
+    def record(snapshot: dict, result: dict) -> None:
+        """Take one finished validation pass of the policy as it was at ``snapshot``: best.pt, the early-stop
+        count, the curve, the logs."""
+        nonlocal best, evals_since_best, last_eval
+        last_eval = {**result, "frames": snapshot["frames"], "update": snapshot["update"]}
+        if best is None or last_eval["discounted_return"] > best["discounted_return"]:
+            best, evals_since_best = dict(last_eval), 0
+            payload = snapshot["payload"] or checkpoint_payload()
+            save_checkpoint(ckpt_dir / "best.pt", {**payload, "best_eval": best, "evals_since_best": 0})
+        else:
+            evals_since_best += 1
+        point = {"frames": snapshot["frames"], "true_env_frames": snapshot["true_env_frames"],
+                 "update": snapshot["update"], "wall_s": wall_before + time.perf_counter() - t_start - track_s,
+                 "validation": last_eval["discounted_return"]}
+        eval_metrics = {f"eval/{k}": last_eval[k] for k in EVAL_KEYS}
+        eval_metrics["time/eval"] = last_eval["seconds"]
+        if "tracked" in snapshot:
+            point["test"] = snapshot["tracked"]["discounted_return"]
+            eval_metrics.update({f"track/{k}": snapshot["tracked"][k] for k in EVAL_KEYS})
+            eval_metrics["time/track"] = snapshot["tracked"]["seconds"]
+        curve.append(point)
+        log_metrics(eval_metrics, step=snapshot["frames"])
+        pbar.set_postfix(eval=f"{last_eval['discounted_return']:.4g}", best=f"{best['discounted_return']:.4g}")
+        log.info("update %d, %d frames, %.0f s: eval/discounted_return %.4g (best %.4g), return %.4g, "
+                 "penalty %.3g, terminated %.2f", snapshot["update"], snapshot["frames"],
+                 time.perf_counter() - t_start, last_eval["discounted_return"], best["discounted_return"],
+                 last_eval["return"], last_eval["penalty"], last_eval["terminated"])
+
+    def take_results(wait: bool) -> None:
+        for snapshot, result in validation.results(wait=wait):
+            record(snapshot, result)
+
+    last_due = False  # last.pt is written at the first update with no validation pass pending
     try:
         while frames < total_frames:
             n_frames, train_metrics = algo.iterate(total_frames - frames)
@@ -187,43 +227,36 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
 
             # evaluation on the true simulator, deterministic policy, fixed validation states
             is_last = frames >= total_frames
-            eval_metrics = {}
-            if eval_interval is not None and (update % int(eval_interval) == 0 or is_last):
-                last_eval = run_eval(actor, val_states, eval_env)
-                n_evals += 1
-                eval_metrics = {f"eval/{k}": last_eval[k] for k in EVAL_KEYS}
-                eval_metrics["time/eval"] = last_eval["seconds"]
-                if best is None or last_eval["discounted_return"] > best["discounted_return"]:
-                    best, evals_since_best = dict(last_eval), 0
-                    save_checkpoint(ckpt_dir / "best.pt", checkpoint_payload())
-                else:
-                    evals_since_best += 1
-                point = {"frames": frames, "true_env_frames": true_env_frames(), "update": update,
-                         "wall_s": wall_before + time.perf_counter() - t_start - track_s,
-                         "validation": last_eval["discounted_return"]}
+            evaluated = eval_interval is not None and (update % int(eval_interval) == 0 or is_last)
+            decisive = False
+            if evaluated:
+                take_results(wait=True)  # one pass queued at a time: the curve lags by one pass at most
+                snapshot = {"frames": frames, "update": update, "true_env_frames": true_env_frames(),
+                            # best.pt's content if this pass is the best: training goes on while it runs
+                            "payload": copy.deepcopy(checkpoint_payload()) if background else None}
                 if cfg.eval.track_test:  # a measurement only: nothing below reads it
                     t_track = time.perf_counter()
-                    tracked = run_eval(actor, test_states, test_env, steps=test_max_steps)
+                    snapshot["tracked"] = run_eval(actor, test_states, test_env, steps=test_max_steps)
                     track_s += time.perf_counter() - t_track
-                    point["test"] = tracked["discounted_return"]
-                    eval_metrics.update({f"track/{k}": tracked[k] for k in EVAL_KEYS})
-                    eval_metrics["time/track"] = tracked["seconds"]
-                curve.append(point)
+                n_evals += 1
                 if render_interval and n_evals % render_interval == 0:
                     log_episode_figure(logger, actor, val_states[:1], cfg, frames)
-                pbar.set_postfix(eval=f"{last_eval['discounted_return']:.4g}", best=f"{best['discounted_return']:.4g}")
-                log.info("update %d, %d frames, %.0f s: eval/discounted_return %.4g (best %.4g), return %.4g, "
-                         "penalty %.3g, terminated %.2f", update, frames, time.perf_counter() - t_start,
-                         last_eval["discounted_return"], best["discounted_return"], last_eval["return"],
-                         last_eval["penalty"], last_eval["terminated"])
+                validation.submit(actor.state_dict() if background else None, snapshot)
+                # wait where this pass decides the run: the end, or an early stop (as if evaluated here)
+                decisive = is_last or (patience is not None and evals_since_best + 1 >= int(patience))
+            take_results(wait=decisive)
             train_metrics["time/total_fps"] = frames / (wall_before + time.perf_counter() - t_start)
-            if update % int(cfg.logger.interval) == 0 or eval_metrics:
-                log_metrics({**train_metrics, **eval_metrics}, step=frames)
+            if update % int(cfg.logger.interval) == 0 or evaluated:
+                log_metrics(train_metrics, step=frames)
 
             stopped_early = patience is not None and evals_since_best >= int(patience)
             out_of_time = max_minutes is not None and time.perf_counter() - t_start >= 60 * float(max_minutes)
-            if update % int(cfg.checkpoint.interval) == 0 or is_last or stopped_early or out_of_time:
+            if out_of_time:
+                take_results(wait=True)
+            last_due |= update % int(cfg.checkpoint.interval) == 0 or is_last or stopped_early or out_of_time
+            if last_due and not validation.pending:
                 save_checkpoint(ckpt_dir / "last.pt", checkpoint_payload())
+                last_due = False
             if stopped_early:
                 log.info("early stop: %d evaluations without improvement of eval/discounted_return",
                          evals_since_best)
@@ -234,6 +267,12 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     except KeyboardInterrupt:
         interrupted = True
         log.warning("interrupted (Ctrl-C) after %d frames: writing last.pt and summary.json", frames)
+        try:
+            take_results(wait=True)  # the second process ignores the Ctrl-C: its pass finishes
+        except (RuntimeError, KeyboardInterrupt) as err:
+            log.warning("the validation pass queued at the interruption is not recorded: %s", err)
+    finally:
+        validation.close()
 
     pbar.close()
     algo.close(interrupted=interrupted)

@@ -12,10 +12,12 @@ from typing import Any, ClassVar
 from omegaconf import DictConfig
 
 
-def anneal_lr(optimizer, lr: float, frames: int, total_frames: int) -> None:
-    """Set every group of ``optimizer`` to ``lr`` decayed linearly to 0 over ``total_frames`` (``frames`` done)."""
+def anneal_lr(optimizer, lr: float, frames: int, total_frames: int, start: float = 0.0) -> None:
+    """Set every group of ``optimizer`` to ``lr``, decayed linearly to 0 from ``start`` x ``total_frames`` frames to
+    ``total_frames`` (``frames`` done; ``start`` in [0, 1): 0 decays over the whole budget)."""
+    left = 1.0 - frames / total_frames
     for group in optimizer.param_groups:
-        group["lr"] = float(lr) * max(1.0 - frames / total_frames, 0.0)
+        group["lr"] = float(lr) * min(max(left / (1.0 - start), 0.0), 1.0)
 
 
 class Algorithm:

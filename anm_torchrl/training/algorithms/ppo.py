@@ -147,7 +147,7 @@ class PPO(Algorithm):
         # without replacement over the kept frames
         t0 = time.perf_counter()
         if cfg.optim.anneal_lr:
-            anneal_lr(optim, cfg.optim.lr, self.frames, self.total_frames)
+            anneal_lr(optim, cfg.optim.lr, self.frames, self.total_frames, float(cfg.optim.anneal_start))
         mini = int(cfg.loss.mini_batch_size)
         losses = []
         for epoch in range(int(cfg.loss.ppo_epochs)):

@@ -155,8 +155,9 @@ class SHAC(Algorithm):
         t0 = time.perf_counter()
         if cfg.optim.anneal_lr:
             total = int(cfg.collector.total_frames)
-            anneal_lr(self.actor_optim, cfg.optim.actor_lr, self.model_frames, total)
-            anneal_lr(self.critic_optim, cfg.optim.critic_lr, self.model_frames, total)
+            start = float(cfg.optim.anneal_start)
+            anneal_lr(self.actor_optim, cfg.optim.actor_lr, self.model_frames, total, start)
+            anneal_lr(self.critic_optim, cfg.optim.critic_lr, self.model_frames, total, start)
         state, obs, steps = self.state, self.obs, self.steps
         ret = torch.zeros(n, device=state.device)
         disc = torch.ones(n, device=state.device)

@@ -1,0 +1,190 @@
+"""The protocol's validation passes, here or in a second process.
+
+A validation pass rolls the deterministic policy out on the fixed validation states of the true simulator
+(:func:`anm_torchrl.evaluation.evaluate_policy`). It is deterministic, so it may run beside the training: where a
+second CPU is free, :class:`BackgroundValidation` evaluates a copy of the policy's weights in
+``python -m anm_torchrl.training.validation SETUP`` (a fresh interpreter: unlike ``multiprocessing``'s spawn it never
+re-runs the caller's script) while the next iterations train. Its results equal :class:`InlineValidation`'s value for
+value; only the moment they are known differs (the protocol waits where a result decides the run: an early stop, the
+end). Both take ``submit(weights, tag)`` and give ``(tag, metrics)`` pairs, in submission order, from ``results``.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import select
+import struct
+import subprocess
+import sys
+import tempfile
+from collections import deque
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+def use_background(mode: str | bool, device, threads: int) -> bool:
+    """Whether validation runs in a second process: ``mode`` true / false, or ``"auto"``: on CPU, where this
+    process may use at least ``2 x threads`` CPUs (the second process runs ``threads`` threads too)."""
+    if isinstance(mode, bool):
+        return mode
+    if mode != "auto":
+        raise ValueError(f"eval.background must be auto, true or false; got {mode!r}")
+    return torch.device(device).type == "cpu" and len(os.sched_getaffinity(0)) >= 2 * int(threads)
+
+
+def evaluate(policy, states: torch.Tensor, env, max_steps: int, gamma: float) -> dict[str, float]:
+    """Metrics of ``policy`` (deterministic, in eval mode for the pass) on ``states`` (E, D) in ``env`` (batch E)
+    over ``max_steps`` steps: :meth:`~anm_torchrl.evaluation.EvalResult.metrics` and ``seconds`` (its wall time)."""
+    from anm_torchrl.evaluation import evaluate_policy
+
+    policy.eval()
+    result = evaluate_policy(policy, states, max_steps=max_steps, gamma=gamma, env=env)
+    policy.train()
+    return {**result.metrics(), "seconds": result.wall_time}
+
+
+class InlineValidation:
+    """Validation in this process: each submitted pass runs at once on ``policy`` (whose weights the caller set)."""
+
+    def __init__(self, policy, states: torch.Tensor, env, max_steps: int, gamma: float):
+        self.policy, self.states, self.env, self.max_steps, self.gamma = policy, states, env, max_steps, gamma
+        self._done: deque = deque()
+
+    @property
+    def pending(self) -> int:
+        return 0
+
+    def submit(self, weights: Mapping[str, torch.Tensor] | None, tag: Any) -> None:
+        """Evaluate now; ``weights`` None: the policy as it is (the caller's live policy)."""
+        if weights is not None:
+            self.policy.load_state_dict(weights)
+        self._done.append((tag, evaluate(self.policy, self.states, self.env, self.max_steps, self.gamma)))
+
+    def results(self, wait: bool = False) -> list[tuple[Any, dict[str, float]]]:
+        out = list(self._done)
+        self._done.clear()
+        return out
+
+    def close(self) -> None:
+        pass
+
+
+def _write(stream, obj) -> None:
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(struct.pack("<Q", len(data)) + data)
+    stream.flush()
+
+
+def _read_exact(stream, n: int) -> bytes | None:
+    chunks, left = [], n
+    while left:
+        chunk = stream.read(left)
+        if not chunk:
+            return None
+        chunks.append(chunk)
+        left -= len(chunk)
+    return b"".join(chunks)
+
+
+def _read(stream):
+    head = _read_exact(stream, 8)
+    if head is None:
+        return None
+    data = _read_exact(stream, struct.unpack("<Q", head)[0])
+    return None if data is None else pickle.loads(data)  # our own process's output
+
+
+class BackgroundValidation:
+    """Validation in a second process (see the module docstring); the same arguments as :class:`InlineValidation`
+    (the policy and env are pickled to it once; each pass sends only the weights).
+
+    Raises:
+        RuntimeError: from ``results`` or ``submit`` once the second process has failed, with its stderr.
+    """
+
+    def __init__(self, policy, states: torch.Tensor, env, max_steps: int, gamma: float):
+        self.tmp = tempfile.TemporaryDirectory(prefix="anm_torchrl_validation_")
+        setup, self.err_path = Path(self.tmp.name) / "setup.pt", Path(self.tmp.name) / "stderr.txt"
+        torch.save({"policy": policy, "states": states, "env": env, "max_steps": int(max_steps),
+                    "gamma": float(gamma), "threads": torch.get_num_threads()}, setup)
+        self._err = open(self.err_path, "wb")
+        # unbuffered pipes: ``select`` sees exactly what is unread
+        self.proc = subprocess.Popen([sys.executable, "-m", __name__, str(setup)], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=self._err, bufsize=0)
+        self._tags: deque = deque()
+        self._broken = False
+
+    @property
+    def pending(self) -> int:
+        return len(self._tags)
+
+    def _failed(self) -> RuntimeError:
+        try:
+            self.proc.wait(timeout=10)  # its end of the pipe is closed: it is exiting
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self._err.flush()
+        err = self.err_path.read_bytes().decode(errors="replace").strip()
+        last = err.splitlines()[-1] if err else "no error output"
+        return RuntimeError(f"the validation process failed (exit {self.proc.returncode}): {last}\n{err[-3000:]}")
+
+    def submit(self, weights: Mapping[str, torch.Tensor], tag: Any) -> None:
+        """Queue a pass of these weights (copied now: training may change the caller's tensors at once)."""
+        try:
+            _write(self.proc.stdin, {k: v.detach().cpu().clone() for k, v in weights.items()})
+        except (BrokenPipeError, OSError):
+            raise self._failed() from None
+        self._tags.append(tag)
+
+    def results(self, wait: bool = False) -> list[tuple[Any, dict[str, float]]]:
+        """The passes finished so far, in submission order; ``wait``: every queued pass (blocks)."""
+        if self._broken:
+            raise RuntimeError("the validation process was stopped in the middle of a result")
+        out = []
+        while self._tags:
+            if not wait and not select.select([self.proc.stdout], [], [], 0)[0]:
+                break
+            try:
+                metrics = _read(self.proc.stdout)
+            except BaseException:  # a Ctrl-C inside a result: the rest of the stream is out of step
+                self._broken = True
+                self.proc.kill()
+                raise
+            if metrics is None:
+                raise self._failed()
+            out.append((self._tags.popleft(), metrics))
+        return out
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.stdin.close()  # the process ends at the end of its input
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._err.close()
+        self.tmp.cleanup()
+
+
+def _serve(setup_path: str) -> None:
+    """The second process: read weights from stdin until its end, write each pass's metrics to stdout."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C stops the training process, which then closes us
+    out = os.fdopen(os.dup(1), "wb", buffering=0)
+    os.dup2(2, 1)  # anything printed goes to stderr, not into the results
+    setup = torch.load(setup_path, weights_only=False)  # written by the training process in its own temp folder
+    torch.set_num_threads(int(setup["threads"]))
+    policy, inp = setup["policy"], sys.stdin.buffer
+    while (weights := _read(inp)) is not None:
+        policy.load_state_dict(weights)
+        _write(out, evaluate(policy, setup["states"], setup["env"], setup["max_steps"], setup["gamma"]))
+
+
+if __name__ == "__main__":
+    _serve(sys.argv[1])

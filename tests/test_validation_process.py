@@ -1,0 +1,118 @@
+"""Validation passes in a second process (``eval.background``, :mod:`anm_torchrl.training.validation`): the same
+runs as validation in the training process, value for value (curve, best.pt, early stop, test figures), and clear
+errors when the second process fails or the option is wrong."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.test_recipes_ppo import PPO, TINY, run
+
+torch.set_num_threads(1)
+
+
+def _without_seconds(d: dict) -> dict:
+    return {k: v for k, v in d.items() if k != "seconds"}
+
+
+def test_background_validation_gives_the_run_of_inline_validation(tmp_path):
+    """Two tiny PPO runs, validation after every update with a patience of 2 (so the run stops early: the second
+    process's pass that ends the patience is waited for), in a second process and in the training process."""
+    from anm_torchrl.training.checkpoint import load_checkpoint
+
+    runs = {}
+    for mode in ("true", "false"):
+        run_dir = tmp_path / mode
+        proc = run(PPO, *TINY, "collector.total_frames=640", "eval.patience=2", "seed=1", f"eval.background={mode}",
+                   f"hydra.run.dir={run_dir}", cwd=tmp_path)
+        runs[mode] = (run_dir, json.loads((run_dir / "summary.json").read_text()), proc.stdout + proc.stderr)
+    (bg_dir, bg, bg_log), (in_dir, inline, in_log) = runs["true"], runs["false"]
+    assert "validation passes run in a second process" in bg_log
+    assert "validation passes run in a second process" not in in_log
+    assert inline["stopped_early"] and inline["updates"] < 20, "the case must exercise the early stop"
+    for key in ("stopped_early", "updates", "frames"):
+        assert bg[key] == inline[key], key
+    assert [{k: v for k, v in p.items() if k != "wall_s"} for p in bg["curve"]] == \
+        [{k: v for k, v in p.items() if k != "wall_s"} for p in inline["curve"]]
+    assert _without_seconds(bg["best_eval"]) == _without_seconds(inline["best_eval"])
+    for name in ("best", "last"):
+        assert _without_seconds(bg["test"][name]) == _without_seconds(inline["test"][name]), name
+        a, b = (load_checkpoint(d / "checkpoints" / f"{name}.pt") for d in (bg_dir, in_dir))
+        assert (a["frames"], a["update"], a["evals_since_best"]) == (b["frames"], b["update"], b["evals_since_best"])
+        assert all(torch.equal(a["actor"][k], b["actor"][k]) for k in b["actor"]), name
+        assert all(torch.equal(a["state"]["optimizer"]["state"][i]["exp_avg"], b["state"]["optimizer"]["state"][i]
+                               ["exp_avg"]) for i in b["state"]["optimizer"]["state"]), name
+        assert _without_seconds(a["best_eval"]) == _without_seconds(b["best_eval"])
+
+
+def _small_case():
+    from anm_torchrl.evaluation import draw_initial_states
+    from anm_torchrl.training.factory import make_true_env
+    from anm_torchrl.training.models import make_ppo_models
+
+    env = make_true_env(2, "cpu", seed=1, network="anm6_easy")
+    actor = make_ppo_models(env)[0]
+    return actor, draw_initial_states(2, 1, env.sim, env.init), env
+
+
+def test_background_pass_equals_inline_pass_and_keeps_its_weights():
+    """A pass evaluates the weights as they were submitted, even when the caller changes them at once."""
+    from anm_torchrl.training.validation import BackgroundValidation, InlineValidation
+
+    actor, states, env = _small_case()
+    background = BackgroundValidation(actor, states, env, max_steps=20, gamma=0.99)
+    try:
+        weights = actor.state_dict()
+        background.submit(weights, "first")
+        with torch.no_grad():
+            for p in actor.parameters():
+                p.add_(0.5)  # training goes on while the pass runs
+        background.submit(actor.state_dict(), "second")
+        assert background.pending == 2
+        got = background.results(wait=True)
+        assert background.pending == 0 and [tag for tag, _ in got] == ["first", "second"]
+    finally:
+        background.close()
+    inline = InlineValidation(actor, states, env, max_steps=20, gamma=0.99)
+    inline.submit(None, "second")
+    (_, expected), = inline.results()
+    assert _without_seconds(got[1][1]) == _without_seconds(expected)
+    assert got[0][1]["discounted_return"] != expected["discounted_return"]
+
+
+def test_a_failed_validation_process_names_its_error():
+    from anm_torchrl.training.validation import BackgroundValidation
+
+    actor, states, env = _small_case()
+    background = BackgroundValidation(actor, torch.cat([states, states]), env, max_steps=5, gamma=0.99)
+    try:
+        background.submit(actor.state_dict(), 0)
+        with pytest.raises(RuntimeError, match="the validation process failed .*does not match 4 initial states"):
+            background.results(wait=True)
+    finally:
+        background.close()
+
+
+def test_background_choice():
+    from anm_torchrl.training.validation import use_background
+
+    assert use_background(True, "cpu", 1) and not use_background(False, "cpu", 1)
+    assert not use_background("auto", "cuda", 1)
+    assert not use_background("auto", "cpu", 10_000)  # not 20,000 CPUs here
+    with pytest.raises(ValueError, match="eval.background must be auto, true or false; got 'sometimes'"):
+        use_background("sometimes", "cpu", 1)
+
+
+def test_the_temp_folder_is_removed(tmp_path, monkeypatch):
+    import tempfile
+
+    from anm_torchrl.training.validation import BackgroundValidation
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    actor, states, env = _small_case()
+    BackgroundValidation(actor, states, env, max_steps=5, gamma=0.99).close()
+    assert list(Path(tmp_path).iterdir()) == []
