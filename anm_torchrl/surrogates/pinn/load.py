@@ -86,8 +86,8 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
         preset = tr.network_preset_name(preset, sim)
         cfg = tr.preset(preset, seed=seed)
         log.warning("no trained PINN at %s: training the %r preset from physics alone, %d Adam steps in 3 stages "
-                    "(ANM6-Easy's default: 3.5-7 min on a 2-core CPU; the stages are logged at INFO)", file, preset,
-                    sum(getattr(cfg, m).max_steps for m in MODULES))
+                    "(ANM6-Easy's default: ~1.5 min on a free 2-core CPU, ~2.5 min in one process; the stages are "
+                    "logged at INFO)", file, preset, sum(getattr(cfg, m).max_steps for m in MODULES))
         cache.train_and_save(cfg, sim, path=file, overwrite_cache=overwrite_cache,
                              log_dir=log_dir if log_dir is not None else file.parent / "tb", progress=progress)
     modules, _, _ = tr.load_modules(file, sim)
