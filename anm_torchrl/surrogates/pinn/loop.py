@@ -312,6 +312,15 @@ def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = N
     """
     sim = sim if sim is not None else network_simulator(ANM6_EASY)
     cfg = cfg if cfg is not None else preset_for("default", sim)
+    devices = [] if sim.net.dev.device.type == "cpu" else [sim.net.dev.device]
+    # the caller's random stream is left as it was: a run that trains its PINN first draws what a run that found
+    # it cached draws (the recipes seed once, then may train the PINN on first use)
+    with torch.random.fork_rng(devices=devices):
+        return _train_pinn(cfg, sim, log_dir, progress, stage_dir, jobs)
+
+
+def _train_pinn(cfg: PINNTrainConfig, sim: GridSimulator, log_dir: str | Path | None, progress: bool,
+                stage_dir: str | Path | None, jobs: int | None) -> tuple[dict[str, nn.Module], dict[str, Any]]:
     torch.manual_seed(cfg.seed)
     modules = build_modules(cfg, sim)
     writer = _writer(log_dir)
