@@ -10,6 +10,14 @@ from pathlib import Path
 from typing import Any
 
 
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity on Linux, else every logical core)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
 def machine_info() -> dict[str, Any]:
     """CPU model, logical cores, torch threads, OS and Python of this machine."""
     cpu = platform.processor() or ""
@@ -27,11 +35,7 @@ def machine_info() -> dict[str, Any]:
                 mem_gb = round(int(line.split()[1]) / 2**20, 1)
     except OSError:
         pass
-    try:
-        affinity = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        affinity = os.cpu_count()
-    return {"cpu": cpu, "logical_cores": os.cpu_count(), "usable_cores": affinity, "memory_gb": mem_gb,
+    return {"cpu": cpu, "logical_cores": os.cpu_count(), "usable_cores": usable_cpus(), "memory_gb": mem_gb,
             "torch_threads": _torch_threads(), "platform": platform.platform(),
             "python": platform.python_version(), "hostname_hash": hash(platform.node()) % 10_000}
 

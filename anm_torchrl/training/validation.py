@@ -25,6 +25,8 @@ from typing import Any
 
 import torch
 
+from anm_torchrl.provenance import usable_cpus
+
 def use_background(mode: str | bool, device, threads: int) -> bool:
     """Whether validation runs in a second process: ``mode`` true / false, or ``"auto"``: on CPU, where this
     process may use at least ``2 x threads`` CPUs (the second process runs ``threads`` threads too)."""
@@ -32,7 +34,7 @@ def use_background(mode: str | bool, device, threads: int) -> bool:
         return mode
     if mode != "auto":
         raise ValueError(f"eval.background must be auto, true or false; got {mode!r}")
-    return torch.device(device).type == "cpu" and len(os.sched_getaffinity(0)) >= 2 * int(threads)
+    return torch.device(device).type == "cpu" and usable_cpus() >= 2 * int(threads)
 
 
 def evaluate(policy, states: torch.Tensor, env, max_steps: int, gamma: float) -> dict[str, float]:

@@ -21,7 +21,6 @@ from __future__ import annotations
 import copy
 import logging
 import math
-import os
 import subprocess
 import sys
 import tempfile
@@ -35,6 +34,7 @@ from torch import nn
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
+from anm_torchrl.provenance import usable_cpus
 from anm_torchrl.surrogates.pinn.model import build_modules
 from anm_torchrl.surrogates.pinn.presets import (MODULES, REFINE_AUTO, ModuleTrainConfig, PINNTrainConfig,
                                                  check_acceptance, module_seed, preset_for)
@@ -285,7 +285,7 @@ PARALLEL_MIN_STEPS = 1000
 def default_jobs(cfg: PINNTrainConfig) -> int:
     """Processes of a training by default: 2 where this process may use 2 or more CPUs and the power balance trains
     at least :data:`PARALLEL_MIN_STEPS` steps, else 1."""
-    return 2 if len(os.sched_getaffinity(0)) >= 2 and cfg.power_balance.max_steps >= PARALLEL_MIN_STEPS else 1
+    return 2 if usable_cpus() >= 2 and cfg.power_balance.max_steps >= PARALLEL_MIN_STEPS else 1
 
 
 def train_pinn(cfg: PINNTrainConfig | None = None, sim: GridSimulator | None = None, log_dir: str | Path | None = None,
