@@ -178,7 +178,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     pbar = tqdm(total=total_frames, initial=frames, unit="frames", dynamic_ncols=True,
                 disable=not cfg.logger.progress)
     # validation passes here, or beside the training in a second process (eval.background): the same results
-    background = eval_interval is not None and use_background(cfg.eval.background, device, int(cfg.threads))
+    background = eval_interval is not None and use_background(cfg.eval.background, device, int(cfg.threads),
+                                                               int(cfg.eval.max_steps))
     validation = (BackgroundValidation if background else InlineValidation)(
         actor, val_states, eval_env, int(cfg.eval.max_steps), float(cfg.eval.gamma))
     if background:

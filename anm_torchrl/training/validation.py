@@ -27,14 +27,22 @@ import torch
 
 from anm_torchrl.provenance import usable_cpus
 
-def use_background(mode: str | bool, device, threads: int) -> bool:
+#: validation pass length (steps) from which ``auto`` runs the passes in a second process: a pass of 1,000 steps
+#: (~1 s on 16 ANM6-Easy states here) outweighs the process's start (~3 s) after a few passes; shorter ones (tests,
+#: smoke runs) stay here
+BACKGROUND_MIN_STEPS = 1000
+
+
+def use_background(mode: str | bool, device, threads: int, max_steps: int) -> bool:
     """Whether validation runs in a second process: ``mode`` true / false, or ``"auto"``: on CPU, where this
-    process may use at least ``2 x threads`` CPUs (the second process runs ``threads`` threads too)."""
+    process may use at least ``2 x threads`` CPUs (the second process runs ``threads`` threads too) and a pass is at
+    least :data:`BACKGROUND_MIN_STEPS` steps long (``max_steps``)."""
     if isinstance(mode, bool):
         return mode
     if mode != "auto":
         raise ValueError(f"eval.background must be auto, true or false; got {mode!r}")
-    return torch.device(device).type == "cpu" and usable_cpus() >= 2 * int(threads)
+    return (torch.device(device).type == "cpu" and usable_cpus() >= 2 * int(threads)
+            and int(max_steps) >= BACKGROUND_MIN_STEPS)
 
 
 def evaluate(policy, states: torch.Tensor, env, max_steps: int, gamma: float) -> dict[str, float]:
