@@ -195,28 +195,36 @@ def test_resume_with_another_activation_fails(ppo_checkpoint, tmp_path):
     assert "model.activation: checkpoint 'tanh', this run 'relu'" in proc.stderr, proc.stderr[-2000:]
 
 
-def test_ctrl_c_ends_the_run_cleanly(tmp_path):
-    """SIGINT after the first evaluation: exit status 130, last.pt and summary.json marked interrupted."""
-    run_dir = tmp_path / "interrupted"
+def interrupt_run(run_dir: Path, marker: str, *args: str, env: dict | None = None) -> str:
+    """Run ``ppo.py`` (TINY, an endless budget, ``args``) into ``run_dir``, send SIGINT once a line of its output
+    holds ``marker``; check exit status 130, ``summary.json`` marked interrupted and ``last.pt`` at its frames;
+    returns the output."""
     proc = subprocess.Popen([sys.executable, str(PPO), *TINY, "collector.total_frames=1000000", "eval.patience=null",
-                             f"hydra.run.dir={run_dir}"], cwd=tmp_path, env=ENV, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+                             *args, f"hydra.run.dir={run_dir}"], cwd=run_dir.parent, env=env or ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = []
     for line in proc.stdout:
         lines.append(line)
-        if "update 1, 32 frames" in line:
+        if marker in line:
             proc.send_signal(signal.SIGINT)
             break
     out, _ = proc.communicate(timeout=120)
     out = "".join(lines) + out
     assert proc.returncode == 130, out[-3000:]
-    assert f"run directory: {run_dir}" in out
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["interrupted"] and 32 <= summary["frames"] < 1000000
 
     from anm_torchrl.training.checkpoint import load_checkpoint
 
     assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["frames"] == summary["frames"]
+    return out
+
+
+def test_ctrl_c_ends_the_run_cleanly(tmp_path):
+    """SIGINT after the first evaluation: exit status 130, last.pt and summary.json marked interrupted."""
+    run_dir = tmp_path / "interrupted"
+    out = interrupt_run(run_dir, "update 1, 32 frames")
+    assert f"run directory: {run_dir}" in out
 
 
 def test_resume_from_wrong_kind_fails_clearly(tmp_path):
