@@ -36,13 +36,13 @@ BACKGROUND_MIN_STEPS = 1000
 def use_background(mode: str | bool, device, threads: int, max_steps: int) -> bool:
     """Whether validation runs in a second process: ``mode`` true / false, or ``"auto"``: on CPU, where this
     process may use at least ``2 x threads`` CPUs (the second process runs ``threads`` threads too) and a pass is at
-    least :data:`BACKGROUND_MIN_STEPS` steps long (``max_steps``)."""
+    least :data:`BACKGROUND_MIN_STEPS` steps long (``max_steps``), on a POSIX system."""
     if isinstance(mode, bool):
         return mode
     if mode != "auto":
         raise ValueError(f"eval.background must be auto, true or false; got {mode!r}")
     return (torch.device(device).type == "cpu" and usable_cpus() >= 2 * int(threads)
-            and int(max_steps) >= BACKGROUND_MIN_STEPS)
+            and int(max_steps) >= BACKGROUND_MIN_STEPS and os.name == "posix")  # select() on pipes: POSIX only
 
 
 def evaluate(policy, states: torch.Tensor, env, max_steps: int, gamma: float) -> dict[str, float]:
