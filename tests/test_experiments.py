@@ -135,21 +135,25 @@ def test_run_ppo_starts_from_an_empty_run_dir(tmp_path: Path, monkeypatch):
 
 
 def test_no_shell_out_to_recipes():
-    """The package calls library functions; its only subprocesses are ``git`` queries (run provenance) and two
-    second processes that run the package's own modules (``python -m anm_torchrl.surrogates.pinn.loop``, the PINN
-    training's; ``python -m anm_torchrl.training.validation``, the validation passes'), never a recipe."""
+    """The package calls library functions; its only subprocesses are ``git`` queries (run provenance) and second
+    processes of the package's own modules, started in one place (``processes.ModuleProcess``: ``python -m
+    <module>``) by the module itself (``__name__``: the PINN training's stage, the validation passes), never a
+    recipe."""
     import re
 
     call = re.compile(r"(subprocess\.\w+|os\.system|os\.exec\w*|os\.spawn\w*)\(\s*(\S{0,8})")
-    own_modules = {("anm_torchrl/surrogates/pinn/loop.py", "subprocess.Popen([sys.exe"),
-                   ("anm_torchrl/training/validation.py", "subprocess.Popen([sys.exe")}
+    own = ("anm_torchrl/processes.py", "subprocess.Popen([sys.exe")
     offenders = [f"{p.relative_to(REPO)}: {m.group(0)}" for p in (REPO / "anm_torchrl").rglob("*.py")
                  for m in call.finditer(p.read_text())
                  if not m.group(2).startswith('["git"') and m.group(1) != "subprocess.SubprocessError"
-                 and (str(p.relative_to(REPO)), m.group(0)) not in own_modules]
+                 and (str(p.relative_to(REPO)), m.group(0)) != own]
     assert offenders == []
-    for path, _ in own_modules:  # the module itself, no recipe
-        assert '[sys.executable, "-m", __name__' in (REPO / path).read_text(), path
+    assert '[sys.executable, "-m", module' in (REPO / own[0]).read_text()
+    users = {str(p.relative_to(REPO)) for p in (REPO / "anm_torchrl").rglob("*.py")
+             if "(ModuleProcess)" in p.read_text() or "ModuleProcess(" in p.read_text()} - {own[0]}
+    assert users == {"anm_torchrl/surrogates/pinn/loop.py", "anm_torchrl/training/validation.py"}
+    for path in users:  # each starts itself, no recipe
+        assert "super().__init__(__name__," in (REPO / path).read_text(), path
 
 
 # ------------------------------------------------------------------------------------------ time to return

@@ -3,8 +3,8 @@
 A validation pass rolls the deterministic policy out on the fixed validation states of the true simulator
 (:func:`anm_torchrl.evaluation.evaluate_policy`). It is deterministic, so it may run beside the training: where a
 second CPU is free, :class:`BackgroundValidation` evaluates a copy of the policy's weights in
-``python -m anm_torchrl.training.validation SETUP`` (a fresh interpreter: unlike ``multiprocessing``'s spawn it never
-re-runs the caller's script) while the next iterations train. Its results equal :class:`InlineValidation`'s value for
+``python -m anm_torchrl.training.validation SETUP`` (:class:`~anm_torchrl.processes.ModuleProcess`) while the next
+iterations train. Its results equal :class:`InlineValidation`'s value for
 value; only the moment they are known differs (the protocol waits where a result decides the run: an early stop, the
 end). Both take ``submit(weights, tag)`` and give ``(tag, metrics)`` pairs, in submission order, from ``results``.
 """
@@ -15,16 +15,14 @@ import os
 import pickle
 import select
 import struct
-import subprocess
 import sys
-import tempfile
 from collections import deque
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import torch
 
+from anm_torchrl.processes import ModuleProcess
 from anm_torchrl.provenance import usable_cpus
 
 #: validation pass length (steps) from which ``auto`` runs the passes in a second process: a pass of 1,000 steps
@@ -107,23 +105,19 @@ def _read(stream):
     return None if data is None else pickle.loads(data)  # our own process's output
 
 
-class BackgroundValidation:
-    """Validation in a second process (see the module docstring); the same arguments as :class:`InlineValidation`
-    (the policy and env are pickled to it once; each pass sends only the weights).
+class BackgroundValidation(ModuleProcess):
+    """Validation in a second process (see the module docstring; :class:`ModuleProcess`); the same arguments as
+    :class:`InlineValidation` (the policy and env are pickled to it once; each pass sends only the weights).
 
     Raises:
         RuntimeError: from ``results`` or ``submit`` once the second process has failed, with its stderr.
     """
 
     def __init__(self, policy, states: torch.Tensor, env, max_steps: int, gamma: float):
-        self.tmp = tempfile.TemporaryDirectory(prefix="anm_torchrl_validation_")
-        setup, self.err_path = Path(self.tmp.name) / "setup.pt", Path(self.tmp.name) / "stderr.txt"
-        torch.save({"policy": policy, "states": states, "env": env, "max_steps": int(max_steps),
-                    "gamma": float(gamma), "threads": torch.get_num_threads()}, setup)
-        self._err = open(self.err_path, "wb")
         # unbuffered pipes: ``select`` sees exactly what is unread
-        self.proc = subprocess.Popen([sys.executable, "-m", __name__, str(setup)], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=self._err, bufsize=0)
+        super().__init__(__name__, {"policy": policy, "states": states, "env": env, "max_steps": int(max_steps),
+                                    "gamma": float(gamma), "threads": torch.get_num_threads()},
+                         prefix="anm_torchrl_validation_", pipes=True)
         self._tags: deque = deque()
         self._broken = False
 
@@ -131,23 +125,12 @@ class BackgroundValidation:
     def pending(self) -> int:
         return len(self._tags)
 
-    def _failed(self) -> RuntimeError:
-        try:
-            self.proc.wait(timeout=10)  # its end of the pipe is closed: it is exiting
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        self._err.flush()
-        err = self.err_path.read_bytes().decode(errors="replace").strip()
-        last = err.splitlines()[-1] if err else "no error output"
-        return RuntimeError(f"the validation process failed (exit {self.proc.returncode}): {last}\n{err[-3000:]}")
-
     def submit(self, weights: Mapping[str, torch.Tensor], tag: Any) -> None:
         """Queue a pass of these weights (copied now: training may change the caller's tensors at once)."""
         try:
             _write(self.proc.stdin, {k: v.detach().cpu().clone() for k, v in weights.items()})
         except (BrokenPipeError, OSError):
-            raise self._failed() from None
+            raise self.failure("the validation process") from None
         self._tags.append(tag)
 
     def results(self, wait: bool = False) -> list[tuple[Any, dict[str, float]]]:
@@ -165,20 +148,14 @@ class BackgroundValidation:
                 self.proc.kill()
                 raise
             if metrics is None:
-                raise self._failed()
+                raise self.failure("the validation process")
             out.append((self._tags.popleft(), metrics))
         return out
 
     def close(self) -> None:
         if self.proc.poll() is None:
             self.proc.stdin.close()  # the process ends at the end of its input
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._err.close()
-        self.tmp.cleanup()
+        super().close(grace_s=10)
 
 
 def _serve(setup_path: str) -> None:

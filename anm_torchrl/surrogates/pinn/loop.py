@@ -21,9 +21,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -34,6 +32,7 @@ from torch import nn
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
+from anm_torchrl.processes import ModuleProcess
 from anm_torchrl.provenance import usable_cpus
 from anm_torchrl.surrogates.pinn.model import build_modules
 from anm_torchrl.surrogates.pinn.presets import (MODULES, REFINE_AUTO, ModuleTrainConfig, PINNTrainConfig,
@@ -249,33 +248,21 @@ def _train_in_process(name: str, state: dict[str, torch.Tensor], sim: GridSimula
     return module.state_dict(), report
 
 
-class _StageProcess:
-    """One stage trained by ``python -m anm_torchrl.surrogates.pinn.loop IN OUT`` (a fresh interpreter: unlike
-    ``multiprocessing``'s spawn, it never re-runs the caller's script), its input and output in a temp folder."""
+class _StageProcess(ModuleProcess):
+    """One stage trained by ``python -m anm_torchrl.surrogates.pinn.loop SETUP OUT`` (:class:`ModuleProcess`), its
+    trained weights and report written to ``OUT`` in the process's temp folder."""
 
     def __init__(self, name: str, module: nn.Module, sim: GridSimulator, cfg: PINNTrainConfig,
                  log_dir: str | Path | None):
-        self.tmp = tempfile.TemporaryDirectory(prefix="anm_torchrl_pinn_stage_")
-        self.inp, self.out = Path(self.tmp.name) / "in.pt", Path(self.tmp.name) / "out.pt"
-        torch.save({"name": name, "state": module.state_dict(), "sim": sim, "cfg": cfg,
-                    "threads": torch.get_num_threads(), "log_dir": None if log_dir is None else str(log_dir)},
-                   self.inp)
-        self.proc = subprocess.Popen([sys.executable, "-m", __name__, str(self.inp), str(self.out)],
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        setup = {"name": name, "state": module.state_dict(), "sim": sim, "cfg": cfg,
+                 "threads": torch.get_num_threads(), "log_dir": None if log_dir is None else str(log_dir)}
+        super().__init__(__name__, setup, prefix="anm_torchrl_pinn_stage_", args=("out.pt",))
 
     def result(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
         """Wait for the stage: its trained weights and report; ``RuntimeError`` with its stderr if it failed."""
-        _, err = self.proc.communicate()
-        if self.proc.returncode != 0:
-            raise RuntimeError(f"the PINN stage process failed (exit {self.proc.returncode}): "
-                               f"{err.decode(errors='replace')[-3000:]}")
-        return torch.load(self.out, weights_only=False)  # written by that process, in our own temp folder
-
-    def close(self) -> None:
-        if self.proc.poll() is None:  # an error here before the stage finished
-            self.proc.kill()
-            self.proc.wait()
-        self.tmp.cleanup()
+        if self.proc.wait() != 0:
+            raise self.failure("the PINN stage process")
+        return torch.load(self.folder / "out.pt", weights_only=False)  # written by that process, in its folder
 
 
 #: power-balance steps from which a second process pays: it takes ~4 s to start, the default preset's 10,000 steps ~60 s
@@ -381,6 +368,6 @@ def _train_pinn(cfg: PINNTrainConfig, sim: GridSimulator, log_dir: str | Path | 
     return modules, report
 
 
-if __name__ == "__main__":  # the stage process of :class:`_StageProcess`
+if __name__ == "__main__":  # the stage process of :class:`_StageProcess`: SETUP OUT (OUT beside SETUP)
     args = torch.load(sys.argv[1], weights_only=False)  # written by the parent in its own temp folder
-    torch.save(_train_in_process(**args), sys.argv[2])
+    torch.save(_train_in_process(**args), Path(sys.argv[1]).with_name(sys.argv[2]))
