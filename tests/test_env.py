@@ -154,11 +154,31 @@ def test_constructor_rejects_bad_options():
         ANM6Env(0)
 
 
+def test_staggered_time_limit_spreads_the_first_episode_ends():
+    """stagger=True starts each env's step count at a seeded uniform 0..max_steps-1 on a full reset (later, partial
+    resets count from 0), so the first episodes are cut after 1..max_steps steps; without it all envs count from 0. Either way an env is cut when its count reaches
+    max_steps (random actions also end some episodes early: a terminated episode restarts its count)."""
+    first = {}
+    for stagger in (False, True):
+        env = make_env("none", num_envs=16, max_steps=8, seed=3, stagger=stagger)
+        check_env_specs(env)
+        rollout = env.rollout(24, break_when_any_done=False)
+        count = rollout["next", "step_count"].squeeze(-1)  # [env, step]
+        assert torch.equal(rollout["next", "truncated"].squeeze(-1), count >= 8)
+        first[stagger] = count[:, 0].tolist()
+    assert set(first[False]) == {1}
+    assert len(set(first[True])) >= 4 and set(first[True]) <= set(range(1, 9))
+    a, b = (make_env("none", num_envs=16, max_steps=8, seed=3, stagger=True) for _ in range(2))
+    assert torch.equal(a.reset()["step_count"], b.reset()["step_count"])  # drawn from the seed
+
+
 def test_make_env_time_limit_and_errors():
     env = make_env("none", num_envs=2, max_steps=4, seed=0)
     check_env_specs(env)
     r = env.rollout(9, break_when_any_done=False)
     assert r["next", "truncated"][0].squeeze(-1).tolist() == [False, False, False, True] * 2 + [False]
+    with pytest.raises(ValueError, match=r"stagger=True needs a time limit \(max_steps\)"):
+        make_env("none", num_envs=2, stagger=True)
     with pytest.raises(ValueError, match="unknown surrogate 'foo'"):
         make_env("foo")
     with pytest.raises(ValueError, match="takes no surrogate options"):

@@ -52,13 +52,15 @@ def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
     ("optim.anneal_lr=1", "optim.anneal_lr must be true or false, got 1"),
     ("optim.actor_ema=1.5", "optim.actor_ema must be in [0, 1], got 1.5"),
     ("optim.anneal_start=1", "optim.anneal_start must be in [0, 1), got 1"),
+    ("env.stagger=1", "env.stagger must be true or false, got 1"),
+    ("env.stagger=true env.max_steps=null", "env.stagger=true needs a time limit (env.max_steps)"),
 ])
 def test_shac_config_errors_name_the_key(override, message):
     from recipe_utils import compose
 
     from anm_torchrl.training.algorithms import check_algorithm_config
 
-    cfg = compose("shac", [*TINY_SHAC, override])
+    cfg = compose("shac", [*TINY_SHAC, *override.split()])
     with pytest.raises(ValueError, match=re.escape(message)):
         check_algorithm_config(cfg)
 
@@ -138,3 +140,25 @@ def test_shac_evaluates_a_running_average_of_the_actor_when_asked(ema):
     assert moved
     saved = algo.state_dict()["learner"]
     assert all(torch.equal(saved[k], v) for k, v in algo.learner.state_dict().items())
+
+
+@pytest.mark.parametrize("stagger", [False, True])
+def test_staggered_rows_end_their_episodes_at_different_iterations(stagger):
+    """With ``env.stagger`` the rows' first episodes are cut after 1..max_steps steps, so their resets spread over
+    the iterations; without it every row is reset at the same iteration (all rows start together)."""
+    import torch
+
+    torch.manual_seed(0)
+    algo = _tiny_shac("env.num_envs=16", "env.max_steps=24", f"env.stagger={str(stagger).lower()}")
+    ends = []
+    for _ in range(6):  # 6 iterations x 8 steps: 48 steps, every row ends its first episode
+        before = algo.steps.clone()
+        algo.iterate(10 ** 6)
+        ends.append(algo.steps < before + 8)  # a row reset during the iteration counts fewer steps
+    ends = torch.stack(ends)  # [iteration, row]
+    first = ends.float().argmax(0)
+    assert bool(ends.any(0).all())
+    if stagger:
+        assert first.unique().numel() >= 3, first
+    else:
+        assert first.unique().tolist() == [2], first  # 24 steps = 3 iterations of 8

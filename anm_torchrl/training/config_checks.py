@@ -98,6 +98,9 @@ def check_protocol_config(cfg: Mapping) -> None:
     _int(cfg, "env.max_steps", optional=True)
     _choice(cfg, "env.action_mode", ACTION_MODES)
     _choice(cfg, "env.init", ENV_INITS)
+    _bool(cfg, "env.stagger")
+    if _get(cfg, "env.stagger") and _get(cfg, "env.max_steps") is None:
+        raise ValueError("env.stagger=true needs a time limit (env.max_steps) to stagger; got env.max_steps=null")
     # budget: frames (reproducible); a wall-clock cap is opt-in
     _int(cfg, "collector.total_frames")
     _in_range(cfg, "collector.max_minutes", 0, math.inf, True, True, optional=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
 from torchrl.envs import DoubleToFloat, EnvBase, SerialEnv, StepCounter, TransformedEnv
 
 from anm_torchrl._extras import require
@@ -100,9 +101,31 @@ def make_true_env(num_envs: int = 1, device="cpu", seed: int | None = None, acti
                   init=init or "uniform")
 
 
+class StaggeredStepCounter(StepCounter):
+    """``StepCounter`` whose full resets (every env at once: no ``_reset`` mask) start each env's count at a uniform
+    0..max_steps-1, drawn from its own seeded generator: the first episodes end after 1..max_steps steps, so later
+    resets (partial, from 0) spread over the collected batches instead of falling on all envs at once (then one
+    batch in ``max_steps / steps per batch`` holds every env's first steps, the others none)."""
+
+    def __init__(self, max_steps: int, seed: int | None = None):
+        super().__init__(int(max_steps))
+        self._generator = torch.Generator().manual_seed(0 if seed is None else int(seed))
+
+    def _reset(self, tensordict, tensordict_reset):
+        full = tensordict is None or all(tensordict.get(key, None) is None for key in self.reset_keys)
+        tensordict_reset = super()._reset(tensordict, tensordict_reset)
+        if full:
+            for key in self.step_count_keys:
+                count = tensordict_reset.get(key)
+                offset = torch.randint(0, self.max_steps, count.shape, generator=self._generator)
+                tensordict_reset.set(key, offset.to(device=count.device, dtype=count.dtype))
+        return tensordict_reset
+
+
 def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None = None, device="cpu",
              seed: int | None = None, action_mode: str = "raise", init: str | None = None,
-             network: str | dict | None = None, load_p=None, gen_p_max=None, **surrogate_kwargs) -> EnvBase:
+             network: str | dict | None = None, load_p=None, gen_p_max=None, stagger: bool = False,
+             **surrogate_kwargs) -> EnvBase:
     """Build a batched env of ``num_envs`` grids.
 
     Args:
@@ -121,6 +144,8 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
             (then with ``load_p`` and ``gen_p_max``); None = ANM6-Easy. A surrogate is loaded (or trained) for
             that network's simulator.
         load_p, gen_p_max: (T, n_load), (T, n_gen) MW profiles (see :func:`network_arguments`).
+        stagger: with ``max_steps``, cut each env's first episode after a uniform 1..max_steps steps
+            (:class:`StaggeredStepCounter`, drawn from ``seed``).
         **surrogate_kwargs: passed to the surrogate's loader (e.g. ``dataset="agent"``, ``path=...``).
     """
     num_envs = check_integer("num_envs", num_envs, low=1)  # 2.7 is an error, not 2 envs
@@ -143,16 +168,19 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
         sim = network_simulator(ANM6_EASY, device=device) if sim is None else sim  # SurrogateEnv needs its network
         env = SurrogateEnv(model, num_envs, device=device, seed=seed, action_mode=action_mode,
                            init=init or "uniform", sim=sim)
+    if stagger and max_steps is None:
+        raise ValueError("stagger=True needs a time limit (max_steps) to stagger")
     if max_steps is not None:
+        counter = StaggeredStepCounter(max_steps, seed) if stagger else StepCounter(int(max_steps))
         if isinstance(env, TransformedEnv):  # gym_anm: extend its transforms rather than nest envs
-            env.append_transform(StepCounter(int(max_steps)))
+            env.append_transform(counter)
         else:
-            env = TransformedEnv(env, StepCounter(int(max_steps)))
+            env = TransformedEnv(env, counter)
     return env
 
 
 def make_train_env(surrogate: dict, num_envs: int, max_steps: int | None, seed: int, action_mode: str,
-                   init: str | None, device: str, threads: int, network: str | None = None):
+                   init: str | None, device: str, threads: int, network: str | None = None, stagger: bool = False):
     """The training env: ``make_env`` + ``RewardSum`` (episode returns for logging). Also a collector-worker factory."""
     import torch
     from torchrl.envs import RewardSum
@@ -160,7 +188,7 @@ def make_train_env(surrogate: dict, num_envs: int, max_steps: int | None, seed: 
     torch.set_num_threads(int(threads))
     options = {k: v for k, v in surrogate.items() if k != "name"}
     env = make_env(surrogate["name"], num_envs=num_envs, max_steps=max_steps, device=device, seed=seed,
-                   action_mode=action_mode, init=init, network=network, **options)
+                   action_mode=action_mode, init=init, network=network, stagger=stagger, **options)
     return env.append_transform(RewardSum()) if isinstance(env, TransformedEnv) else TransformedEnv(env, RewardSum())
 
 
@@ -171,4 +199,4 @@ def train_env_kwargs(cfg, device: str, num_workers: int = 1) -> dict:
     return dict(surrogate=OmegaConf.to_container(cfg.surrogate, resolve=True),
                 num_envs=int(cfg.env.num_envs) // num_workers, max_steps=cfg.env.max_steps,
                 action_mode=cfg.env.action_mode, init=cfg.env.init, device=str(device), threads=int(cfg.threads),
-                network=cfg.network)
+                network=cfg.network, stagger=bool(cfg.env.get("stagger", False)))

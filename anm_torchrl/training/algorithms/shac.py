@@ -138,6 +138,9 @@ class SHAC(Algorithm):
         td = self.env.reset()
         self.state, self.obs = td["state"].to(torch.float64), td["observation"].float()
         self.steps = torch.zeros(self.state.shape[0], dtype=torch.long, device=self.state.device)
+        if cfg.env.get("stagger") and not resume:
+            # the rows' first episodes are cut after 1..max_steps steps, so later resets spread over the iterations
+            self.steps = torch.randint(0, self.max_steps, self.steps.shape, device=self.steps.device)
 
     def _value(self, net, obs: torch.Tensor) -> torch.Tensor:
         return net.module(obs).squeeze(-1)
