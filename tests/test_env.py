@@ -179,6 +179,8 @@ def test_make_env_time_limit_and_errors():
     assert r["next", "truncated"][0].squeeze(-1).tolist() == [False, False, False, True] * 2 + [False]
     with pytest.raises(ValueError, match=r"stagger=True needs a time limit \(max_steps\)"):
         make_env("none", num_envs=2, stagger=True)
+    with pytest.raises(ValueError, match="stagger must be True or False, got 'yes'"):
+        make_env("none", num_envs=2, max_steps=4, stagger="yes")
     with pytest.raises(ValueError, match="unknown surrogate 'foo'"):
         make_env("foo")
     with pytest.raises(ValueError, match="takes no surrogate options"):

@@ -151,6 +151,10 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
     num_envs = check_integer("num_envs", num_envs, low=1)  # 2.7 is an error, not 2 envs
     max_steps = check_integer("max_steps", max_steps, low=1, optional=True)
     seed = check_integer("seed", seed, optional=True)
+    if not isinstance(stagger, bool):
+        raise ValueError(f"stagger must be True or False, got {stagger!r}")
+    if stagger and max_steps is None:
+        raise ValueError("stagger=True needs a time limit (max_steps) to stagger")
     if surrogate in (None, "none", "gym_anm") and surrogate_kwargs:
         raise ValueError(f"surrogate={surrogate!r} takes no surrogate options, got {sorted(surrogate_kwargs)}")
     if surrogate in (None, "none"):
@@ -168,8 +172,6 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
         sim = network_simulator(ANM6_EASY, device=device) if sim is None else sim  # SurrogateEnv needs its network
         env = SurrogateEnv(model, num_envs, device=device, seed=seed, action_mode=action_mode,
                            init=init or "uniform", sim=sim)
-    if stagger and max_steps is None:
-        raise ValueError("stagger=True needs a time limit (max_steps) to stagger")
     if max_steps is not None:
         counter = StaggeredStepCounter(max_steps, seed) if stagger else StepCounter(int(max_steps))
         if isinstance(env, TransformedEnv):  # gym_anm: extend its transforms rather than nest envs
@@ -182,7 +184,6 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
 def make_train_env(surrogate: dict, num_envs: int, max_steps: int | None, seed: int, action_mode: str,
                    init: str | None, device: str, threads: int, network: str | None = None, stagger: bool = False):
     """The training env: ``make_env`` + ``RewardSum`` (episode returns for logging). Also a collector-worker factory."""
-    import torch
     from torchrl.envs import RewardSum
 
     torch.set_num_threads(int(threads))
