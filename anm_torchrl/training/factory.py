@@ -200,4 +200,4 @@ def train_env_kwargs(cfg, device: str, num_workers: int = 1) -> dict:
     return dict(surrogate=OmegaConf.to_container(cfg.surrogate, resolve=True),
                 num_envs=int(cfg.env.num_envs) // num_workers, max_steps=cfg.env.max_steps,
                 action_mode=cfg.env.action_mode, init=cfg.env.init, device=str(device), threads=int(cfg.threads),
-                network=cfg.network, stagger=bool(cfg.env.get("stagger", False)))
+                network=cfg.network, stagger=cfg.env.get("stagger", False))
