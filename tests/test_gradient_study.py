@@ -5,7 +5,9 @@ verdict and the docs block that must equal its rendering from the committed reco
 from __future__ import annotations
 
 import json
+import logging
 import math
+import shutil
 from pathlib import Path
 
 import pytest
@@ -181,6 +183,44 @@ def test_a_campaign_reuses_finished_cells_and_renders_its_record(campaign, monke
     monkeypatch.setattr(gs, "ProcessPoolExecutor", lambda *a, **k: pytest.fail("a finished cell was run again"))
     again = gs.campaign("anm6_easy", ["shac_exact"], [0], runs, jobs=1, overrides=TINY)
     assert again["methods"][0]["runs"] == row["runs"]
+
+
+def test_a_cell_trained_at_another_config_is_trained_again(campaign, tmp_path, caplog):
+    """The same command line at a changed default (e.g. a new per-network entry) must not reuse the old run."""
+    cell = tmp_path / "cell"
+    shutil.copytree(campaign[1] / "anm6_easy_shac_exact_s0", cell)
+    marker = json.loads((cell / "study_cell.json").read_text())
+    command = [f"hydra.run.dir={cell}" if a.startswith("hydra.run.dir=") else a for a in marker["command"]]
+    (cell / "study_cell.json").write_text(json.dumps({**marker, "command": command}))
+    assert gs._finished(command, cell)
+    summary = json.loads((cell / "summary.json").read_text())
+    summary["config"]["loss"]["horizon"] += 1
+    (cell / "summary.json").write_text(json.dumps(summary))
+    with caplog.at_level(logging.INFO, logger=gs.__name__):
+        assert not gs._finished(command, cell)
+    assert "was trained with another config (loss.horizon): trained again" in caplog.text
+
+
+def test_the_campaigns_pinn_is_reused_only_if_trained_on_the_same_network_with_the_same_preset(tmp_path,
+                                                                                               monkeypatch):
+    from anm_torchrl.surrogates.pinn import cache
+
+    trained = []
+
+    def fake_train(cfg, sim, path):
+        trained.append(cfg)
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_bytes(b"weights")
+
+    monkeypatch.setattr(cache, "train_and_save", fake_train)
+    gs.train_pinn("anm6_easy", tmp_path / "pinn")
+    gs.train_pinn("anm6_easy", tmp_path / "pinn")
+    assert len(trained) == 1, "the second call reuses the first's PINN"
+    marker = tmp_path / "pinn" / "study_pinn.json"
+    kept = json.loads(marker.read_text())
+    marker.write_text(json.dumps({**kept, "network_key": "another network's data"}))
+    gs.train_pinn("anm6_easy", tmp_path / "pinn")
+    assert len(trained) == 2 and json.loads(marker.read_text())["network_key"] == kept["network_key"]
 
 
 def test_a_failed_cell_is_reported_with_its_error(tmp_path):

@@ -229,11 +229,13 @@ def _deterministic_loss(model, seed: int = 123, n: int = 64, steps: int = 32) ->
 def test_sb3_ppo_learns_on_the_batched_env():
     pytest.importorskip("stable_baselines3")
     from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import Logger
 
     from anm_torchrl.gym.sb3 import SB3VecEnv
 
     env = SB3VecEnv(num_envs=64, seed=0)
     model = PPO("MlpPolicy", env, n_steps=32, batch_size=512, seed=0, device="cpu")
+    model.set_logger(Logger(None, []))  # SB3's default one would leave an empty /tmp/SB3-<time> folder behind
     before = _deterministic_loss(model)
     model.learn(total_timesteps=2 * 64 * 32 * 4)  # 16,384 frames, 8 updates
     after = _deterministic_loss(model)

@@ -27,8 +27,11 @@ log = logging.getLogger(__name__)
 
 def _ppo(env, n_steps: int, seed: int):
     from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import Logger
 
-    return PPO("MlpPolicy", env, n_steps=n_steps, batch_size=512, seed=seed, device="cpu", verbose=0)
+    model = PPO("MlpPolicy", env, n_steps=n_steps, batch_size=512, seed=seed, device="cpu", verbose=0)
+    model.set_logger(Logger(None, []))  # SB3's default logger makes an empty /tmp/SB3-<time> folder per learn()
+    return model
 
 
 def _bench(make_env, name: str, num_envs: int, n_steps: int, rollouts: int, seed: int) -> dict:

@@ -21,6 +21,7 @@ PINN's training (``recipes/train_pinn.py`` wall time, measured once in the campa
 from __future__ import annotations
 
 import json
+import logging
 import multiprocessing
 import os
 import shutil
@@ -35,6 +36,8 @@ from anm_torchrl.experiments.formatting import replace_marked_blocks
 from anm_torchrl.experiments.leaderboard import ANM6, gap_table_path, reference_returns
 from anm_torchrl.experiments.ppo_runs import time_to_reach
 from anm_torchrl.experiments.time_to_return import censored_summary
+
+log = logging.getLogger(__name__)
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 #: a recipe's config name under recipes/conf
@@ -83,26 +86,44 @@ def _shown(command: list[str]) -> str:
     return " ".join(["python", f"recipes/{Path(command[1]).name}", *_keys(command)])
 
 
-def _train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
-    """Train one cell into ``run_dir`` in this (worker) process: the recipe's config composed with the command's
-    keys, the network's defaults applied to the keys it does not set (as the recipe does), then the shared protocol
-    (which checks the config first)."""
+def _cell_config(command: list[str]):
+    """``(config, network defaults)`` of a cell: the recipe's config composed with the command's keys, the network's
+    defaults applied to the keys it does not set (as the recipe does)."""
     from anm_torchrl.experiments.ppo_runs import CONF_DIR, compose_ppo_config
-    from anm_torchrl.training import protocol
     from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
 
     keys = _keys(command)
+    cfg = compose_ppo_config(keys, config_name=RECIPE_CONFIGS[Path(command[1]).name])
+    return cfg, apply_network_defaults(cfg, explicit_keys(keys, CONF_DIR))
+
+
+def _train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
+    """Train one cell into ``run_dir`` in this (worker) process: its config (:func:`_cell_config`) through the
+    shared protocol (which checks the config first)."""
+    from anm_torchrl.training import protocol
+
     shutil.rmtree(run_dir, ignore_errors=True)  # an unfinished earlier attempt: its logs would mix with these
     t0, load = time.perf_counter(), os.getloadavg()[0]
-    cfg = compose_ppo_config(keys, config_name=RECIPE_CONFIGS[Path(command[1]).name])
-    protocol.train(cfg, run_dir, network_defaults=apply_network_defaults(cfg, explicit_keys(keys, CONF_DIR)))
+    cfg, defaults = _cell_config(command)
+    protocol.train(cfg, run_dir, network_defaults=defaults)
     return {"process_wall_s": time.perf_counter() - t0, "load_avg_1min": [load, os.getloadavg()[0]]}
 
 
 def _finished(command: list[str], run_dir: Path) -> bool:
-    marker = run_dir / "study_cell.json"
-    return (run_dir / "summary.json").is_file() and marker.is_file() and \
-        json.loads(marker.read_text())["command"] == command
+    """Whether ``run_dir`` holds a finished cell of ``command`` trained with the config the command has today: the
+    same command line alone would reuse a cell trained at a former default (e.g. an older per-network entry)."""
+    from omegaconf import OmegaConf
+
+    from anm_torchrl.training.checkpoint import config_diff
+
+    marker, summary = run_dir / "study_cell.json", run_dir / "summary.json"
+    if not (summary.is_file() and marker.is_file() and json.loads(marker.read_text())["command"] == command):
+        return False
+    trained = json.loads(summary.read_text()).get("config", {})
+    changed = config_diff(trained, OmegaConf.to_container(_cell_config(command)[0], resolve=True))
+    if changed:
+        log.info("%s was trained with another config (%s): trained again", run_dir, ", ".join(changed))
+    return not changed
 
 
 def run_cells(commands: dict[Path, list[str]], jobs: int) -> list[dict[str, Any]]:
@@ -128,19 +149,25 @@ def run_cells(commands: dict[Path, list[str]], jobs: int) -> list[dict[str, Any]
 
 
 def train_pinn(network: str, folder: Path) -> float:
-    """Train ``network``'s default PINN preset into ``folder`` (unless there) and return its training wall time
-    (s), measured once and kept in ``folder/study_pinn.json``."""
-    marker = folder / "study_pinn.json"
-    if marker.is_file() and (folder / "pinn.safetensors").is_file():
-        return float(json.loads(marker.read_text())["wall_s"])
+    """Train ``network``'s default PINN preset into ``folder`` (unless there, trained on the same network data with
+    the same preset) and return its training wall time (s), measured once and kept in ``folder/study_pinn.json``."""
+    from anm_torchrl.grid.identity import network_key
     from anm_torchrl.networks import simulator
     from anm_torchrl.surrogates.pinn import cache, presets
 
     sim = simulator(network)
+    cfg = presets.preset_for("default", sim)
+    made = {"network": network, "network_key": network_key(sim), "preset": json.loads(json.dumps(cfg.to_dict()))}
+    marker = folder / "study_pinn.json"
+    if marker.is_file() and (folder / "pinn.safetensors").is_file():
+        kept = json.loads(marker.read_text())
+        if all(kept.get(k) == v for k, v in made.items()):
+            return float(kept["wall_s"])
+        log.info("%s was trained on other network data or another preset: trained again", folder)
     t0 = time.perf_counter()
-    cache.train_and_save(presets.preset_for("default", sim), sim, path=folder / "pinn.safetensors")
+    cache.train_and_save(cfg, sim, path=folder / "pinn.safetensors")
     wall = time.perf_counter() - t0
-    marker.write_text(json.dumps({"network": network, "wall_s": wall}) + "\n")
+    marker.write_text(json.dumps({**made, "wall_s": wall}) + "\n")
     return wall
 
 
