@@ -32,6 +32,20 @@ def test_markdown_without_compare_keeps_the_plain_table():
     assert "variant" not in text and "| ppo | 8 | " in text
 
 
+def test_shac_is_measured_on_its_model_with_its_network_entry():
+    """SHAC's row times its rollout through the exact model (+ the actor's backward) and its critic's update; its
+    config is the recipe's for the network (ANM6-Easy's entry: horizon 64), N rows."""
+    cfg = training._config("shac", "anm6_easy", 8, [])
+    assert cfg.loss.horizon == 64 and cfg.env.num_envs == 8 and cfg.model.dynamics == "exact"
+    record = training.measure("anm6_easy", (8,), ("shac",), 1, ("loss.horizon=4",))
+    (row,) = record["rows"]
+    assert row["algorithm"] == "shac" and row["frames"] == 8 * 4, "one iteration: N rows x horizon model frames"
+    for key in ("env_fps", "collect_fps", "update_fps", "loop_fps", "loop_cpu_fps"):
+        assert math.isfinite(row[key]) and row[key] > 0, (key, row[key])
+    with pytest.raises(ValueError, match="unknown algorithm 'td3'; choose from"):
+        training._config("td3", "anm6_easy", 8, [])
+
+
 @pytest.mark.slow  # inductor's first compilation: ~35 s on 2 busy cores
 # tensordict's own deprecation notice under torch.compile (tensordict/utils.py), not this project's
 @pytest.mark.filterwarnings("ignore:torch._dynamo.config.inline_inbuilt_nn_modules is deprecated:FutureWarning")

@@ -5,12 +5,17 @@ For every batch size N and algorithm, in one run (ratios compare, seconds do not
 * ``env``: ``ANMEnv`` stepped under uniformly random actions over the box (TorchRL ``rollout``, terminated
   envs reset in place), frames/s;
 * ``collect``: the algorithm's own collector with its policy (one batch of ``collector.frames_per_batch``);
-* ``update``: its update on that batch (PPO: GAE + epochs of minibatches; SAC: the replay steps);
-* ``loop``: collect + update, i.e. what ``recipes/ppo.py`` / ``recipes/sac.py`` do between evaluations.
+  SHAC: its rollout of ``loss.horizon`` steps through its model (``model.dynamics``, the exact differentiable
+  simulator by default) and the actor's backward pass through it;
+* ``update``: its update on that batch (PPO: GAE + epochs of minibatches; SAC: the replay steps; SHAC: the critic's
+  epochs on the rollout's TD(λ) targets);
+* ``loop``: collect + update, i.e. what ``recipes/ppo.py`` / ``recipes/sac.py`` / ``recipes/shac.py`` do between
+  evaluations. SHAC's frames are model transitions (none of the true env's).
 
-Each is reported as frames/s of wall time and of process CPU time (one torch thread: CPU time is the work done,
-whatever else the machine runs), after one warm-up iteration. The ``loop / env`` column is the issue's target
-(≥ 0.5).
+Every algorithm runs its recipe's config for the network (its per-network entry applied, as the recipe does), with
+``env.num_envs`` = N (and PPO's and SAC's ``collector.frames_per_batch`` = N x 16) set. Each is reported as frames/s
+of wall time and of process CPU time (one torch thread: CPU time is the work done, whatever else the machine runs),
+after one warm-up iteration. The ``loop / env`` column is the issue's target (≥ 0.5).
 """
 
 from __future__ import annotations
@@ -23,18 +28,28 @@ import torch
 
 from anm_torchrl.training.factory import make_env
 
-STEPS = 16  # steps per env per iteration: frames_per_batch = N x STEPS
+STEPS = 16  # steps per env per iteration (PPO, SAC): frames_per_batch = N x STEPS
+#: algorithm -> (its recipe's config name, its metrics' seconds of collection and of the update)
+ALGORITHMS = {"ppo": ("config", "time/collect", "time/update"), "sac": ("sac", "time/collect", "time/update"),
+              "shac": ("shac", "time/rollout", "time/update")}
 
 
 def _config(algorithm: str, network: str, n_envs: int, overrides: list[str]):
+    """``algorithm``'s recipe config on ``network`` with N envs, its network entry applied to the keys not set here."""
     from hydra import compose, initialize_config_dir
 
+    from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
+
+    if algorithm not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {algorithm!r}; choose from {sorted(ALGORITHMS)}")
     conf = Path(__file__).resolve().parents[2] / "recipes" / "conf"
-    name = {"ppo": "config", "sac": "sac"}[algorithm]
-    over = [f"network={network}", f"env.num_envs={n_envs}", f"collector.frames_per_batch={n_envs * STEPS}",
+    over = [f"network={network}", f"env.num_envs={n_envs}",
+            *([f"collector.frames_per_batch={n_envs * STEPS}"] if algorithm != "shac" else []),
             *(["collector.init_random_frames=0"] if algorithm == "sac" else []), *overrides]  # time the actor's frames
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        return compose(config_name=name, overrides=over)
+        cfg = compose(config_name=ALGORITHMS[algorithm][0], overrides=over)
+    apply_network_defaults(cfg, explicit_keys(over, conf))
+    return cfg
 
 
 def _clock():
@@ -68,12 +83,13 @@ def time_algorithm(algorithm: str, network: str, n_envs: int, iterations: int = 
     warmup_s = time.perf_counter() - w0
     frames = 0
     wall = {"collect": 0.0, "update": 0.0}
+    _, collect_key, update_key = ALGORITHMS[algorithm]
     w0, c0 = _clock()
     for _ in range(iterations):
         n, metrics = algo.iterate(10**12)
         frames += n
-        wall["collect"] += float(metrics["time/collect"])
-        wall["update"] += float(metrics["time/update"])
+        wall["collect"] += float(metrics[collect_key])
+        wall["update"] += float(metrics[update_key])
     w1, c1 = _clock()
     algo.close()
     return {"frames": frames, "collect_fps": frames / wall["collect"], "update_fps": frames / wall["update"],
@@ -81,7 +97,7 @@ def time_algorithm(algorithm: str, network: str, n_envs: int, iterations: int = 
             "update_share": wall["update"] / (w1 - w0), "warmup_s": warmup_s}
 
 
-def measure(network: str = "anm6_easy", batch_sizes=(256, 1024, 4096), algorithms=("ppo", "sac"),
+def measure(network: str = "anm6_easy", batch_sizes=(256, 1024, 4096), algorithms=tuple(ALGORITHMS),
             iterations: int = 3, overrides: tuple[str, ...] = (), compare: tuple[str, ...] = ()) -> dict:
     """Every row of the table (one dict per (algorithm, N)), measured in this one run; ``overrides`` (Hydra
     ``key=value``) apply to every algorithm's config. With ``compare`` (more overrides), every row is measured

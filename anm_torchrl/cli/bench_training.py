@@ -1,7 +1,7 @@
 """Command line of the training-loop benchmark (:mod:`anm_torchrl.benchmarks.training`): where an iteration's time
 goes (env alone, collection, update, loop) per algorithm and batch size, measured in one run.
 
-    python -m anm_torchrl.cli.bench_training [--network anm6_easy] [--envs 256 1024 4096] [--algorithms ppo sac]
+    python -m anm_torchrl.cli.bench_training [--network anm6_easy] [--envs 256 1024 4096] [--algorithms ppo sac shac]
                                              [--iterations 3] [--out results/benchmarks/bench_training]
                                              [--override KEY=VALUE ...] [--compare KEY=VALUE ...]
 """
@@ -22,7 +22,8 @@ def main(argv: list[str] | None = None) -> None:
                                      description=training.__doc__.splitlines()[0])
     parser.add_argument("--network", default="anm6_easy")
     parser.add_argument("--envs", type=count, nargs="+", default=[256, 1024, 4096])
-    parser.add_argument("--algorithms", nargs="+", default=["ppo", "sac"])
+    parser.add_argument("--algorithms", nargs="+", default=list(training.ALGORITHMS),
+                        choices=list(training.ALGORITHMS))
     parser.add_argument("--iterations", type=count, default=3, help="timed iterations per row (after one warm-up)")
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE",
                         help="Hydra overrides of every algorithm's config, e.g. loss.mini_batch_size=8192")
