@@ -136,8 +136,8 @@ def markdown(record: dict) -> str:
     for r in record["rows"]:
         variant = f" {r['variant']} | {r['warmup_s']:.1f} s |" if compare else ""  # a compare record has both
         lines.append(f"| {r['algorithm']} | {r['num_envs']:,} |{variant} {r['env_fps']:,.0f} "
-                     f"({r['env_cpu_fps']:,.0f}) | {r['collect_fps']:,.0f} | {r['update_fps']:,.0f} | {r['loop_fps']:,.0f} "
-                     f"({r['loop_cpu_fps']:,.0f}) | {r['loop_over_env']:.2f} ({r['loop_over_env_cpu']:.2f}) |")
+                     f"({r['env_cpu_fps']:,.0f}) | {r['collect_fps']:,.0f} | {r['update_fps']:,.0f} | "
+                     f"{r['loop_fps']:,.0f} ({r['loop_cpu_fps']:,.0f}) | {r['loop_over_env']:.2f} ({r['loop_over_env_cpu']:.2f}) |")
     return "\n".join(lines) + "\n"
 
 
