@@ -150,7 +150,11 @@ def run_cells(commands: dict[Path, list[str]], jobs: int) -> list[dict[str, Any]
 
 def train_pinn(network: str, folder: Path) -> float:
     """Train ``network``'s default PINN preset into ``folder`` (unless there, trained on the same network data with
-    the same preset) and return its training wall time (s), measured once and kept in ``folder/study_pinn.json``."""
+    the same preset) and return its training wall time (s), measured once and kept in ``folder/study_pinn.json``.
+    One torch thread, as the recipes' ``threads`` default (the training's second process takes this one's count:
+    two processes of two threads on two cores ran ~5x slower)."""
+    import torch
+
     from anm_torchrl.grid.identity import network_key
     from anm_torchrl.networks import simulator
     from anm_torchrl.surrogates.pinn import cache, presets
@@ -164,6 +168,7 @@ def train_pinn(network: str, folder: Path) -> float:
         if all(kept.get(k) == v for k, v in made.items()):
             return float(kept["wall_s"])
         log.info("%s was trained on other network data or another preset: trained again", folder)
+    torch.set_num_threads(1)
     t0 = time.perf_counter()
     cache.train_and_save(cfg, sim, path=folder / "pinn.safetensors")
     wall = time.perf_counter() - t0
