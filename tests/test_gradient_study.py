@@ -117,6 +117,9 @@ def test_the_verdict_says_how_many_times_fewer_transitions_or_that_it_was_not_re
     assert "10× fewer transitions" in text and "anm6_easy, 1.5× the optimum's loss" in text
     slower = gs.verdict([_record("anm6_easy", [1e5], [1e4])])
     assert "10× more transitions, PPO 10× faster in wall time" in slower
+    # a factor that rounds to 1 (here 1.03) is said as such, not as "1× faster"
+    same = gs.verdict([_record("anm6_easy", [1.03e5], [1e5])])
+    assert "as many transitions, as fast in wall time" in same and "1×" not in same
     assert "reached by fewer than half its runs (1/3)" in gs.verdict([_record("anm6_easy", [None], [1e6])])
     assert "PPO did not within its budget" in gs.verdict([_record("anm6_easy", [1e5], [None])])
 
@@ -134,6 +137,11 @@ def test_the_verdict_reads_the_frames_to_ppos_best_return_off_the_test_curves():
     (line,) = gs.ppo_best_lines(rec)
     assert "PPO's best return (-1, the mean of its best.pt test returns): SHAC reached it in 2/3 runs" in line
     assert "median 200 model frames against PPO's 3,000 true-env frames (2/3 runs): 15× fewer" in line
+    shac_slow = [{**r, "curve": _curve([-3] * 39 + [-0.5])} for r in shac]  # each reaches it at 4,000 frames
+    (line,) = gs.ppo_best_lines({**rec, "methods": [{"method": "shac_exact", "label": "SHAC", "runs": shac_slow},
+                                                    rec["methods"][1]]})
+    assert "against PPO's 3,000 true-env frames (2/3 runs): 1.3× more transitions (issue 26's target: 10× fewer)" \
+        in line
     shac[0]["curve"], shac[1]["curve"] = _curve([-2]), _curve([-2])
     assert "reached it in 0/3 runs, fewer than half (PPO's own runs: 2/3)" in gs.ppo_best_lines(rec)[0]
     assert gs.ppo_best_lines({"network": "x", "methods": [{"method": "shac_exact", "runs": shac}]}) == []

@@ -269,6 +269,15 @@ def markdown(record: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _times(ratio: float, fewer: str, more: str, same: str) -> str:
+    """``ratio`` (PPO's / SHAC's) in words: ``fewer`` or ``more`` formatted with the factor (≥ 1, two significant
+    digits), ``same`` where the factor would print as 1."""
+    factor = ratio if ratio >= 1 else 1 / ratio
+    if f"{factor:.2g}" == "1":
+        return same
+    return (fewer if ratio >= 1 else more).format(f"{factor:.2g}")
+
+
 def verdict(records: list[dict]) -> str:
     """The generated verdict over the networks' records: where SHAC reached each threshold with fewer transitions
     and less wall time than PPO, and where not."""
@@ -293,11 +302,10 @@ def verdict(records: list[dict]) -> str:
                                f"true-env frames); PPO did not within its budget ({ppo['frames']['reached']}/"
                                f"{ppo['frames']['runs']}).")
                 else:
-                    ratio = ppo["frames"]["median"] / sh["frames"]["median"]
-                    speed = ppo["wall_s"]["median"] / sh["wall_s"]["median"]
-                    fewer = f"{ratio:.2g}× fewer transitions" if ratio >= 1 else f"{1 / ratio:.2g}× more transitions"
-                    faster = f"{speed:.2g}× faster in wall time" if speed >= 1 else \
-                        f"PPO {1 / speed:.2g}× faster in wall time"
+                    fewer = _times(ppo["frames"]["median"] / sh["frames"]["median"], "{}× fewer transitions",
+                                   "{}× more transitions", "as many transitions")
+                    faster = _times(ppo["wall_s"]["median"] / sh["wall_s"]["median"], "{}× faster in wall time",
+                                    "PPO {}× faster in wall time", "as fast in wall time")
                     out.append(f"{head}: median {_t(sh['frames']['median'], 'f')} model frames and "
                                f"{_t(sh['wall_s']['median'])} against PPO's {_t(ppo['frames']['median'], 'f')} "
                                f"true-env frames and {_t(ppo['wall_s']['median'])}: {fewer}, {faster}.")
@@ -329,7 +337,8 @@ def ppo_best_lines(rec: dict) -> list[str]:
         else:
             out.append(f"{head}, median {_t(sh['median'], 'f')} model frames against PPO's "
                        f"{_t(ppo['median'], 'f')} true-env frames ({ppo['reached']}/{ppo['runs']} runs): "
-                       f"{ppo['median'] / sh['median']:.2g}× fewer transitions (issue 26's target: 10×).")
+                       + _times(ppo["median"] / sh["median"], "{}× fewer transitions", "{}× more transitions",
+                                "as many transitions") + " (issue 26's target: 10× fewer).")
     return out
 
 
