@@ -216,12 +216,19 @@ def test_the_campaigns_pinn_is_reused_only_if_trained_on_the_same_network_with_t
     trained = []
 
     def fake_train(cfg, sim, path):
+        import torch
+
+        assert torch.get_num_threads() == 1, "trained on one thread, as the recipes"
         trained.append(cfg)
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_bytes(b"weights")
 
     monkeypatch.setattr(cache, "train_and_save", fake_train)
+    import torch
+
+    before = torch.get_num_threads()
     gs.train_pinn("anm6_easy", tmp_path / "pinn")
+    assert torch.get_num_threads() == before, "the caller's thread count is given back"
     gs.train_pinn("anm6_easy", tmp_path / "pinn")
     assert len(trained) == 1, "the second call reuses the first's PINN"
     marker = tmp_path / "pinn" / "study_pinn.json"

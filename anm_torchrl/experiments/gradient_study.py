@@ -168,10 +168,14 @@ def train_pinn(network: str, folder: Path) -> float:
         if all(kept.get(k) == v for k, v in made.items()):
             return float(kept["wall_s"])
         log.info("%s was trained on other network data or another preset: trained again", folder)
+    threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    t0 = time.perf_counter()
-    cache.train_and_save(cfg, sim, path=folder / "pinn.safetensors")
-    wall = time.perf_counter() - t0
+    try:
+        t0 = time.perf_counter()
+        cache.train_and_save(cfg, sim, path=folder / "pinn.safetensors")
+        wall = time.perf_counter() - t0
+    finally:
+        torch.set_num_threads(threads)
     marker.write_text(json.dumps({**made, "wall_s": wall}) + "\n")
     return wall
 
