@@ -202,6 +202,9 @@ def test_a_cell_trained_at_another_config_is_trained_again(campaign, tmp_path, c
     (cell / "study_cell.json").write_text(json.dumps({**marker, "command": command}))
     assert gs._finished(command, cell)
     summary = json.loads((cell / "summary.json").read_text())
+    summary["config"]["per_network"]["case33bw"] = {"env": {"num_envs": 7}}  # another network's entry: no change here
+    (cell / "summary.json").write_text(json.dumps(summary))
+    assert gs._finished(command, cell)
     summary["config"]["loss"]["horizon"] += 1
     (cell / "summary.json").write_text(json.dumps(summary))
     with caplog.at_level(logging.INFO, logger=gs.__name__):

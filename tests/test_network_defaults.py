@@ -119,6 +119,21 @@ def test_without_storage_an_action_changes_only_its_own_step():
     assert torch.equal(nxt[0], nxt[1]) and torch.equal(tr2.reward[0], tr2.reward[1])
 
 
+def test_a_conditional_part_of_an_entry_applies_only_where_its_key_has_its_value():
+    """ANM6-Easy's SHAC entry: 128 model rows through the exact model only; a given num_envs is kept."""
+    runs = {}
+    for overrides in (["model=exact"], ["model=pinn"], ["model=exact", "env.num_envs=64"]):
+        cfg = compose("shac", overrides)
+        info = apply_network_defaults(cfg, explicit_keys(overrides, CONF))
+        runs[" ".join(overrides)] = (cfg.env.num_envs, info["applied"].get("env.num_envs"), info["kept"])
+    assert runs == {"model=exact": (128, 128, {}), "model=pinn": (64, None, {}),
+                    "model=exact env.num_envs=64": (64, None, {"env.num_envs": 64})}
+    assert compose("shac", ["model=pinn"]).env.stagger is False  # the rest of the entry applies to both models
+    cfg = compose("shac", ["model=pinn"])
+    apply_network_defaults(cfg)
+    assert cfg.env.stagger is True and cfg.loss.horizon == 64
+
+
 def test_bad_tables_name_what_is_wrong():
     cfg = compose("config", ["network=case33bw"])
     with open_dict(cfg):
@@ -129,4 +144,10 @@ def test_bad_tables_name_what_is_wrong():
     with open_dict(cfg):
         del cfg.per_network["default"]
     with pytest.raises(ValueError, match="per_network has no 'default' entry"):
+        apply_network_defaults(cfg)
+    cfg = compose("shac", [])
+    with open_dict(cfg):
+        cfg.per_network.anm6_easy["model.dynamic=exact"] = {"env": {"num_envs": 8}}  # a typo of dynamics
+    with pytest.raises(ValueError, match="per_network.anm6_easy: the condition 'model.dynamic=exact' names a key the "
+                                         "config does not have"):
         apply_network_defaults(cfg)

@@ -111,16 +111,20 @@ def _train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
 
 def _finished(command: list[str], run_dir: Path) -> bool:
     """Whether ``run_dir`` holds a finished cell of ``command`` trained with the config the command has today: the
-    same command line alone would reuse a cell trained at a former default (e.g. an older per-network entry)."""
+    same command line alone would reuse a cell trained at a former default (e.g. an older per-network entry). The
+    table of per-network entries itself is not compared (another network's entry changes no cell here)."""
     from omegaconf import OmegaConf
 
     from anm_torchrl.training.checkpoint import config_diff
+    from anm_torchrl.training.network_defaults import TABLE_KEY
 
     marker, summary = run_dir / "study_cell.json", run_dir / "summary.json"
     if not (summary.is_file() and marker.is_file() and json.loads(marker.read_text())["command"] == command):
         return False
-    trained = json.loads(summary.read_text()).get("config", {})
-    changed = config_diff(trained, OmegaConf.to_container(_cell_config(command)[0], resolve=True))
+    # the per-network table is left out: what its entry set for this network is in the other keys
+    trained = {k: v for k, v in json.loads(summary.read_text()).get("config", {}).items() if k != TABLE_KEY}
+    today = {k: v for k, v in OmegaConf.to_container(_cell_config(command)[0], resolve=True).items() if k != TABLE_KEY}
+    changed = config_diff(trained, today)
     if changed:
         log.info("%s was trained with another config (%s): trained again", run_dir, ", ".join(changed))
     return not changed

@@ -6,6 +6,8 @@ to every key the user did not set.
     python recipes/ppo.py network=case33bw env.num_envs=128   # the entry, but 128 envs
 
 A network without an entry (a user's file or registered name, a generated network) gets the ``default`` entry.
+An entry may hold a conditional part, ``"<dotted key>=<value>": {...}``, applied over the rest of the entry when the
+config's key has that value (``"model.dynamics=exact": {env: {num_envs: 128}}``: SHAC through the exact model only).
 """
 
 from __future__ import annotations
@@ -79,7 +81,16 @@ def network_entry(cfg: DictConfig) -> tuple[str, dict[str, Any]]:
     if FALLBACK not in table:
         raise ValueError(f"{TABLE_KEY} has no '{FALLBACK}' entry (the one a network without its own gets)")
     name = entry_name(table, str(cfg.network))
-    values = _flatten(table[name] or {})
+    entry = dict(table[name] or {})
+    parts = {k: entry.pop(k) for k in list(entry) if "=" in k}  # conditional parts: "<key>=<value>"
+    values = _flatten(entry)
+    for cond, part in parts.items():
+        key, _, want = cond.partition("=")
+        have = OmegaConf.select(cfg, key.strip(), default=_MISSING)
+        if have is _MISSING:
+            raise ValueError(f"{TABLE_KEY}.{name}: the condition {cond!r} names a key the config does not have")
+        if str(have) == want.strip():
+            values.update(_flatten(part or {}))
     missing = sorted(k for k in values if OmegaConf.select(cfg, k, default=_MISSING) is _MISSING)
     if missing:
         raise ValueError(f"{TABLE_KEY}.{name} sets keys the config does not have: {', '.join(missing)}")
