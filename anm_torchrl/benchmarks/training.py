@@ -36,20 +36,14 @@ ALGORITHMS = {"ppo": ("config", "time/collect", "time/update"), "sac": ("sac", "
 
 def _config(algorithm: str, network: str, n_envs: int, overrides: list[str]):
     """``algorithm``'s recipe config on ``network`` with N envs, its network entry applied to the keys not set here."""
-    from hydra import compose, initialize_config_dir
-
-    from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
+    from anm_torchrl.training.network_defaults import compose_recipe_config
 
     if algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algorithm!r}; choose from {sorted(ALGORITHMS)}")
-    conf = Path(__file__).resolve().parents[2] / "recipes" / "conf"
     over = [f"network={network}", f"env.num_envs={n_envs}",
             *([f"collector.frames_per_batch={n_envs * STEPS}"] if algorithm != "shac" else []),
             *(["collector.init_random_frames=0"] if algorithm == "sac" else []), *overrides]  # time the actor's frames
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose(config_name=ALGORITHMS[algorithm][0], overrides=over)
-    apply_network_defaults(cfg, explicit_keys(over, conf))
-    return cfg
+    return compose_recipe_config(over, ALGORITHMS[algorithm][0])[0]
 
 
 def _clock():
@@ -137,7 +131,8 @@ def markdown(record: dict) -> str:
         variant = f" {r['variant']} | {r['warmup_s']:.1f} s |" if compare else ""  # a compare record has both
         lines.append(f"| {r['algorithm']} | {r['num_envs']:,} |{variant} {r['env_fps']:,.0f} "
                      f"({r['env_cpu_fps']:,.0f}) | {r['collect_fps']:,.0f} | {r['update_fps']:,.0f} | "
-                     f"{r['loop_fps']:,.0f} ({r['loop_cpu_fps']:,.0f}) | {r['loop_over_env']:.2f} ({r['loop_over_env_cpu']:.2f}) |")
+                     f"{r['loop_fps']:,.0f} ({r['loop_cpu_fps']:,.0f}) | {r['loop_over_env']:.2f} "
+                     f"({r['loop_over_env_cpu']:.2f}) |")
     return "\n".join(lines) + "\n"
 
 

@@ -89,12 +89,9 @@ def _shown(command: list[str]) -> str:
 def _cell_config(command: list[str]):
     """``(config, network defaults)`` of a cell: the recipe's config composed with the command's keys, the network's
     defaults applied to the keys it does not set (as the recipe does)."""
-    from anm_torchrl.experiments.ppo_runs import CONF_DIR, compose_ppo_config
-    from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
+    from anm_torchrl.training.network_defaults import compose_recipe_config
 
-    keys = _keys(command)
-    cfg = compose_ppo_config(keys, config_name=RECIPE_CONFIGS[Path(command[1]).name])
-    return cfg, apply_network_defaults(cfg, explicit_keys(keys, CONF_DIR))
+    return compose_recipe_config(_keys(command), RECIPE_CONFIGS[Path(command[1]).name])
 
 
 def _train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:

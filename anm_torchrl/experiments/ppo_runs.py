@@ -18,27 +18,16 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from anm_torchrl.training.network_defaults import RECIPE_CONF, compose_config, compose_recipe_config
+
 REPO = Path(__file__).resolve().parents[2]
-CONF_DIR = REPO / "recipes" / "conf"
+CONF_DIR = RECIPE_CONF
 
 
 def compose_ppo_config(overrides: list[str], conf_dir: str | Path = CONF_DIR, config_name: str = "config"):
-    """The PPO recipe's config (``config.yaml`` in ``conf_dir``; another recipe's with ``config_name``, e.g.
-    ``"shac"``) with Hydra ``overrides``, composed in-process.
-
-    Works inside another Hydra app (``reproduce.py``): its global Hydra state is set aside and restored.
-    """
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.initialize import get_gh_backup, restore_gh_from_backup
-
-    backup = get_gh_backup()
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_dir(str(Path(conf_dir).resolve()), version_base="1.3"):
-            return compose(config_name=config_name, overrides=list(overrides))
-    finally:
-        restore_gh_from_backup(backup)
+    """The PPO recipe's config (another recipe's with ``config_name``, e.g. ``"shac"``) with Hydra ``overrides``:
+    :func:`anm_torchrl.training.network_defaults.compose_config` (works inside another Hydra app)."""
+    return compose_config(overrides, config_name, conf_dir)
 
 
 def _read_scalar(run_dir: Path, tag: str) -> list[tuple[int, float]]:
@@ -87,7 +76,6 @@ def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None =
     would otherwise be read back with the new.
     """
     from anm_torchrl.training import protocol
-    from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
 
     run_dir = Path(run_dir).resolve()
     if run_dir.exists():
@@ -100,8 +88,7 @@ def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None =
     rec["load_avg_1min"] = [os.getloadavg()[0]]
     t0 = time.perf_counter()
     try:
-        cfg = compose_ppo_config(overrides)
-        defaults = apply_network_defaults(cfg, explicit_keys(overrides, CONF_DIR))  # as the recipe does
+        cfg, defaults = compose_recipe_config(overrides)  # the network's entry applied, as the recipe does
         if timeout_s is not None:  # the tighter of the run's own budget and the experiment's
             cfg.collector.max_minutes = min(float(cfg.collector.max_minutes or "inf"), float(timeout_s) / 60)
         protocol.train(cfg, run_dir, network_defaults=defaults)

@@ -21,6 +21,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 log = logging.getLogger(__name__)
 
+#: the recipes' Hydra config folder (``recipes/conf``)
+RECIPE_CONF = Path(__file__).resolve().parents[2] / "recipes" / "conf"
 TABLE_KEY = "per_network"
 FALLBACK = "default"
 _MISSING = object()
@@ -120,3 +122,33 @@ def apply_network_defaults(cfg: DictConfig, explicit: Iterable[str] = ()) -> dic
         log.info("per-network defaults of %s (%s.%s): %s", cfg.network, TABLE_KEY, name,
                  ", ".join(f"{k}={v}" for k, v in applied.items()))
     return {"network": str(cfg.network), "entry": name, "applied": applied, "kept": kept}
+
+
+def compose_config(overrides: Iterable[str], config_name: str = "config", conf_dir: str | Path = RECIPE_CONF):
+    """A recipe's config (``<config_name>.yaml`` in ``conf_dir``: ``config`` for PPO, ``sac``, ``shac``) with Hydra
+    ``overrides``, composed in-process; inside another Hydra app (``reproduce.py``) its global state is set aside
+    and restored. The network's entry is not applied (:func:`compose_recipe_config` does)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.initialize import get_gh_backup, restore_gh_from_backup
+
+    backup = get_gh_backup()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(str(Path(conf_dir).resolve()), version_base="1.3"):
+            return compose(config_name=config_name, overrides=list(overrides))
+    finally:
+        restore_gh_from_backup(backup)
+
+
+def compose_recipe_config(overrides: Iterable[str], config_name: str = "config",
+                          conf_dir: str | Path = RECIPE_CONF) -> tuple[DictConfig, dict[str, Any]]:
+    """The config a recipe trains with for a command line's ``overrides``: :func:`compose_config`, then the
+    network's entry on every key the overrides do not set (as the recipe does).
+
+    Returns:
+        ``(cfg, what apply_network_defaults returns)``.
+    """
+    overrides = list(overrides)
+    cfg = compose_config(overrides, config_name, conf_dir)
+    return cfg, apply_network_defaults(cfg, explicit_keys(overrides, conf_dir))
