@@ -143,3 +143,16 @@ def test_ppo_part_reuses_runs_and_runs_the_other_seeds(tmp_path, monkeypatch):
     part = payoff.ppo_part({"network": net, "envs": [{"name": "pinn"}], "seeds": [0], "base": base,
                             "surrogate_train_s": {"case33bw": {"pinn": 1.0}}}, tmp_path)
     assert part["table"][0]["surrogate_train_s"] is None  # not measured on this network: not borrowed
+
+
+def test_baselines_are_scored_on_the_protocol_the_runs_train_with():
+    """The payoff's do-nothing and test baselines read the PPO runs' ``eval`` group with the network's entry applied
+    (run_ppo applies it): a feeder's 4 validation states and T = 3,000 test episodes, not ANM6-Easy's 16 states;
+    an explicit key of the study's base still wins, as on a recipe's command line."""
+    from anm_torchrl.experiments.ppo_runs import eval_protocol
+
+    feeder = eval_protocol({"network": "case33bw"})
+    assert (feeder.num_episodes, feeder.test_episodes, feeder.test_max_steps) == (4, 4, 3000)
+    anm6 = eval_protocol({"network": "anm6_easy"})
+    assert (anm6.num_episodes, anm6.test_episodes) == (16, 16)
+    assert eval_protocol({"network": "case33bw", "eval.num_episodes": 2}).num_episodes == 2

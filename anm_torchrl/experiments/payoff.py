@@ -194,12 +194,11 @@ def reread_accuracy(dst: str | Path, src: str | Path | None = None) -> dict:
 def do_nothing_return(network: str, base: dict[str, Any]) -> dict[str, Any]:
     """Do-nothing's metrics on the PPO runs' validation states (same seed, count, length, network)."""
     from anm_torchrl.baselines import make_baseline
-    from anm_torchrl.experiments.ppo_runs import compose_ppo_config, ppo_overrides
+    from anm_torchrl.experiments.ppo_runs import eval_protocol
     from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.factory import make_true_env
 
-    cfg = compose_ppo_config(ppo_overrides({"name": "none"}, 0, {**base, "network": network}))
-    ev = cfg.eval
+    ev = eval_protocol({**base, "network": network})
     env = make_true_env(int(ev.num_episodes), seed=int(ev.seed), network=network)
     states = draw_initial_states(int(ev.num_episodes), int(ev.seed), env.sim, env.init)
     res = evaluate_policy(make_baseline("do_nothing", sim=env.sim), states, max_steps=int(ev.max_steps),
@@ -213,11 +212,11 @@ def test_baselines(network: str, base: dict[str, Any], specs: list) -> dict[str,
     protocol (``eval.test_seed``, ``eval.test_episodes``, ``eval.test_max_steps`` or ``eval.max_steps``,
     ``eval.gamma``): label -> metrics, wall and CPU seconds."""
     from anm_torchrl.baselines import make_baseline
-    from anm_torchrl.experiments.ppo_runs import compose_ppo_config, ppo_overrides
+    from anm_torchrl.experiments.ppo_runs import eval_protocol
     from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.factory import make_true_env
 
-    ev = compose_ppo_config(ppo_overrides({"name": "none"}, 0, {**base, "network": network})).eval
+    ev = eval_protocol({**base, "network": network})
     n, steps = int(ev.test_episodes), int(ev.max_steps if ev.test_max_steps is None else ev.test_max_steps)
     env = make_true_env(n, seed=int(ev.test_seed), network=network)
     states = draw_initial_states(n, int(ev.test_seed), env.sim, env.init)

@@ -19,7 +19,7 @@ from typing import Any
 
 from anm_torchrl.experiments.common import RunContext, label, make_env_or_reason
 from anm_torchrl.experiments.io import result
-from anm_torchrl.experiments.ppo_runs import (aggregate, compose_ppo_config, last_mean, ppo_overrides, run_ppo,
+from anm_torchrl.experiments.ppo_runs import (aggregate, eval_protocol, last_mean, ppo_overrides, run_ppo,
                                               time_to_reach)
 from anm_torchrl.experiments.time_to_return import censored_summary
 
@@ -101,7 +101,7 @@ def run(cfg: dict[str, Any], ctx: RunContext) -> dict:
            "surrogate_train_s": dict(ctx.surrogate_train_s)}
     surrogates, out_dir, seeds = list(ctx.surrogates), Path(ctx.out_dir), [int(s) for s in ctx.seeds]
     base = dict(cfg.get("base", {}))
-    ev = compose_ppo_config(ppo_overrides({"name": "none"}, 0, base)).eval  # the PPO runs' validation protocol
+    ev = eval_protocol(base)  # the PPO runs' validation protocol
     baselines = evaluate_baselines(list(cfg.get("baselines", ["do_nothing", "random", "mpc_perfect"])),
                                    int(ev.num_episodes), int(ev.max_steps), int(ev.seed), cfg.get("baseline_budget_s"))
     threshold = cfg.get("threshold")

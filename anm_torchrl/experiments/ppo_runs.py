@@ -18,16 +18,16 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.training.network_defaults import RECIPE_CONF, compose_config, compose_recipe_config
+from anm_torchrl.training.network_defaults import compose_recipe_config
 
 REPO = Path(__file__).resolve().parents[2]
-CONF_DIR = RECIPE_CONF
 
 
-def compose_ppo_config(overrides: list[str], conf_dir: str | Path = CONF_DIR, config_name: str = "config"):
-    """The PPO recipe's config (another recipe's with ``config_name``, e.g. ``"shac"``) with Hydra ``overrides``:
-    :func:`anm_torchrl.training.network_defaults.compose_config` (works inside another Hydra app)."""
-    return compose_config(overrides, config_name, conf_dir)
+def eval_protocol(base: dict[str, Any]):
+    """The ``eval`` group (validation and test protocol) of the PPO runs made with the overrides ``base``
+    (``{"network": ..., "eval.num_episodes": 4, ...}``): the recipe's config with the network's entry applied, as
+    :func:`run_ppo` trains with, so baselines are scored on the runs' own states."""
+    return compose_recipe_config(ppo_overrides({"name": "none"}, 0, base))[0].eval
 
 
 def _read_scalar(run_dir: Path, tag: str) -> list[tuple[int, float]]:
