@@ -12,11 +12,14 @@ import pytest
 from anm_torchrl.experiments import leaderboard
 
 
-def _run_dir(tmp_path, ckpt, name, frames=32):
+def _run_dir(tmp_path, ckpt, name, frames=32, track_seconds=None):
     d = tmp_path / name
     (d / "checkpoints").mkdir(parents=True)
     shutil.copy(ckpt, d / "checkpoints" / "best.pt")
-    (d / "summary.json").write_text(json.dumps({"frames": frames, "wall_time": 12.5, "stopped_early": False}))
+    summary = {"frames": frames, "wall_time": 12.5, "stopped_early": False}
+    if track_seconds is not None:  # a gradient-study cell: the test states tracked during training
+        summary["track_seconds"] = track_seconds
+    (d / "summary.json").write_text(json.dumps(summary))
     return d
 
 
@@ -26,12 +29,14 @@ def test_trained_runs_are_scored_on_the_tables_states(ppo_checkpoint, tmp_path):
         {"policy": "optimum", "row": "optimal", "discounted_return": -1.0, "states": 2, "source": "gap"},
         {"policy": "do-nothing", "row": "do_nothing", "discounted_return": -9.0, "states": 2, "source": "gap"},
         {"policy": "AC-MPC on #0", "row": "acmpc_16", "discounted_return": -2.0, "states": 1, "source": "gap"}]}
-    runs = [_run_dir(tmp_path, ppo_checkpoint, "a"), _run_dir(tmp_path, ppo_checkpoint, "b", frames=64)]
+    runs = [_run_dir(tmp_path, ppo_checkpoint, "a"),
+            _run_dir(tmp_path, ppo_checkpoint, "b", frames=64, track_seconds=2.5)]
     rec = leaderboard.build("anm6_easy", runs, gap_table=table)
     rows = {r["row"]: r for r in rec["rows"]}
     assert set(rows) == {"optimal", "do_nothing", "ppo_none"}  # a row on 1 of 2 states does not compare
     ppo = rows["ppo_none"]
     assert ppo["seeds"] == [0, 0] and ppo["frames"] == 48 and ppo["std_over_seeds"] == 0.0  # same checkpoint twice
+    assert ppo["wall_s"] == 11.25  # 12.5 s and 12.5 - 2.5 s: a study's test tracking is not the recipe's time
 
     from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.checkpoint import load_actor

@@ -62,7 +62,8 @@ def against_optimum(ret: float, opt: float, dn: float) -> tuple[float | None, fl
 
 
 def evaluate_run(run_dir: str | Path, protocol: dict) -> dict:
-    """``best.pt`` of a training run evaluated on the gap table's states; with the run's frames and wall time."""
+    """``best.pt`` of a training run evaluated on the gap table's states; with the run's frames and wall time (s,
+    without the seconds a study spent tracking the test states during training)."""
     from anm_torchrl.training.checkpoint import load_actor, load_checkpoint
     from anm_torchrl.training.factory import make_true_env
 
@@ -85,7 +86,9 @@ def evaluate_run(run_dir: str | Path, protocol: dict) -> dict:
             "per_episode": result.discounted_returns.tolist(), "best_frames": int(ckpt["frames"]),
             "frames": int(summary["frames"]), "true_env_frames": int(summary["frames"]) if surrogate == "none" else 0,
             "model_frames": summary.get("model_frames"),  # SHAC: transitions of the model it differentiates
-            "wall_s": float(summary["wall_time"]), "stopped_early": bool(summary["stopped_early"])}
+            # the recipe's own time: a study's test tracking (eval.track_test, summary "track_seconds") is left out
+            "wall_s": float(summary["wall_time"]) - float(summary.get("track_seconds", 0.0)),
+            "track_s": float(summary.get("track_seconds", 0.0)), "stopped_early": bool(summary["stopped_early"])}
 
 
 def trained_rows(runs: list[dict]) -> list[dict]:
