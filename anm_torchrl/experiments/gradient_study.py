@@ -118,10 +118,11 @@ def _finished(command: list[str], run_dir: Path) -> bool:
     marker, summary = run_dir / "study_cell.json", run_dir / "summary.json"
     if not (summary.is_file() and marker.is_file() and json.loads(marker.read_text())["command"] == command):
         return False
-    # the per-network table is left out: what its entry set for this network is in the other keys
-    trained = {k: v for k, v in json.loads(summary.read_text()).get("config", {}).items() if k != TABLE_KEY}
-    today = {k: v for k, v in OmegaConf.to_container(_cell_config(command)[0], resolve=True).items() if k != TABLE_KEY}
-    changed = config_diff(trained, today)
+    def trains_with(config: dict) -> dict:  # the per-network table left out: its entry's values are in the other keys
+        return {k: v for k, v in config.items() if k != TABLE_KEY}
+
+    changed = config_diff(trains_with(json.loads(summary.read_text()).get("config", {})),
+                          trains_with(OmegaConf.to_container(_cell_config(command)[0], resolve=True)))
     if changed:
         log.info("%s was trained with another config (%s): trained again", run_dir, ", ".join(changed))
     return not changed

@@ -69,6 +69,7 @@ def evaluate_run(run_dir: str | Path, protocol: dict) -> dict:
 
     run_dir = Path(run_dir)
     summary = json.loads((run_dir / "summary.json").read_text())
+    track_s = float(summary.get("track_seconds", 0.0))  # a study's test tracking (eval.track_test), not training
     ckpt = load_checkpoint(run_dir / "checkpoints" / "best.pt")
     network = ckpt["config"].get("network", ANM6)
     if network != protocol.get("network", ANM6):
@@ -86,9 +87,8 @@ def evaluate_run(run_dir: str | Path, protocol: dict) -> dict:
             "per_episode": result.discounted_returns.tolist(), "best_frames": int(ckpt["frames"]),
             "frames": int(summary["frames"]), "true_env_frames": int(summary["frames"]) if surrogate == "none" else 0,
             "model_frames": summary.get("model_frames"),  # SHAC: transitions of the model it differentiates
-            # the recipe's own time: a study's test tracking (eval.track_test, summary "track_seconds") is left out
-            "wall_s": float(summary["wall_time"]) - float(summary.get("track_seconds", 0.0)),
-            "track_s": float(summary.get("track_seconds", 0.0)), "stopped_early": bool(summary["stopped_early"])}
+            "wall_s": float(summary["wall_time"]) - track_s, "track_s": track_s,  # the recipe's own time
+            "stopped_early": bool(summary["stopped_early"])}
 
 
 def trained_rows(runs: list[dict]) -> list[dict]:

@@ -20,8 +20,6 @@ from typing import Any
 
 from anm_torchrl.training.network_defaults import compose_recipe_config
 
-REPO = Path(__file__).resolve().parents[2]
-
 
 def eval_protocol(base: dict[str, Any]):
     """The ``eval`` group (validation and test protocol) of the PPO runs made with the overrides ``base``
