@@ -54,6 +54,9 @@ def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
     ("optim.anneal_start=1", "optim.anneal_start must be in [0, 1), got 1"),
     ("env.stagger=1", "env.stagger must be true or false, got 1"),
     ("env.stagger=true env.max_steps=null", "env.stagger=true needs a time limit (env.max_steps)"),
+    ("env.short_rows=1.0", "env.short_rows must be in [0, 1), got 1.0"),
+    ("env.short_rows=0.5 env.short_steps=0", "env.short_steps must be an integer >= 1, got 0"),
+    ("env.short_rows=0.5 env.max_steps=null", "env.short_rows > 0 needs a time limit (env.max_steps)"),
 ])
 def test_shac_config_errors_name_the_key(override, message):
     from recipe_utils import compose
@@ -162,3 +165,19 @@ def test_staggered_rows_end_their_episodes_at_different_iterations(stagger):
         assert first.unique().numel() >= 3, first
     else:
         assert first.unique().tolist() == [2], first  # 24 steps = 3 iterations of 8
+
+
+def test_short_rows_end_their_episodes_after_short_steps():
+    """``env.short_rows`` gives the last round(share x num_envs) rows episodes of ``env.short_steps`` steps; the
+    others keep ``env.max_steps`` (here 16 rows: 4 short rows of 8 steps, 12 of 100)."""
+    import torch
+
+    torch.manual_seed(0)
+    algo = _tiny_shac("env.num_envs=16", "env.max_steps=100", "env.short_rows=0.25", "env.short_steps=8")
+    assert algo.max_steps.tolist() == [100] * 12 + [8] * 4
+    resets = torch.zeros(16, dtype=torch.long)
+    for _ in range(4):  # 4 iterations x 8 steps: the short rows end an episode every iteration, the others never
+        before = algo.steps.clone()
+        algo.iterate(10 ** 6)
+        resets += (algo.steps < before + 8).long()
+    assert resets.tolist() == [0] * 12 + [4] * 4

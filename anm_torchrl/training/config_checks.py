@@ -267,6 +267,10 @@ def check_shac_config(cfg: Mapping) -> None:
     check_protocol_config(cfg)
     _check_model(cfg)
     _choice(cfg, "model.dynamics", ("exact", "pinn"))
+    _in_range(cfg, "env.short_rows", 0, 1, False, True)
+    _int(cfg, "env.short_steps")
+    if _get(cfg, "env.short_rows") and _get(cfg, "env.max_steps") is None:
+        raise ValueError("env.short_rows > 0 needs a time limit (env.max_steps); got env.max_steps=null")
     _int(cfg, "loss.horizon")
     _in_range(cfg, "loss.gamma", 0, 1, False, False)  # 0 with horizon 1: a contextual bandit
     _in_range(cfg, "loss.td_lambda", 0, 1, False, False)

@@ -92,6 +92,19 @@ class PINNModel:
         return nxt, out["reward"].reshape(-1), term, self.obs_map.observe(nxt, None, term)
 
 
+def _row_time_limits(env_cfg, n: int, device) -> torch.Tensor | None:
+    """Each model row's episode length (n,) long: ``env.max_steps``, except the last ``round(env.short_rows * n)``
+    rows, whose episodes end after ``env.short_steps`` (more episode starts, where the first hour's penalties are,
+    without shortening the other rows' days); None without a time limit."""
+    if env_cfg.max_steps is None:
+        return None
+    limits = torch.full((n,), int(env_cfg.max_steps), dtype=torch.long, device=device)
+    short = round(float(env_cfg.get("short_rows", 0.0)) * n)
+    if short:
+        limits[n - short:] = int(env_cfg.short_steps)
+    return limits
+
+
 class SHAC(Algorithm):
     """Short-horizon actor-critic through a differentiable grid model (see the module docstring)."""
 
@@ -134,13 +147,14 @@ class SHAC(Algorithm):
             p.requires_grad_(False)
         self.model_frames = int(resume["frames"]) if resume else 0
         self.env_frames = 0  # true-env transitions used for training: none (SHAC trains on the model)
-        self.max_steps = None if cfg.env.max_steps is None else int(cfg.env.max_steps)
         td = self.env.reset()
         self.state, self.obs = td["state"].to(torch.float64), td["observation"].float()
-        self.steps = torch.zeros(self.state.shape[0], dtype=torch.long, device=self.state.device)
+        n = self.state.shape[0]
+        self.steps = torch.zeros(n, dtype=torch.long, device=self.state.device)
+        self.max_steps = _row_time_limits(cfg.env, n, self.state.device)  # (n,) long, or None
         if cfg.env.get("stagger") and not resume:
             # the rows' first episodes are cut after 1..max_steps steps, so later resets spread over the iterations
-            self.steps = torch.randint(0, self.max_steps, self.steps.shape, device=self.steps.device)
+            self.steps = torch.randint(0, int(cfg.env.max_steps), (n,), device=self.steps.device) % self.max_steps
 
     def _value(self, net, obs: torch.Tensor) -> torch.Tensor:
         return net.module(obs).squeeze(-1)
