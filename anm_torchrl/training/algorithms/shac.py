@@ -152,6 +152,10 @@ class SHAC(Algorithm):
         n = self.state.shape[0]
         self.steps = torch.zeros(n, dtype=torch.long, device=self.state.device)
         self.max_steps = _row_time_limits(cfg.env, n, self.state.device)  # (n,) long, or None
+        # short rows reset about every step, and a reset batch solves a power flow per row: they draw from a pool of
+        # whole batches; otherwise each reset step draws one batch (as the entries' recorded runs did)
+        short = bool(cfg.env.get("short_rows", 0.0))
+        self._pool = (self.state[:0], self.obs[:0]) if short else None
         if cfg.env.get("stagger") and not resume:
             # the rows' first episodes are cut after 1..max_steps steps, so later resets spread over the iterations
             self.steps = torch.randint(0, int(cfg.env.max_steps), (n,), device=self.steps.device) % self.max_steps
@@ -160,9 +164,19 @@ class SHAC(Algorithm):
         return net.module(obs).squeeze(-1)
 
     def _fresh(self, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Fresh initial (state, observation) for the ``rows`` (n,) long, from the true env's reset distribution."""
-        td = self.env.reset()
-        return td["state"][: rows.numel()].to(torch.float64), td["observation"][: rows.numel()].float()
+        """Fresh initial (state, observation) for the ``rows`` (n,) long, from the true env's reset distribution:
+        the first rows of a full reset batch, or, with short rows, the next rows of a pool of such batches."""
+        k = rows.numel()
+        if self._pool is None:
+            td = self.env.reset()
+            return td["state"][:k].to(torch.float64), td["observation"][:k].float()
+        while self._pool[0].shape[0] < k:
+            td = self.env.reset()
+            self._pool = (torch.cat([self._pool[0], td["state"].to(torch.float64)]),
+                          torch.cat([self._pool[1], td["observation"].float()]))
+        state, obs = self._pool[0][:k], self._pool[1][:k]
+        self._pool = (self._pool[0][k:], self._pool[1][k:])
+        return state, obs
 
     def iterate(self, remaining: int) -> tuple[int, dict[str, float]]:
         cfg = self.cfg
