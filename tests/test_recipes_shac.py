@@ -181,3 +181,7 @@ def test_short_rows_end_their_episodes_after_short_steps():
         algo.iterate(10 ** 6)
         resets += (algo.steps < before + 8).long()
     assert resets.tolist() == [0] * 12 + [4] * 4
+    # their fresh states come from a pool of whole reset batches (16 rows each), handed out once each
+    first, second = algo._fresh(torch.arange(10))[0], algo._fresh(torch.arange(10))[0]
+    assert first.shape == second.shape == (10, algo.state.shape[1])
+    assert not any(torch.equal(a, b) for a in first for b in second)
