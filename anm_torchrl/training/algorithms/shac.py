@@ -92,14 +92,20 @@ class PINNModel:
         return nxt, out["reward"].reshape(-1), term, self.obs_map.observe(nxt, None, term)
 
 
+def _short_row_count(env_cfg, n: int) -> int:
+    """How many of the ``n`` model rows have short episodes: ``round(env.short_rows * n)`` (0 without a time
+    limit)."""
+    return 0 if env_cfg.max_steps is None else round(float(env_cfg.get("short_rows", 0.0)) * n)
+
+
 def _row_time_limits(env_cfg, n: int, device) -> torch.Tensor | None:
-    """Each model row's episode length (n,) long: ``env.max_steps``, except the last ``round(env.short_rows * n)``
+    """Each model row's episode length (n,) long: ``env.max_steps``, except the last :func:`_short_row_count`
     rows, whose episodes end after ``env.short_steps`` (more episode starts, where the first hour's penalties are,
     without shortening the other rows' days); None without a time limit."""
     if env_cfg.max_steps is None:
         return None
     limits = torch.full((n,), int(env_cfg.max_steps), dtype=torch.long, device=device)
-    short = round(float(env_cfg.get("short_rows", 0.0)) * n)
+    short = _short_row_count(env_cfg, n)
     if short:
         limits[n - short:] = int(env_cfg.short_steps)
     return limits
@@ -154,8 +160,7 @@ class SHAC(Algorithm):
         self.max_steps = _row_time_limits(cfg.env, n, self.state.device)  # (n,) long, or None
         # short rows reset about every step, and a reset batch solves a power flow per row: they draw from a pool of
         # whole batches; otherwise each reset step draws one batch (as the entries' recorded runs did)
-        short = bool(cfg.env.get("short_rows", 0.0))
-        self._pool = (self.state[:0], self.obs[:0]) if short else None
+        self._pool = (self.state[:0], self.obs[:0]) if _short_row_count(cfg.env, n) else None
         if cfg.env.get("stagger") and not resume:
             # the rows' first episodes are cut after 1..max_steps steps, so later resets spread over the iterations
             self.steps = torch.randint(0, int(cfg.env.max_steps), (n,), device=self.steps.device) % self.max_steps
