@@ -57,6 +57,8 @@ def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
     ("env.short_rows=1.0", "env.short_rows must be in [0, 1), got 1.0"),
     ("env.short_rows=0.5 env.short_steps=0", "env.short_steps must be an integer >= 1, got 0"),
     ("env.short_rows=0.5 env.max_steps=null", "env.short_rows > 0 needs a time limit (env.max_steps)"),
+    ("loss.critic_worker=1", "loss.critic_worker must be true or false, got 1"),
+    ("model.power_flow=gpu", "model.power_flow must be one of torch, numba; got 'gpu'"),
 ])
 def test_shac_config_errors_name_the_key(override, message):
     from recipe_utils import compose
@@ -185,3 +187,57 @@ def test_short_rows_end_their_episodes_after_short_steps():
     first, second = algo._fresh(torch.arange(10))[0], algo._fresh(torch.arange(10))[0]
     assert first.shape == second.shape == (10, algo.state.shape[1])
     assert not any(torch.equal(a, b) for a in first for b in second)
+
+
+def _weights(module) -> list:
+    """A module's (or a state dict's) tensors, copied."""
+    import torch
+
+    state = module.state_dict() if isinstance(module, torch.nn.Module) else module
+    return [v.detach().clone() for v in state.values()]
+
+
+def test_the_critic_worker_runs_each_update_beside_the_next_rollout():
+    """``loss.critic_worker=true``: iteration i hands its rollout to the worker process and gets back update
+    i - 1's weights (none at the first iteration: no critic metrics yet), so rollout i + 1 bootstraps with the
+    target critic one update older than in the sequential order. Runs are repeatable, a checkpoint holds the
+    critic the next rollout reads and its optimiser's state, and close() loads the last update and ends the
+    process."""
+    import torch
+
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        algo = _tiny_shac("loss.critic_worker=true")
+        start = _weights(algo.critic)
+        _, first = algo.iterate(10 ** 6)
+        assert "train/loss_critic" not in first and all(torch.equal(a, b) for a, b in
+                                                        zip(start, _weights(algo.critic)))
+        _, second = algo.iterate(10 ** 6)
+        assert math.isfinite(float(second["train/loss_critic"]))
+        after_first = _weights(algo.critic)  # update 1's critic, loaded at iteration 2
+        assert not all(torch.equal(a, b) for a, b in zip(start, after_first))
+        state = algo.state_dict()
+        assert all(torch.equal(a, b) for a, b in zip(after_first, _weights(state["critic"])))
+        steps = {int(s["step"]) for s in state["critic_optimizer"]["state"].values()}
+        assert steps == {4}  # update 1: 2 epochs x (32 frames / 16 per minibatch)
+        proc = algo.worker._proc
+        algo.close()
+        assert not proc.is_alive()
+        state = algo.state_dict()  # update 2 loaded at close
+        assert {int(s["step"]) for s in state["critic_optimizer"]["state"].values()} == {8}
+        assert not all(torch.equal(a, b) for a, b in zip(after_first, _weights(algo.critic)))
+        runs.append(_weights(algo.critic) + _weights(algo.actor))
+    assert all(torch.equal(a, b) for a, b in zip(*runs))
+
+
+def test_shac_with_the_critic_worker_and_the_compiled_forward_runs_the_recipe(tmp_path):
+    """The recipe end to end with both speed keys: the run directory and finite critic losses under their tag (one
+    per update the worker finished before the last iteration)."""
+    run_dir = tmp_path / "run"
+    run(SHAC, "model=exact", *TINY_SHAC, "loss.critic_worker=true", "model.power_flow=numba",
+        "collector.total_frames=96", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["model_frames"] == 96 and summary["updates"] == 3 and not summary["interrupted"]
+    tags = scalars(run_dir)
+    assert len(tags["train/loss_critic"]) == 2 and all(math.isfinite(v) for _, v in tags["train/loss_critic"])

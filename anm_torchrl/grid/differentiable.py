@@ -20,17 +20,18 @@ from anm_torchrl.grid.transition import Transition
 
 
 def transition(sim, soc: torch.Tensor, p_load: torch.Tensor, p_pot: torch.Tensor, setpoints: torch.Tensor,
-               tol: float = TOL, max_iter: int = MAX_ITER) -> Transition:
+               tol: float = TOL, max_iter: int = MAX_ITER, solver=None) -> Transition:
     """Differentiable :meth:`~anm_torchrl.grid.simulator.GridSimulator.apply` (p.u.): ``soc`` (N, n_des) p.u.·h,
     raw ``p_load`` (N, n_load), raw ``p_pot`` (N, n_gen), ``setpoints`` (N, action_dim), all float64.
 
     Every output of the :class:`Transition` is differentiable (``converged``/``n_iter`` excepted); the Newton
-    tolerance ``tol`` (p.u.) sets the forward (the default is the simulator's)."""
-    pf = functools.partial(implicit_power_flow, tol=tol, max_iter=max_iter)
+    tolerance ``tol`` (p.u.) sets the forward (the default is the simulator's); ``solver`` runs its Newton–Raphson
+    (:func:`~anm_torchrl.grid.implicit.implicit_power_flow`'s: None = torch ops)."""
+    pf = functools.partial(implicit_power_flow, tol=tol, max_iter=max_iter, solver=solver)
     return torch_backend.transition(sim, soc, p_load, p_pot, setpoints, power_flow=pf)
 
 
-def step(sim, state: torch.Tensor, action: torch.Tensor, tol: float = TOL, max_iter: int = MAX_ITER
+def step(sim, state: torch.Tensor, action: torch.Tensor, tol: float = TOL, max_iter: int = MAX_ITER, solver=None
          ) -> tuple[torch.Tensor, Transition]:
     """Differentiable :meth:`~anm_torchrl.grid.simulator.GridSimulator.step`: ``state`` (N, state_dim)
     MW/MVAr/MWh/aux, ``action`` (N, action_dim) MW/MVAr → next state (N, state_dim) (zeros, without gradient,
@@ -39,5 +40,5 @@ def step(sim, state: torch.Tensor, action: torch.Tensor, tol: float = TOL, max_i
     b = sim.net.base_mva
     p_load, p_pot, aux = sim.next_vars(state.detach())
     soc = state[:, sim.state_slices()["des_soc"]] / b
-    tr = transition(sim, soc, p_load / b, p_pot / b, action / b, tol, max_iter)
+    tr = transition(sim, soc, p_load / b, p_pot / b, action / b, tol, max_iter, solver)
     return torch_backend.TorchBackend().build_state(tr, aux, b), tr

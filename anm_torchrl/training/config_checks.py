@@ -267,6 +267,8 @@ def check_shac_config(cfg: Mapping) -> None:
     check_protocol_config(cfg)
     _check_model(cfg)
     _choice(cfg, "model.dynamics", ("exact", "pinn"))
+    if "power_flow" in _get(cfg, "model"):  # the exact model's key (model=exact)
+        _choice(cfg, "model.power_flow", ("torch", "numba"))
     _in_range(cfg, "env.short_rows", 0, 1, False, True)
     _int(cfg, "env.short_steps")
     if _get(cfg, "env.short_rows") and _get(cfg, "env.max_steps") is None:
@@ -277,7 +279,7 @@ def check_shac_config(cfg: Mapping) -> None:
     _in_range(cfg, "loss.target_tau", 0, 1, True, False)
     _int(cfg, "loss.critic_epochs")
     _int(cfg, "loss.critic_batch_size")
-    _bool(cfg, "loss.noise", "optim.anneal_lr")
+    _bool(cfg, "loss.noise", "loss.critic_worker", "optim.anneal_lr")
     _in_range(cfg, "optim.actor_lr", 0, math.inf, True, True)
     _in_range(cfg, "optim.critic_lr", 0, math.inf, True, True)
     _in_range(cfg, "optim.eps", 0, math.inf, True, True)

@@ -410,6 +410,54 @@ def _dense_newton_raphson(y, lu0, piv0, ok0, s_bus, tol, max_iter, vm, va, s, v,
     return it, diff
 
 
+# ------------------------------------------------------------------------------------ power flow alone
+@_njit()
+def _power_flows(c, s_bus, tol, max_iter, x, converged, n_iter, diff):
+    """Flat-start NR of every row of ``s_bus`` (N, n) complex p.u. (entry 0, the slack's, ignored) on the network
+    of ``c``, written into ``x`` (N, 2n-2) = [θ_1.., |V|_1..] (rad, p.u.), ``converged`` (N,), ``n_iter`` (N,) and
+    ``diff`` (N,) = ||F||_inf p.u.: what :func:`~anm_torchrl.grid.powerflow.newton_iterates` returns."""
+    n = s_bus.shape[1]
+    k = n - 1
+    vm, va = np.empty(n), np.empty(n)
+    s, v = np.empty(n, dtype=np.complex128), np.empty(n, dtype=np.complex128)
+    f, jac, piv = np.empty(2 * k), np.zeros((2 * k, 2 * k)), np.empty(2 * k, dtype=np.int64)
+    for e in range(s_bus.shape[0]):
+        if c.dense:
+            it, d = _dense_newton_raphson(c.y, c.lu0, c.piv0, c.ok0, s_bus[e], tol, max_iter, vm, va, s, v, f, jac,
+                                          piv)
+        else:
+            it, d = _newton_raphson(c.ycsr, c.lu0, c.piv0, c.ok0, c.ix, c.kl, c.ku, c.parent, s_bus[e], tol, max_iter,
+                                    vm, va, s, v, f, jac, piv)
+        for i in range(k):
+            x[e, i], x[e, k + i] = va[i + 1], vm[i + 1]
+        converged[e], n_iter[e], diff[e] = d == d and d <= tol, it, d
+
+
+class CompiledPowerFlow:
+    """:func:`~anm_torchrl.grid.powerflow.newton_iterates` of one network as the compiled loop above: called as
+    ``(y_bus, s_bus, tol, max_iter) -> (x, converged, n_iter, ||F||_inf)`` on CPU complex128 ``s_bus`` (N, n) p.u.
+    (``y_bus`` must be the network's: the constants hold its factorised flat start). The same algorithm and
+    stopping rule; the numbers agree to float64 round-off. On ANM6-Easy at 128 rows ~7x faster than the torch ops
+    (0.27 against 1.96 ms, this 2-core VM): the forward of the implicit power flow (:mod:`anm_torchrl.grid.implicit`).
+    """
+
+    def __init__(self, constants):
+        self.constants = constants
+
+    def __call__(self, y_bus: torch.Tensor, s_bus: torch.Tensor, tol: float, max_iter: int):
+        c = self.constants
+        if y_bus.shape != c.y.shape or s_bus.device.type != "cpu" or s_bus.dtype != torch.complex128:
+            raise ValueError(f"the compiled power flow takes CPU complex128 injections of its own {c.y.shape[0]}-bus "
+                             f"network; got {tuple(s_bus.shape)} {s_bus.dtype} on {s_bus.device} with a "
+                             f"{tuple(y_bus.shape)} Y-bus")
+        n_env, n = s_bus.shape
+        x, converged = np.empty((n_env, 2 * n - 2)), np.empty(n_env, dtype=np.bool_)
+        n_iter, diff = np.empty(n_env, dtype=np.int64), np.empty(n_env)
+        _power_flows(c, np.ascontiguousarray(s_bus.detach().numpy()), float(tol), int(max_iter), x, converged,
+                     n_iter, diff)
+        return tuple(torch.from_numpy(a) for a in (x, converged, n_iter, diff))
+
+
 # ---------------------------------------------------------------------------------------- transition
 @_njit()
 def _env_steps(c, soc, p_load, p_pot_raw, setpoints, out, scratch):

@@ -25,6 +25,7 @@ update, fps}``.
 from __future__ import annotations
 
 import copy
+import functools
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -35,31 +36,36 @@ from tensordict import TensorDict
 
 from anm_torchrl.training.algorithms.base import Algorithm, anneal_lr
 from anm_torchrl.training.algorithms.ppo import model_options
+from anm_torchrl.training.algorithms.shac_critic import (CriticSettings, CriticWorker, Rollout, move_towards,
+                                                        update_critic, value)
 
 DYNAMICS = ("exact", "pinn")
 
 
 def actor_options(config) -> dict:
-    """``model_options`` without SHAC's ``dynamics`` key (the keyword arguments of ``make_ppo_models``)."""
-    return {k: v for k, v in model_options(config).items() if k != "dynamics"}
-
-
-@torch.no_grad()
-def _move_towards(average: torch.nn.Module, source: torch.nn.Module, weight: float) -> None:
-    """Polyak step of ``average``'s parameters: ``avg <- avg + weight (source - avg)`` (the target critic, the
-    actor's running average)."""
-    for p_avg, p in zip(average.parameters(), source.parameters()):
-        p_avg.lerp_(p, weight)
+    """``model_options`` without SHAC's ``dynamics`` and ``power_flow`` keys (the keyword arguments of
+    ``make_ppo_models``)."""
+    return {k: v for k, v in model_options(config).items() if k not in ("dynamics", "power_flow")}
 
 
 class ExactModel:
     """The true transition with gradients: ``(state (N, D) float64, action (N, A) MW) -> (next state (N, D),
-    reward (N,), terminated (N,) bool, observation (N, n_obs) float32)``."""
+    reward (N,), terminated (N,) bool, observation (N, n_obs) float32)``. ``power_flow`` runs the forward's
+    Newton–Raphson: ``torch`` (ops) or ``numba`` (the compiled kernel; the same numbers to float64 round-off)."""
 
-    def __init__(self, env):
+    def __init__(self, env, power_flow: str = "torch"):
         from anm_torchrl.grid import differentiable
 
-        self.sim, self.obs_map, self._step = env.sim, env.obs_map, differentiable.step
+        solver = None
+        if power_flow == "numba":
+            from anm_torchrl.grid.backends.numba import CompiledPowerFlow, NumbaBackend
+
+            why = NumbaBackend().unusable(env.sim.net)
+            if why:
+                raise ValueError(f"model.power_flow=numba: {why}")
+            solver = CompiledPowerFlow(env.sim.constants)
+        self.sim, self.obs_map = env.sim, env.obs_map
+        self._step = functools.partial(differentiable.step, solver=solver)
 
     def __call__(self, state, action):
         nxt, tr = self._step(self.sim, state, action.to(state.dtype))
@@ -135,7 +141,8 @@ class SHAC(Algorithm):
         self.ema = float(cfg.optim.actor_ema)
         self.learner = copy.deepcopy(self.actor) if self.ema > 0 else self.actor
         dyn = str(cfg.model.dynamics)
-        self.model = ExactModel(self.env) if dyn == "exact" else PINNModel(self.env, cfg)
+        self.model = (ExactModel(self.env, str(cfg.model.get("power_flow", "torch"))) if dyn == "exact"
+                      else PINNModel(self.env, cfg))
         adam = dict(eps=float(cfg.optim.eps), weight_decay=float(cfg.optim.weight_decay), betas=(0.7, 0.95))
         self.actor_optim = torch.optim.Adam(self.learner.parameters(), lr=float(cfg.optim.actor_lr), **adam)
         self.critic_optim = torch.optim.Adam(self.critic.parameters(), lr=float(cfg.optim.critic_lr), **adam)
@@ -164,9 +171,13 @@ class SHAC(Algorithm):
         if cfg.env.get("stagger") and not resume:
             # the rows' first episodes are cut after 1..max_steps steps, so later resets spread over the iterations
             self.steps = torch.randint(0, int(cfg.env.max_steps), (n,), device=self.steps.device) % self.max_steps
-
-    def _value(self, net, obs: torch.Tensor) -> torch.Tensor:
-        return net.module(obs).squeeze(-1)
+        loss, optim = cfg.loss, cfg.optim
+        self.critic_settings = CriticSettings(
+            gamma=float(loss.gamma), td_lambda=float(loss.td_lambda), epochs=int(loss.critic_epochs),
+            batch_size=int(loss.critic_batch_size), max_grad_norm=float(optim.max_grad_norm),
+            target_tau=float(loss.target_tau))
+        self.worker = (CriticWorker(self.critic, self.target_critic, self.critic_optim, self.critic_settings, seed)
+                       if loss.get("critic_worker") else None)
 
     def _fresh(self, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Fresh initial (state, observation) for the ``rows`` (n,) long, from the true env's reset distribution:
@@ -187,7 +198,7 @@ class SHAC(Algorithm):
         cfg = self.cfg
         n = self.state.shape[0]
         horizon = max(1, min(int(cfg.loss.horizon), -(-remaining // n)))
-        gamma, lam = float(cfg.loss.gamma), float(cfg.loss.td_lambda)
+        gamma = float(cfg.loss.gamma)
         t0 = time.perf_counter()
         if cfg.optim.anneal_lr:
             total = int(cfg.collector.total_frames)
@@ -213,7 +224,7 @@ class SHAC(Algorithm):
             last = t == horizon - 1
             boot = (trunc | last) & ~term  # bootstrap with the value at the cut
             if bool(boot.any()):
-                v_next = self._value(self.target_critic, next_obs)
+                v_next = value(self.target_critic, next_obs)
                 ret = ret + torch.where(boot, disc * gamma * v_next, 0.0)
             end = term | trunc | last
             loss = loss - torch.where(end, ret, 0.0).sum()
@@ -237,60 +248,49 @@ class SHAC(Algorithm):
         if torch.isfinite(grad_norm):
             self.actor_optim.step()
             if self.ema > 0:
-                _move_towards(self.actor, self.learner, self.ema)
+                move_towards(self.actor, self.learner, self.ema)
         t_rollout = time.perf_counter() - t0
         self.state, self.obs, self.steps = state.detach(), obs.detach(), steps
 
-        # critic: TD(λ) targets from the target critic, backwards over the rollout
+        # critic: TD(λ) targets from the target critic, regression (here, or in the worker beside the next rollout)
         t0 = time.perf_counter()
-        with torch.no_grad():
-            obs_t, next_t = torch.stack(buf_obs), torch.stack(buf_next)
-            rew_t, term_t, end_t = torch.stack(buf_rew), torch.stack(buf_term), torch.stack(buf_end)
-            v_next = self._value(self.target_critic, next_t)
-            target = torch.zeros_like(rew_t)
-            g = v_next[-1]
-            for t in reversed(range(horizon)):
-                if t == horizon - 1:
-                    g = rew_t[t] + gamma * torch.where(term_t[t], 0.0, v_next[t])
-                else:
-                    mixed = (1 - lam) * v_next[t] + lam * g
-                    g = rew_t[t] + gamma * torch.where(term_t[t], 0.0, torch.where(end_t[t], v_next[t], mixed))
-                target[t] = g
-        flat_obs, flat_target = obs_t.reshape(-1, obs_t.shape[-1]), target.reshape(-1)
-        mini = min(int(cfg.loss.critic_batch_size), flat_obs.shape[0])
-        critic_losses, critic_norms = [], []
-        for _ in range(int(cfg.loss.critic_epochs)):
-            perm = torch.randperm(flat_obs.shape[0], device=flat_obs.device)
-            for start in range(0, flat_obs.shape[0], mini):
-                idx = perm[start:start + mini]
-                c_loss = ((self._value(self.critic, flat_obs[idx]) - flat_target[idx]) ** 2).mean()
-                self.critic_optim.zero_grad(set_to_none=True)
-                c_loss.backward()
-                critic_norms.append(torch.nn.utils.clip_grad_norm_(self.critic.parameters(),
-                                                                   float(cfg.optim.max_grad_norm)))
-                self.critic_optim.step()
-                critic_losses.append(c_loss.detach())
-        _move_towards(self.target_critic, self.critic, float(cfg.loss.target_tau))
+        rollout = Rollout(obs=torch.stack(buf_obs), reward=torch.stack(buf_rew), next_obs=torch.stack(buf_next),
+                          term=torch.stack(buf_term), end=torch.stack(buf_end))
+        if self.worker is None:
+            critic = update_critic(self.critic, self.target_critic, self.critic_optim, rollout, self.critic_settings)
+        else:  # the metrics of the update before this one (none at the first)
+            critic = self.worker.exchange(rollout, float(self.critic_optim.param_groups[0]["lr"]))
         t_update = time.perf_counter() - t0
         frames = horizon * n
         self.model_frames += frames
         metrics = {"train/reward": torch.stack(rewards).mean(), "train/loss_actor": actor_loss.detach(),
-                   "train/loss_critic": torch.stack(critic_losses).mean(), "train/value": flat_target.mean(),
                    "train/terminated": n_term / frames, "train/grad_norm": grad_norm.detach(),
-                   "train/critic_grad_norm": torch.stack(critic_norms).mean(),
                    # the exploration noise's scale (0: deterministic rollouts)
                    "train/action_scale": torch.stack(scales).mean() * self.noise,
                    "train/model_frames": self.model_frames,
                    "time/rollout": t_rollout, "time/update": t_update,
                    "time/fps": frames / max(t_rollout + t_update, 1e-9)}
+        if critic is not None:
+            metrics.update({"train/loss_critic": critic["loss"], "train/value": critic["value"],
+                            "train/critic_grad_norm": critic["grad_norm"]})
         return frames, metrics
 
     def state_dict(self) -> dict[str, Any]:
-        state = {"critic": self.critic.state_dict(), "target_critic": self.target_critic.state_dict(),
-                 "actor_optimizer": self.actor_optim.state_dict(), "critic_optimizer": self.critic_optim.state_dict()}
+        if self.worker is None:
+            critic, target, critic_optim = (self.critic.state_dict(), self.target_critic.state_dict(),
+                                            self.critic_optim.state_dict())
+        else:  # the critic the next rollout bootstraps with, and its optimiser (the update in flight is not waited for)
+            critic, target, critic_optim = (self.critic.state_dict(), self.target_critic.state_dict(),
+                                            self.worker.optim_state)
+        state = {"critic": critic, "target_critic": target, "actor_optimizer": self.actor_optim.state_dict(),
+                 "critic_optimizer": critic_optim}
         if self.ema > 0:
             state["learner"] = self.learner.state_dict()
         return state
+
+    def close(self, interrupted: bool = False) -> None:
+        if self.worker is not None:
+            self.worker.close()
 
     @staticmethod
     def build_actor(env, config: Mapping[str, Any], obs_stats: Mapping[str, Any]):
