@@ -6,7 +6,8 @@ with ``∂F/∂s = -I``, so ``dx/ds = J⁻¹`` for the polar Jacobian ``J = ∂F
 :func:`~anm_torchrl.grid.powerflow.newton_raphson`; or a given solver of the same algorithm, such as the
 compiled :class:`~anm_torchrl.grid.backends.numba.CompiledPowerFlow`) and keeps only the solution; the backward
 rebuilds ``J`` there and solves with ``Jᵀ`` in batched chunks of bounded memory
-(:func:`~anm_torchrl.grid.powerflow.solve_newton_step`) — the Newton iterations are never backpropagated. Rows that did not converge get a zero gradient.
+(:func:`~anm_torchrl.grid.powerflow.solve_newton_step`) — the Newton iterations are never backpropagated. Rows
+that did not converge get a zero gradient.
 """
 
 from __future__ import annotations
