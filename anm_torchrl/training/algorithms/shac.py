@@ -242,6 +242,10 @@ class SHAC(Algorithm):
                 steps = torch.where(reset, 0, steps)
             state, obs = nxt, next_obs
         actor_loss = loss / (horizon * n)
+        rollout = Rollout(obs=torch.stack(buf_obs), reward=torch.stack(buf_rew), next_obs=torch.stack(buf_next),
+                          term=torch.stack(buf_term), end=torch.stack(buf_end))
+        if self.worker is not None:  # the critic's update runs beside the actor's backward pass
+            self.worker.submit(rollout, float(self.critic_optim.param_groups[0]["lr"]))
         self.actor_optim.zero_grad(set_to_none=True)
         actor_loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(self.learner.parameters(), float(cfg.optim.max_grad_norm))
@@ -252,34 +256,31 @@ class SHAC(Algorithm):
         t_rollout = time.perf_counter() - t0
         self.state, self.obs, self.steps = state.detach(), obs.detach(), steps
 
-        # critic: TD(λ) targets from the target critic, regression (here, or in the worker beside the next rollout)
+        # critic: TD(λ) targets from the target critic, regression (here, or the worker's, waited for)
         t0 = time.perf_counter()
-        rollout = Rollout(obs=torch.stack(buf_obs), reward=torch.stack(buf_rew), next_obs=torch.stack(buf_next),
-                          term=torch.stack(buf_term), end=torch.stack(buf_end))
         if self.worker is None:
             critic = update_critic(self.critic, self.target_critic, self.critic_optim, rollout, self.critic_settings)
-        else:  # the metrics of the update before this one (none at the first)
-            critic = self.worker.exchange(rollout, float(self.critic_optim.param_groups[0]["lr"]))
+        else:
+            critic = self.worker.result()
         t_update = time.perf_counter() - t0
         frames = horizon * n
         self.model_frames += frames
         metrics = {"train/reward": torch.stack(rewards).mean(), "train/loss_actor": actor_loss.detach(),
+                   "train/loss_critic": critic["loss"], "train/value": critic["value"],
                    "train/terminated": n_term / frames, "train/grad_norm": grad_norm.detach(),
+                   "train/critic_grad_norm": critic["grad_norm"],
                    # the exploration noise's scale (0: deterministic rollouts)
                    "train/action_scale": torch.stack(scales).mean() * self.noise,
                    "train/model_frames": self.model_frames,
                    "time/rollout": t_rollout, "time/update": t_update,
                    "time/fps": frames / max(t_rollout + t_update, 1e-9)}
-        if critic is not None:
-            metrics.update({"train/loss_critic": critic["loss"], "train/value": critic["value"],
-                            "train/critic_grad_norm": critic["grad_norm"]})
         return frames, metrics
 
     def state_dict(self) -> dict[str, Any]:
         if self.worker is None:
             critic, target, critic_optim = (self.critic.state_dict(), self.target_critic.state_dict(),
                                             self.critic_optim.state_dict())
-        else:  # the critic the next rollout bootstraps with, and its optimiser (the update in flight is not waited for)
+        else:  # the optimiser's state is the worker's
             critic, target, critic_optim = (self.critic.state_dict(), self.target_critic.state_dict(),
                                             self.worker.optim_state)
         state = {"critic": critic, "target_critic": target, "actor_optimizer": self.actor_optim.state_dict(),

@@ -1,10 +1,12 @@
 """SHAC's critic: TD(λ) targets of a rollout from the target critic, the critic's regression on them and the target's
-Polyak step — in the training process, or in a worker process beside the next rollout (``loss.critic_worker``).
+Polyak step — in the training process, or in a worker process while the actor's backward pass runs
+(``loss.critic_worker``).
 
-With the worker, iteration i's critic update runs while the actor's rollout i + 1 runs, so that rollout bootstraps
-with the target critic of update i - 1 (one update older than in the sequential order); the updates themselves,
-targets included, are the sequential order's. The two processes exchange pickled tensors (a rollout's buffers one
-way, the critic's weights the other: ~1 MB per iteration at 128 rows x 64 steps), no shared memory to leak.
+With the worker, each iteration hands its rollout's buffers to the worker as soon as the rollout's forward pass is
+done, and waits for the update after the actor's backward pass and Adam step: the same updates in the same order as
+in the training process (the next rollout bootstraps with the updated target critic), only the critic's minibatch
+shuffles come from the worker's own random stream. The two processes exchange pickled tensors (a rollout's buffers one
+way, the critic's and its optimiser's state the other: ~1 MB per iteration at 128 rows x 64 steps).
 """
 
 from __future__ import annotations
@@ -109,13 +111,9 @@ def _serve(conn, critic, target_critic, optim, settings: CriticSettings, seed: i
 
 
 class CriticWorker:
-    """``update_critic`` in a forked worker process, one update in flight (see the module docstring).
-
-    Built from the training process's ``critic``, ``target_critic`` and ``optim`` (copied into the worker at
-    the fork); :meth:`exchange` loads each finished update's weights back into the modules and keeps the
-    optimiser's state (:attr:`optim_state`), so a checkpoint never waits for the update in flight: it holds the
-    critic the next rollout bootstraps with (a run resumed from it repeats no update and loses the one in flight).
-    """
+    """``update_critic`` in a forked worker process (see the module docstring): :meth:`submit` a rollout, then
+    :meth:`result` loads the updated critic, target critic and optimiser state back into the training process's
+    ``critic``, ``target_critic`` and :attr:`optim_state` (copied into the worker at the fork)."""
 
     def __init__(self, critic, target_critic, optim, settings: CriticSettings, seed: int):
         # fork: the worker starts with the modules and the optimiser as they are (no pickling, no re-import of a
@@ -127,34 +125,24 @@ class CriticWorker:
         self._proc.start()
         child.close()
         self.critic, self.target_critic, self.optim_state = critic, target_critic, optim.state_dict()
-        self._waiting = False
 
-    def _apply(self) -> dict[str, torch.Tensor] | None:
-        """Wait for the update in flight, if any, and load its result; returns its metrics."""
-        if not self._waiting:
-            return None
+    def submit(self, rollout: Rollout, lr: float) -> None:
+        """Start the update on ``rollout`` at learning rate ``lr``."""
+        self._conn.send_bytes(pickle.dumps((rollout, lr)))
+
+    def result(self) -> dict[str, torch.Tensor]:
+        """Wait for the submitted update, load its weights and optimiser state; returns its metrics."""
         critic, target, self.optim_state, metrics = pickle.loads(self._conn.recv_bytes())
-        self._waiting = False
         self.critic.load_state_dict(critic)
         self.target_critic.load_state_dict(target)
         return metrics
 
-    def exchange(self, rollout: Rollout, lr: float) -> dict[str, torch.Tensor] | None:
-        """Load the result of the update in flight into the training process's critic and target critic, and
-        start the update on ``rollout`` at learning rate ``lr``. Returns the finished update's metrics (None
-        before the first)."""
-        metrics = self._apply()
-        self._conn.send_bytes(pickle.dumps((rollout, lr)))
-        self._waiting = True
-        return metrics
-
     def close(self) -> None:
-        """Load the last update's result (for the last checkpoint) and stop the worker."""
+        """Stop the worker."""
         if self._proc.is_alive():
             try:
-                self._apply()
                 self._conn.send_bytes(pickle.dumps(None))
-            except (BrokenPipeError, EOFError, OSError):
+            except (BrokenPipeError, OSError):
                 pass
             self._proc.join(timeout=10)
             if self._proc.is_alive():
