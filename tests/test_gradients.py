@@ -204,7 +204,7 @@ def _random_sim(seed: int, n_bus: int, meshed: bool):
 
 @pytest.mark.parametrize("which", [ANM6_EASY, "case33bw", "random:20:meshed", "random:9:radial"])
 def test_the_compiled_forward_gives_the_torch_numbers_and_gradients(which):
-    """``solver=CompiledPowerFlow`` (SHAC's ``model.power_flow=numba``): the forward's Newton–Raphson in the numba
+    """``solver=CompiledPowerFlow`` (SHAC's ``env.power_flow=numba``): the forward's Newton–Raphson in the numba
     kernel. Same iterations and convergence flags; voltages and every output within 1e-12 of the torch ops (the
     same algorithm, round-off apart: a different LU); the implicit gradients likewise (they are computed at the
     solution, so round-off in it moves them by as little)."""

@@ -267,8 +267,7 @@ def check_shac_config(cfg: Mapping) -> None:
     check_protocol_config(cfg)
     _check_model(cfg)
     _choice(cfg, "model.dynamics", ("exact", "pinn"))
-    if "power_flow" in _get(cfg, "model"):  # the exact model's key (model=exact)
-        _choice(cfg, "model.power_flow", ("torch", "numba"))
+    _choice(cfg, "env.power_flow", ("torch", "numba"))
     _in_range(cfg, "env.short_rows", 0, 1, False, True)
     _int(cfg, "env.short_steps")
     if _get(cfg, "env.short_rows") and _get(cfg, "env.max_steps") is None:

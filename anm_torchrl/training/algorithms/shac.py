@@ -43,9 +43,8 @@ DYNAMICS = ("exact", "pinn")
 
 
 def actor_options(config) -> dict:
-    """``model_options`` without SHAC's ``dynamics`` and ``power_flow`` keys (the keyword arguments of
-    ``make_ppo_models``)."""
-    return {k: v for k, v in model_options(config).items() if k not in ("dynamics", "power_flow")}
+    """``model_options`` without SHAC's ``dynamics`` key (the keyword arguments of ``make_ppo_models``)."""
+    return {k: v for k, v in model_options(config).items() if k != "dynamics"}
 
 
 class ExactModel:
@@ -62,7 +61,7 @@ class ExactModel:
 
             why = NumbaBackend().unusable(env.sim.net)
             if why:
-                raise ValueError(f"model.power_flow=numba: {why}")
+                raise ValueError(f"env.power_flow=numba: {why}")
             solver = CompiledPowerFlow(env.sim.constants)
         self.sim, self.obs_map = env.sim, env.obs_map
         self._step = functools.partial(differentiable.step, solver=solver)
@@ -141,7 +140,7 @@ class SHAC(Algorithm):
         self.ema = float(cfg.optim.actor_ema)
         self.learner = copy.deepcopy(self.actor) if self.ema > 0 else self.actor
         dyn = str(cfg.model.dynamics)
-        self.model = (ExactModel(self.env, str(cfg.model.get("power_flow", "torch"))) if dyn == "exact"
+        self.model = (ExactModel(self.env, str(cfg.env.power_flow)) if dyn == "exact"
                       else PINNModel(self.env, cfg))
         adam = dict(eps=float(cfg.optim.eps), weight_decay=float(cfg.optim.weight_decay), betas=(0.7, 0.95))
         self.actor_optim = torch.optim.Adam(self.learner.parameters(), lr=float(cfg.optim.actor_lr), **adam)
