@@ -68,3 +68,34 @@ def test_compiled_ppo_loss_matches_eager():
     for key, eager in out["false"].items():
         assert math.isfinite(out["true"][key])
         assert out["true"][key] == pytest.approx(eager, rel=1e-4, abs=1e-6), key
+
+
+def _spin(seconds: float) -> None:
+    """Spin ``seconds`` of CPU, then stay alive idle (a finished child is no longer a live one)."""
+    import time
+
+    end = time.process_time() + seconds
+    while time.process_time() < end:
+        pass
+    time.sleep(30)
+
+
+def test_cpu_time_counts_live_worker_processes():
+    """SHAC's critic worker is a second process: the CPU clock adds the CPU time of live ``multiprocessing``
+    children (here one spinning ~0.3 s), so the CPU frames/s count the whole work."""
+    import multiprocessing
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("reads /proc")
+    child = multiprocessing.get_context("fork").Process(target=_spin, args=(0.3,))
+    child.start()
+    try:
+        import time
+
+        time.sleep(1.0)  # the child spins its 0.3 s of CPU (sharing 2 cores with the bench) and idles
+        spent = training._children_cpu()
+    finally:
+        child.terminate()
+        child.join()
+    assert 0.2 <= spent <= 0.6, spent  # clock ticks of 10 ms, and the child's start-up

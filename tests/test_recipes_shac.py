@@ -249,3 +249,12 @@ def test_shac_with_the_critic_worker_and_the_compiled_forward_runs_the_recipe(tm
     assert summary["model_frames"] == 96 and summary["updates"] == 3 and not summary["interrupted"]
     tags = scalars(run_dir)
     assert len(tags["train/loss_critic"]) == 3 and all(math.isfinite(v) for _, v in tags["train/loss_critic"])
+
+
+def test_checkpoints_with_the_forward_keys_first_home_still_load():
+    """The runs of ANM6-Easy's exact-model leaderboard row were made with ``model.power_flow`` (now
+    ``env.power_flow``): the actor is built from the model keys ``make_ppo_models`` takes, without it."""
+    from anm_torchrl.training.algorithms.shac import actor_options
+
+    config = {"model": {"dynamics": "exact", "power_flow": "numba", "actor_cells": [8], "time_features": True}}
+    assert actor_options(config) == {"actor_cells": [8], "time_features": True}

@@ -14,8 +14,8 @@ For every batch size N and algorithm, in one run (ratios compare, seconds do not
 
 Every algorithm runs its recipe's config for the network (its per-network entry applied, as the recipe does), with
 ``env.num_envs`` = N (and PPO's and SAC's ``collector.frames_per_batch`` = N x 16) set. Each is reported as frames/s
-of wall time and of process CPU time (one torch thread: CPU time is the work done, whatever else the machine runs),
-after one warm-up iteration. The ``loop / env`` column is the issue's target (≥ 0.5).
+of wall time and of CPU time (one torch thread per process: CPU time is the work done, whatever else the machine
+runs; SHAC's critic worker, a second process, counted in it), after one warm-up iteration. The ``loop / env`` column is the issue's target (≥ 0.5).
 """
 
 from __future__ import annotations
@@ -46,8 +46,25 @@ def _config(algorithm: str, network: str, n_envs: int, overrides: list[str]):
     return compose_recipe_config(over, ALGORITHMS[algorithm][0])[0]
 
 
+def _children_cpu() -> float:
+    """CPU seconds of this process's live ``multiprocessing`` children (SHAC's critic worker), read from
+    ``/proc/<pid>/stat`` (utime + stime; 0 where there is no /proc)."""
+    import multiprocessing
+    import os
+
+    total = 0.0
+    for child in multiprocessing.active_children():
+        try:
+            fields = Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except (OSError, ValueError, IndexError):
+            continue
+    return total
+
+
 def _clock():
-    return time.perf_counter(), time.process_time()
+    """(wall s, CPU s of this process and its live worker processes)."""
+    return time.perf_counter(), time.process_time() + _children_cpu()
 
 
 def time_env(network: str, n_envs: int, steps: int = STEPS, repeats: int = 3) -> dict[str, float]:

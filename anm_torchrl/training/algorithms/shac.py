@@ -43,8 +43,10 @@ DYNAMICS = ("exact", "pinn")
 
 
 def actor_options(config) -> dict:
-    """``model_options`` without SHAC's ``dynamics`` key (the keyword arguments of ``make_ppo_models``)."""
-    return {k: v for k, v in model_options(config).items() if k != "dynamics"}
+    """``model_options`` without SHAC's ``dynamics`` key (the keyword arguments of ``make_ppo_models``); also
+    without ``power_flow``, which checkpoints made with that key's first home (``model.power_flow``, now
+    ``env.power_flow``) carry: the runs of ANM6-Easy's exact-model leaderboard row among them."""
+    return {k: v for k, v in model_options(config).items() if k not in ("dynamics", "power_flow")}
 
 
 class ExactModel:
