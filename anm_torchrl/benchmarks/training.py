@@ -15,7 +15,8 @@ For every batch size N and algorithm, in one run (ratios compare, seconds do not
 Every algorithm runs its recipe's config for the network (its per-network entry applied, as the recipe does), with
 ``env.num_envs`` = N (and PPO's and SAC's ``collector.frames_per_batch`` = N x 16) set. Each is reported as frames/s
 of wall time and of CPU time (one torch thread per process: CPU time is the work done, whatever else the machine
-runs; SHAC's critic worker, a second process, counted in it), after one warm-up iteration. The ``loop / env`` column is the issue's target (≥ 0.5).
+runs; SHAC's critic worker, a second process, counted in it), after one warm-up iteration. The ``loop / env``
+column is the issue's target (≥ 0.5).
 """
 
 from __future__ import annotations
