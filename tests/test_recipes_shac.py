@@ -258,3 +258,25 @@ def test_checkpoints_with_the_forward_keys_first_home_still_load():
 
     config = {"model": {"dynamics": "exact", "power_flow": "numba", "actor_cells": [8], "time_features": True}}
     assert actor_options(config) == {"actor_cells": [8], "time_features": True}
+
+
+def test_a_dead_critic_worker_is_named():
+    """If the worker process dies, the training process says so instead of waiting or failing on a pipe error."""
+    import torch
+
+    torch.manual_seed(0)
+    algo = _tiny_shac("loss.critic_worker=true")
+    algo.iterate(10 ** 6)
+    algo.worker._proc.kill()
+    algo.worker._proc.join()
+    with pytest.raises(RuntimeError, match=r"SHAC's critic worker process ended \(exit code -9\)"):
+        algo.iterate(10 ** 6)
+    algo.close()
+
+
+def test_the_critic_worker_says_where_it_cannot_run(monkeypatch):
+    import multiprocessing
+
+    monkeypatch.setattr(multiprocessing, "get_all_start_methods", lambda: ["spawn"])
+    with pytest.raises(ValueError, match="loss.critic_worker=true needs the 'fork' start method"):
+        _tiny_shac("loss.critic_worker=true")

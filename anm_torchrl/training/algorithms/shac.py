@@ -5,7 +5,8 @@ of the actor's ``TanhNormal`` (as Xu et al.; its scale is the model's ``init_log
 ``loss.noise=false``, with its deterministic action, the one evaluation scores.
 
 Model (``model.dynamics``): ``exact`` — the true transition with its gradients
-(:mod:`anm_torchrl.grid.differentiable`: implicit power-flow gradients, active-constraint projections), float64;
+(:mod:`anm_torchrl.grid.differentiable`: implicit power-flow gradients, active-constraint projections), float64, its
+forward Newton–Raphson in torch ops or in the compiled kernel (``env.power_flow``);
 ``pinn`` — the PINN surrogate chain (:func:`anm_torchrl.surrogates.pinn.load.load_pinn`: the network's cached model,
 trained from physics alone on first use; or ``surrogate.path``).
 A terminal step (the power flow does not converge / the chain says collapse) takes gym-anm's terminal reward, ends
@@ -16,10 +17,13 @@ Budget: ``collector.total_frames`` counts **model** transitions (``budget_unit =
 reports them as ``model_frames`` and ``frames`` = true-env transitions used for training (0; the protocol's
 evaluation episodes aside). One iteration = ``env.num_envs`` x ``loss.horizon`` model frames.
 
+The critic (:mod:`~anm_torchrl.training.algorithms.shac_critic`) regresses after each rollout, in this process or,
+with ``loss.critic_worker``, in a worker process beside the actor's backward pass (the same updates).
+
 Config groups it reads (``recipes/conf/shac.yaml``): ``model`` (PPO's actor/critic family + ``dynamics``), ``env``
-(batch, time limit), ``loss`` (γ, λ, horizon, critic epochs), ``optim``. Logged: ``train/{reward, loss_actor,
-loss_critic, value, terminated, grad_norm, critic_grad_norm, action_scale, model_frames}`` and ``time/{rollout,
-update, fps}``.
+(batch, time limit, forward power flow), ``loss`` (γ, λ, horizon, critic epochs, worker), ``optim``. Logged:
+``train/{reward, loss_actor, loss_critic, value, terminated, grad_norm, critic_grad_norm, action_scale,
+model_frames}`` and ``time/{rollout, update, fps}``.
 """
 
 from __future__ import annotations

@@ -118,6 +118,12 @@ class CriticWorker:
     def __init__(self, critic, target_critic, optim, settings: CriticSettings, seed: int):
         # fork: the worker starts with the modules and the optimiser as they are (no pickling, no re-import of a
         # recipe's __main__, which spawn would re-run from Hydra's changed working directory)
+        if "fork" not in multiprocessing.get_all_start_methods():
+            raise ValueError("loss.critic_worker=true needs the 'fork' start method of multiprocessing, which this "
+                             "platform does not have; set loss.critic_worker=false")
+        if any(p.device.type != "cpu" for p in critic.parameters()):
+            raise ValueError("loss.critic_worker=true runs the critic on the CPU only; set loss.critic_worker=false "
+                             "on a GPU")
         ctx = multiprocessing.get_context("fork")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_serve, args=(child, critic, target_critic, optim, settings, seed),
@@ -128,11 +134,23 @@ class CriticWorker:
 
     def submit(self, rollout: Rollout, lr: float) -> None:
         """Start the update on ``rollout`` at learning rate ``lr``."""
-        self._conn.send_bytes(pickle.dumps((rollout, lr)))
+        try:
+            self._conn.send_bytes(pickle.dumps((rollout, lr)))
+        except (BrokenPipeError, ConnectionResetError):
+            self._ended()
+
+    def _ended(self):
+        self._proc.join(timeout=5)
+        raise RuntimeError(f"SHAC's critic worker process ended (exit code {self._proc.exitcode}) before returning "
+                           "its update; its error, if any, is above") from None
 
     def result(self) -> dict[str, torch.Tensor]:
         """Wait for the submitted update, load its weights and optimiser state; returns its metrics."""
-        critic, target, self.optim_state, metrics = pickle.loads(self._conn.recv_bytes())
+        try:
+            reply = self._conn.recv_bytes()
+        except (EOFError, ConnectionResetError):
+            self._ended()
+        critic, target, self.optim_state, metrics = pickle.loads(reply)
         self.critic.load_state_dict(critic)
         self.target_critic.load_state_dict(target)
         return metrics
