@@ -282,14 +282,10 @@ class SHAC(Algorithm):
         return frames, metrics
 
     def state_dict(self) -> dict[str, Any]:
-        if self.worker is None:
-            critic, target, critic_optim = (self.critic.state_dict(), self.target_critic.state_dict(),
-                                            self.critic_optim.state_dict())
-        else:  # the optimiser's state is the worker's
-            critic, target, critic_optim = (self.critic.state_dict(), self.target_critic.state_dict(),
-                                            self.worker.optim_state)
-        state = {"critic": critic, "target_critic": target, "actor_optimizer": self.actor_optim.state_dict(),
-                 "critic_optimizer": critic_optim}
+        # with the worker, the critic's optimiser state is the worker's
+        critic_optim = self.critic_optim.state_dict() if self.worker is None else self.worker.optim_state
+        state = {"critic": self.critic.state_dict(), "target_critic": self.target_critic.state_dict(),
+                 "actor_optimizer": self.actor_optim.state_dict(), "critic_optimizer": critic_optim}
         if self.ema > 0:
             state["learner"] = self.learner.state_dict()
         return state
