@@ -202,6 +202,14 @@ def _random_sim(seed: int, n_bus: int, meshed: bool):
     return simulator(case.network, case.load_p, case.gen_p_max)
 
 
+def _case(which: str):
+    """A registered network by name, or ``random:<n_bus>:meshed|radial`` (seed 3)."""
+    if which.startswith("random"):
+        _, n_bus, topo = which.split(":")
+        return _random_sim(3, int(n_bus), topo == "meshed")
+    return simulator(which)
+
+
 @pytest.mark.parametrize("which", [ANM6_EASY, "case33bw", "random:20:meshed", "random:9:radial"])
 def test_the_compiled_forward_gives_the_torch_numbers_and_gradients(which):
     """``solver=CompiledPowerFlow`` (SHAC's ``env.power_flow=numba``): the forward's Newton–Raphson in the numba
@@ -210,11 +218,7 @@ def test_the_compiled_forward_gives_the_torch_numbers_and_gradients(which):
     solution, so round-off in it moves them by as little)."""
     from anm_torchrl.grid.backends.numba import CompiledPowerFlow
 
-    if which.startswith("random"):
-        _, n_bus, topo = which.split(":")
-        s = _random_sim(3, int(n_bus), topo == "meshed")
-    else:
-        s = simulator(which)
+    s = _case(which)
     solver = CompiledPowerFlow(s.constants)
     soc, p_load, p_pot, sp = _inputs(s, 16, 4, "random")
     outs = []
@@ -230,6 +234,35 @@ def test_the_compiled_forward_gives_the_torch_numbers_and_gradients(which):
         a, b = getattr(ref, name).detach(), getattr(fast, name).detach()
         assert (a - b).abs().max() <= 1e-12 * max(1.0, float(a.abs().max())), name
     assert (g_ref - g_fast).abs().max() <= 1e-9 * max(1.0, float(g_ref.abs().max()))
+
+
+@pytest.mark.parametrize("which", [ANM6_EASY, "case33bw", "random:20:meshed"])
+def test_the_compiled_adjoint_solves_with_the_transposed_jacobian(which):
+    """``CompiledPowerFlow.adjoint`` (the implicit backward with the compiled forward) against the torch ops'
+    ``solve_newton_step(transpose=True)`` on ANM6-Easy's dense path, case33bw's tree and a random meshed network's
+    band LU: within 1e-10 (round-off of two LUs of a well-conditioned J). A row whose solution is not finite
+    gets ``info`` 1 and a zero λ, as the torch ops' singular rows."""
+    from anm_torchrl.grid.backends.numba import CompiledPowerFlow
+    from anm_torchrl.grid.powerflow import _voltages, newton_iterates, solve_newton_step
+    from anm_torchrl.grid.residuals import power_injection
+
+    s = _case(which)
+    solver = CompiledPowerFlow(s.constants)
+    gen = torch.Generator().manual_seed(0)
+    n = s.net.y_bus.shape[0]
+    s_bus = torch.complex(0.05 * torch.randn(6, n, generator=gen, dtype=torch.float64),
+                          0.02 * torch.randn(6, n, generator=gen, dtype=torch.float64))
+    x, converged, _, _ = newton_iterates(s.net.y_bus, s_bus, 1e-10, 50)
+    assert bool(converged.all())
+    x[5] = float("nan")
+    rhs = torch.randn(x.shape, generator=gen, dtype=torch.float64)
+    lam, info = solver.adjoint(x, rhs)
+    v = _voltages(x[:5], n)
+    ref, ref_info = solve_newton_step(v, power_injection(v, s.net.y_bus), s.net.y_bus[1:, 1:].conj(), rhs[:5],
+                                      transpose=True)
+    assert info.tolist() == [0] * 5 + [1] and torch.all(ref_info == 0)
+    assert (lam[:5] - ref).abs().max() <= 1e-10 * float(ref.abs().max())
+    assert torch.all(lam[5] == 0)
 
 
 def test_the_compiled_forward_rejects_what_it_cannot_solve():

@@ -6,8 +6,9 @@ with ``∂F/∂s = -I``, so ``dx/ds = J⁻¹`` for the polar Jacobian ``J = ∂F
 :func:`~anm_torchrl.grid.powerflow.newton_raphson`; or a given solver of the same algorithm, such as the
 compiled :class:`~anm_torchrl.grid.backends.numba.CompiledPowerFlow`) and keeps only the solution; the backward
 rebuilds ``J`` there and solves with ``Jᵀ`` in batched chunks of bounded memory
-(:func:`~anm_torchrl.grid.powerflow.solve_newton_step`) — the Newton iterations are never backpropagated. Rows
-that did not converge get a zero gradient.
+(:func:`~anm_torchrl.grid.powerflow.solve_newton_step`), or through the solver's own ``adjoint`` where it has one
+(the compiled solver's) — the Newton iterations are never backpropagated. Rows that did not converge get a zero
+gradient.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ class ImplicitPowerFlow(torch.autograd.Function):
         # the solution, not its Jacobian: (N, 2n-2) instead of (N, 2n-2, 2n-2) held until backward, which
         # rebuilds J in bounded chunks (a SHAC horizon holds one of these per step)
         ctx.save_for_backward(x, converged, y_bus)
+        ctx.solver = solver
         ctx.mark_non_differentiable(converged, n_iter, diff)
         return x, converged, n_iter, diff
 
@@ -44,16 +46,19 @@ class ImplicitPowerFlow(torch.autograd.Function):
     def backward(ctx, grad_x, *_):
         x, converged, y_bus = ctx.saved_tensors
         k = x.shape[-1] // 2
-        v = _voltages(x, k + 1)
-        s_inj = power_injection(v, y_bus)
         # dL/ds = J⁻ᵀ dL/dx (F = S_inj(x) - s, so ∂x/∂s = J⁻¹); non-converged or singular rows: 0
         ok = converged & torch.isfinite(grad_x).all(-1)
         rhs = torch.where(ok[:, None], grad_x, 0.0)
-        forest = use_tree(y_bus, len(x))
-        if forest is not None:  # radial and large: Jᵀ on the bus tree, O(n) per row
-            lam, info = tree_newton_step(v, s_inj, y_bus, rhs, forest, transpose=True)
+        if hasattr(ctx.solver, "adjoint"):  # a compiled solver solves with Jᵀ too (CompiledPowerFlow.adjoint)
+            lam, info = ctx.solver.adjoint(x, rhs)
         else:
-            lam, info = solve_newton_step(v, s_inj, y_bus[1:, 1:].conj(), rhs, transpose=True)
+            v = _voltages(x, k + 1)
+            s_inj = power_injection(v, y_bus)
+            forest = use_tree(y_bus, len(x))
+            if forest is not None:  # radial and large: Jᵀ on the bus tree, O(n) per row
+                lam, info = tree_newton_step(v, s_inj, y_bus, rhs, forest, transpose=True)
+            else:
+                lam, info = solve_newton_step(v, s_inj, y_bus[1:, 1:].conj(), rhs, transpose=True)
         lam = torch.where((ok & (info == 0))[:, None], lam, 0.0)
         zero = lam.new_zeros(lam.shape[0], 1)
         grad_p = torch.cat([zero, lam[:, :k]], 1)

@@ -433,6 +433,48 @@ def _power_flows(c, s_bus, tol, max_iter, x, converged, n_iter, diff):
         converged[e], n_iter[e], diff[e] = d == d and d <= tol, it, d
 
 
+@_njit()
+def _adjoints(c, x, rhs, lam, info):
+    """``lam`` (N, 2n-2) = J⁻ᵀ ``rhs`` (N, 2n-2) per row, J the polar Jacobian at the solution ``x`` (N, 2n-2) =
+    [θ_1.., |V|_1..]: the backward of :class:`~anm_torchrl.grid.implicit.ImplicitPowerFlow`, as
+    :func:`~anm_torchrl.grid.powerflow.solve_newton_step` with ``transpose=True``. Jᵀ is written by the forward's
+    Jacobian functions into the transpose of its buffer (Y's pattern is symmetric, so the band / tree factors
+    apply to it unchanged); ``info`` (N,) 1 where J is singular or the solution is not finite (``lam`` then 0)."""
+    k = x.shape[1] // 2
+    n = k + 1
+    vm, va = np.empty(n), np.empty(n)
+    s, v = np.empty(n, dtype=np.complex128), np.empty(n, dtype=np.complex128)
+    jt, piv, b = np.zeros((2 * k, 2 * k)), np.empty(2 * k, dtype=np.int64), np.empty(2 * k)
+    vm[0], va[0] = 1.0, 0.0
+    for e in range(x.shape[0]):
+        for i in range(k):
+            va[i + 1], vm[i + 1] = x[e, i], x[e, k + i]
+        if c.dense:
+            _dense_injection(vm, va, c.y, s, v)
+            _dense_jacobian(c.y, v, vm, s, jt.T)
+            ok = _lu_factor(jt, piv, 2 * k - 1, 2 * k - 1)
+            if ok:
+                b[:] = rhs[e]
+                _lu_solve(jt, piv, b, 2 * k - 1, 2 * k - 1)
+        else:
+            _injection(vm, va, c.ycsr, s, v)
+            for r in range(2 * k):  # the band the LU reads (the Jacobian function clears J's band, not Jᵀ's)
+                for q in range(max(0, r - c.kl), min(2 * k - 1, r + c.kl + c.ku) + 1):
+                    jt[r, q] = 0.0
+            _jacobian(c.ycsr, v, vm, s, jt.T, c.ix, c.kl, c.ku)
+            ok = _factor(jt, piv, c.kl, c.ku, c.parent)
+            if ok:
+                for j in range(2 * k):
+                    b[c.ix[j]] = rhs[e, j]
+                _solve(jt, piv, b, c.kl, c.ku, c.parent)
+        for j in range(2 * k):
+            lam[e, j] = b[j] if c.dense else b[c.ix[j]]
+            ok = ok and lam[e, j] - lam[e, j] == 0.0  # finite
+        info[e] = 0 if ok else 1
+        if not ok:
+            lam[e, :] = 0.0
+
+
 class CompiledPowerFlow:
     """:func:`~anm_torchrl.grid.powerflow.newton_iterates` of one network as the compiled loop above: called as
     ``(y_bus, s_bus, tol, max_iter) -> (x, converged, n_iter, ||F||_inf)`` on CPU complex128 ``s_bus`` (N, n) p.u.
@@ -456,6 +498,15 @@ class CompiledPowerFlow:
         _power_flows(c, np.ascontiguousarray(s_bus.detach().numpy()), float(tol), int(max_iter), x, converged,
                      n_iter, diff)
         return tuple(torch.from_numpy(a) for a in (x, converged, n_iter, diff))
+
+    def adjoint(self, x: torch.Tensor, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(J⁻ᵀ rhs, info)`` (N, 2n-2), (N,) at the solutions ``x`` (N, 2n-2) this solver returned, for the
+        backward of :class:`~anm_torchrl.grid.implicit.ImplicitPowerFlow` (as
+        :func:`~anm_torchrl.grid.powerflow.solve_newton_step` with ``transpose=True``; info nonzero: singular)."""
+        lam, info = np.empty(tuple(rhs.shape)), np.empty(rhs.shape[0], dtype=np.int32)
+        _adjoints(self.constants, np.ascontiguousarray(x.detach().numpy()),
+                  np.ascontiguousarray(rhs.detach().to(torch.float64).numpy()), lam, info)
+        return torch.from_numpy(lam).to(rhs.dtype), torch.from_numpy(info)
 
 
 # ---------------------------------------------------------------------------------------- transition
