@@ -5,6 +5,7 @@ errors when the second process fails or the option is wrong."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -61,7 +62,7 @@ def _small_case():
 
 def test_background_pass_equals_inline_pass_and_keeps_its_weights():
     """A pass evaluates the weights as they were submitted, even when the caller changes them at once."""
-    from anm_torchrl.training.validation import BackgroundValidation, InlineValidation
+    from anm_torchrl.training.validation import NICENESS, BackgroundValidation, InlineValidation
 
     actor, states, env = _small_case()
     background = BackgroundValidation(actor, states, env, max_steps=20, gamma=0.99)
@@ -75,6 +76,9 @@ def test_background_pass_equals_inline_pass_and_keeps_its_weights():
         assert background.pending == 2
         got = background.results(wait=True)
         assert background.pending == 0 and [tag for tag, _ in got] == ["first", "second"]
+        # off the training's critical path: the second process yields the CPUs to the training (NICENESS)
+        own = os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.getpriority(os.PRIO_PROCESS, background.proc.pid) == min(19, own + NICENESS)
     finally:
         background.close()
     inline = InlineValidation(actor, states, env, max_steps=20, gamma=0.99)

@@ -29,6 +29,10 @@ from anm_torchrl.provenance import usable_cpus
 #: (~1 s on 16 ANM6-Easy states here) outweighs the process's start (~3 s) after a few passes; shorter ones (tests,
 #: smoke runs) stay here
 BACKGROUND_MIN_STEPS = 1000
+#: scheduling niceness of the second process: its passes are off the training's critical path (a result is read
+#: one pass later), so where the CPUs are all busy (SHAC's critic worker beside it on 2 cores) the training and its
+#: worker come first
+NICENESS = 10
 
 
 def use_background(mode: str | bool, device, threads: int, max_steps: int) -> bool:
@@ -167,6 +171,7 @@ def _serve(setup_path: str) -> None:
     os.dup2(2, 1)  # anything printed goes to stderr, not into the results
     setup = torch.load(setup_path, weights_only=False)  # written by the training process in its own temp folder
     torch.set_num_threads(int(setup["threads"]))
+    os.nice(NICENESS)
     policy, inp = setup["policy"], sys.stdin.buffer
     while (weights := _read(inp)) is not None:
         policy.load_state_dict(weights)
