@@ -31,7 +31,8 @@ from anm_torchrl.provenance import usable_cpus
 BACKGROUND_MIN_STEPS = 1000
 #: scheduling niceness of the second process: its passes are off the training's critical path (a result is read
 #: one pass later), so where the CPUs are all busy (SHAC's critic worker beside it on 2 cores) the training and its
-#: worker come first
+#: worker come first. On a machine loaded by other work a pass takes longer, and the training waits for it at the
+#: next one
 NICENESS = 10
 
 

@@ -480,7 +480,8 @@ class CompiledPowerFlow:
     ``(y_bus, s_bus, tol, max_iter) -> (x, converged, n_iter, ||F||_inf)`` on CPU complex128 ``s_bus`` (N, n) p.u.
     (``y_bus`` must be the network's: the constants hold its factorised flat start). The same algorithm and
     stopping rule; the numbers agree to float64 round-off. On ANM6-Easy at 128 rows ~7x faster than the torch ops
-    (0.27 against 1.96 ms, this 2-core VM): the forward of the implicit power flow (:mod:`anm_torchrl.grid.implicit`).
+    (0.27 against 1.96 ms, this 2-core VM): the forward of the implicit power flow (:mod:`anm_torchrl.grid.implicit`),
+    whose backward solves with Jᵀ here too (:meth:`adjoint`).
     """
 
     def __init__(self, constants):
