@@ -236,11 +236,11 @@ def test_the_compiled_forward_gives_the_torch_numbers_and_gradients(which):
     assert (g_ref - g_fast).abs().max() <= 1e-9 * max(1.0, float(g_ref.abs().max()))
 
 
-@pytest.mark.parametrize("which", [ANM6_EASY, "case33bw", "random:20:meshed"])
+@pytest.mark.parametrize("which", [ANM6_EASY, "case33bw", "random:20:meshed", "random:30:radial"])
 def test_the_compiled_adjoint_solves_with_the_transposed_jacobian(which):
     """``CompiledPowerFlow.adjoint`` (the implicit backward with the compiled forward) against the torch ops'
-    ``solve_newton_step(transpose=True)`` on ANM6-Easy's dense path, case33bw's tree and a random meshed network's
-    band LU: within 1e-10 (round-off of two LUs of a well-conditioned J). A row whose solution is not finite
+    ``solve_newton_step(transpose=True)`` on ANM6-Easy's dense path, the tree of case33bw and of a random radial
+    network and a random meshed network's band LU: within 1e-10 (round-off of two LUs of a well-conditioned J). A row whose solution is not finite
     gets ``info`` 1 and a zero λ, as the torch ops' singular rows."""
     from anm_torchrl.grid.backends.numba import CompiledPowerFlow
     from anm_torchrl.grid.powerflow import _voltages, newton_iterates, solve_newton_step
