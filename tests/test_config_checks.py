@@ -147,6 +147,14 @@ def test_resume_with_another_architecture_is_an_error(ppo_checkpoint):
         assert key in str(err.value)
     new = OmegaConf.to_container(ppo_config("optim.lr=1e-3"), resolve=True)
     assert check_resume_config(saved, new) == ["optim.lr"]  # other changes are the caller's to warn about
+    # a checkpoint written before an architecture flag existed had it off: resuming with it off is no change of
+    # architecture, with it on is one
+    older = {**saved, "model": {k: v for k, v in saved["model"].items() if k != "state_dependent_scale"}}
+    same = OmegaConf.to_container(ppo_config(), resolve=True)
+    assert check_resume_config(older, same) == ["model.state_dependent_scale"]
+    on = OmegaConf.to_container(ppo_config("model.state_dependent_scale=true"), resolve=True)
+    with pytest.raises(ValueError, match="model.state_dependent_scale: checkpoint None, this run True"):
+        check_resume_config(older, on)
 
 
 def test_unwritable_artifact_home_names_the_variable(monkeypatch, tmp_path):

@@ -5,6 +5,7 @@ ANM6-Easy's defaults unchanged (they select none of it)."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -159,3 +160,21 @@ def test_time_features_are_continuous_across_midnight():
     assert critic(env.reset())["state_value"].shape == (2, 1)
     with pytest.raises(ValueError, match="model.time_features must be one of False, True; got 'yes'"):
         check_ppo_config(compose("config", ["model.time_features=yes"]))
+
+
+def test_state_dependent_scale_is_a_head_of_the_actor():
+    """``model.state_dependent_scale``: the actor's MLP also outputs the scale (softplus), equal to
+    exp(init_log_std) for the untrained policy up to its small last layer, different between observations; off by
+    default (one learned log-std, the same for every observation)."""
+    env = make_train_env({"name": "none"}, 4, None, 0, "raise", None, "cpu", 1)
+    td = env.reset()
+    plain, _, _ = make_ppo_models(env)
+    scale = plain(td.clone())["scale"]
+    assert torch.equal(scale, scale[:1].expand_as(scale))
+    actor, _, _ = make_ppo_models(env, state_dependent_scale=True, init_log_std=-2.0)
+    scale = actor(td.clone())["scale"]
+    # the last layer's orthogonal gain 0.01 moves the softplus input by ~1e-2: the scale stays within 5 % of e^-2
+    assert torch.allclose(scale, torch.full_like(scale, math.exp(-2.0)), rtol=0.05)
+    assert not torch.equal(scale, scale[:1].expand_as(scale))
+    with pytest.raises(ValueError, match="model.state_dependent_scale must be one of False, True; got 'yes'"):
+        check_ppo_config(compose("config", ["model.state_dependent_scale=yes"]))

@@ -213,14 +213,16 @@ def check_resume_config(saved: dict, config: dict, source: str = "checkpoint") -
 
     # checkpoints that predate the keys: PPO on ANM6-Easy
     saved = {"network": "anm6_easy", "algorithm": "ppo", **saved}
-    changed = config_diff(saved, config)
-    arch = [k for k in changed if k in get_algorithm(saved["algorithm"]).architecture_keys]
-    if arch:
-        def value(cfg: dict, key: str):
-            for part in key.split("."):
-                cfg = cfg.get(part) if isinstance(cfg, dict) else None
-            return cfg
+    def value(cfg: dict, key: str):
+        for part in key.split("."):
+            cfg = cfg.get(part) if isinstance(cfg, dict) else None
+        return cfg
 
+    changed = config_diff(saved, config)
+    # an architecture flag added after the checkpoint was written (absent there) was off when it was
+    arch = [k for k in changed if k in get_algorithm(saved["algorithm"]).architecture_keys
+            and not (value(saved, k) is None and value(config, k) is False)]
+    if arch:
         details = "; ".join(f"{k}: checkpoint {value(saved, k)!r}, this run {value(config, k)!r}" for k in arch)
         raise ValueError(f"cannot resume from {source}: its networks were built with another architecture "
                          f"({details}); pass the checkpoint's values or start a new run")

@@ -183,6 +183,7 @@ def check_ppo_config(cfg: Mapping) -> None:
     """
     check_protocol_config(cfg)
     _check_model(cfg)
+    _choice(cfg, "model.state_dependent_scale", (False, True))
     fpb = _check_collector(cfg)
     _in_range(cfg, "loss.gamma", 0, 1, False, False)  # 0: a contextual bandit (no storage)
     _in_range(cfg, "loss.gae_lambda", 0, 1, False, False)
@@ -266,6 +267,7 @@ def check_shac_config(cfg: Mapping) -> None:
     """
     check_protocol_config(cfg)
     _check_model(cfg)
+    _choice(cfg, "model.state_dependent_scale", (False, True))
     _choice(cfg, "model.dynamics", ("exact", "pinn"))
     _choice(cfg, "env.power_flow", ("torch", "numba"))
     _in_range(cfg, "env.short_rows", 0, 1, False, True)

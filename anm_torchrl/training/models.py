@@ -254,13 +254,14 @@ def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), a
                     max_obs_scale: float | None = 50.0, obs_clip: float = 5.0, init_log_std: float = -2.0,
                     obs_stats: dict[str, torch.Tensor] | None = None, obs_key: str = "observation",
                     init_action: torch.Tensor | str | None = None, init_action_clip: float = 0.98,
-                    time_features: bool = False,
+                    time_features: bool = False, state_dependent_scale: bool = False,
                     ) -> tuple[ProbabilisticActor, ValueOperator, ObservationNormalizer]:
-    """PPO's actor (:func:`make_actor`, state-independent scale), its value network (``"state_value"``, separate
+    """PPO's actor (:func:`make_actor`, state-independent scale unless ``state_dependent_scale``), its value network (``"state_value"``, separate
     weights as SB3's MlpPolicy, the same normaliser) and the normaliser. Arguments as :func:`make_actor`."""
     actor, normalizer, value_mlp = make_actor(env, actor_cells, activation, max_obs_scale, obs_clip, init_log_std,
                                               obs_stats, obs_key, init_action, init_action_clip,
-                                              critic_cells=critic_cells, time_features=time_features)
+                                              critic_cells=critic_cells, time_features=time_features,
+                                              state_dependent_scale=state_dependent_scale)
     critic = ValueOperator(nn.Sequential(normalizer, value_mlp), in_keys=[obs_key])
     return actor, critic, normalizer
 
