@@ -118,7 +118,10 @@ class PPO(Algorithm):
             loss_critic_type=cfg.loss.loss_critic_type, entropy_coeff=cfg.loss.entropy_coeff,
             critic_coeff=cfg.loss.critic_coeff, normalize_advantage=cfg.loss.normalize_advantage,
             # a zero coefficient needs no entropy estimate (TanhNormal's is sampled: 23 % of an epoch's CPU time)
-            entropy_bonus=float(cfg.loss.entropy_coeff) > 0)
+            entropy_bonus=float(cfg.loss.entropy_coeff) > 0,
+            # the modules' own parameters instead of a functional copy swapped in on every call: the same gradients
+            # bit for bit, a minibatch's loss and backward ~10 % faster on this CPU
+            functional=False)
         # opt-in (loss.compile): the minibatch loss through inductor; parameters stay the loss module's own
         self._loss = torch.compile(self.loss_module, dynamic=False) if cfg.loss.compile else self.loss_module
         self.optim = torch.optim.Adam(self.loss_module.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps,
