@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from anm_torchrl.experiments import cells
 from anm_torchrl.experiments import gradient_study as gs
 from anm_torchrl.experiments.leaderboard import gap_table_path
 from tests.test_recipes_ppo import ROOT, run, scalars
@@ -84,7 +85,7 @@ def test_a_cell_is_the_recipes_default_command_with_its_seed_and_the_tracking(tm
     assert cmd[1].endswith("recipes/shac.py") and "seed=2" in cmd and "network=case33bw" in cmd
     assert {"model=pinn", "surrogate=pinn", f"surrogate.path={tmp_path / 'p.safetensors'}", "eval.track_test=true",
             "eval.test_episodes=2", "eval.test_seed=0", "eval.test_max_steps=5"} <= set(cmd)
-    assert gs._shown(cmd).startswith("python recipes/shac.py network=case33bw seed=2 model=pinn")
+    assert cells.shown(cmd).startswith("python recipes/shac.py network=case33bw seed=2 model=pinn")
 
 
 def _curve(tests: list[float], step: int = 100) -> list[dict]:
@@ -188,7 +189,7 @@ def test_a_campaign_reuses_finished_cells_and_renders_its_record(campaign, monke
     assert gs.render([record]).count("| SHAC through") == 2
     # the same campaign again: the finished cell is read back, never re-trained
     monkeypatch.setattr(gs, "gap_table_path", lambda network: gap)
-    monkeypatch.setattr(gs, "ProcessPoolExecutor", lambda *a, **k: pytest.fail("a finished cell was run again"))
+    monkeypatch.setattr(cells, "ProcessPoolExecutor", lambda *a, **k: pytest.fail("a finished cell was run again"))
     again = gs.campaign("anm6_easy", ["shac_exact"], [0], runs, jobs=1, overrides=TINY)
     assert again["methods"][0]["runs"] == row["runs"]
 
@@ -200,15 +201,15 @@ def test_a_cell_trained_at_another_config_is_trained_again(campaign, tmp_path, c
     marker = json.loads((cell / "study_cell.json").read_text())
     command = [f"hydra.run.dir={cell}" if a.startswith("hydra.run.dir=") else a for a in marker["command"]]
     (cell / "study_cell.json").write_text(json.dumps({**marker, "command": command}))
-    assert gs._finished(command, cell)
+    assert cells.finished(command, cell)
     summary = json.loads((cell / "summary.json").read_text())
     summary["config"]["per_network"]["case33bw"] = {"env": {"num_envs": 7}}  # another network's entry: no change here
     (cell / "summary.json").write_text(json.dumps(summary))
-    assert gs._finished(command, cell)
+    assert cells.finished(command, cell)
     summary["config"]["loss"]["horizon"] += 1
     (cell / "summary.json").write_text(json.dumps(summary))
-    with caplog.at_level(logging.INFO, logger=gs.__name__):
-        assert not gs._finished(command, cell)
+    with caplog.at_level(logging.INFO, logger=cells.__name__):
+        assert not cells.finished(command, cell)
     assert "was trained with another config (loss.horizon): trained again" in caplog.text
 
 

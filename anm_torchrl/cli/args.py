@@ -1,10 +1,13 @@
 """argparse types shared by the command lines: a count or a duration out of range is refused by the parser, naming
-the option (``error: argument --rows: must be an integer >= 1, got 0``), before any work starts."""
+the option (``error: argument --rows: must be an integer >= 1, got 0``), before any work starts; and the options
+and the failure rule of the studies of training cells."""
 
 from __future__ import annotations
 
 import argparse
+import logging
 import math
+import sys
 from typing import Callable
 
 
@@ -36,3 +39,26 @@ def positive_float(text: str) -> float:
 count = integer(1)
 #: an index or a count that may be zero
 index = integer(0)
+
+
+def add_study_arguments(parser: argparse.ArgumentParser, seeds: list[int], runs_dir: str, out: str) -> None:
+    """The options of a study of training cells (``--seeds``, ``--jobs``, ``--runs-dir``, ``--override``, and
+    ``--out``: the folder of its records, described by ``out``)."""
+    parser.add_argument("--out", default=None, help=out)
+    parser.add_argument("--seeds", nargs="+", type=int, default=seeds)
+    parser.add_argument("--jobs", type=count, default=2, help="runs at a time (one torch thread each)")
+    parser.add_argument("--runs-dir", default=runs_dir, help="the cells' run directories")
+    parser.add_argument("--override", nargs="*", default=[], help="recipe keys of every cell (key=value), e.g. a "
+                        "smaller budget; the record lists them")
+
+
+def finish_study(prog: str, argv: list[str] | None, record: dict) -> None:
+    """Name the study's command line in its ``record`` (``python -m anm_torchrl.cli.<prog> ...``); then log every
+    failed part (``run_dir`` or ``record``, and ``error``) and exit naming how many: a record with holes would read
+    as a result. Finished parts are reused by the next run of the same command."""
+    record["command"] = f"python -m anm_torchrl.cli.{prog} " + " ".join(argv if argv is not None else sys.argv[1:])
+    for f in record["failed"]:
+        logging.getLogger(prog).error("%s failed:\n%s", f.get("run_dir") or f.get("record"), f["error"])
+    if record["failed"]:
+        sys.exit(f"{prog}: {len(record['failed'])} part(s) failed (above); no record written. Finished parts are "
+                 f"reused by the next run of the same command")

@@ -22,16 +22,13 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing
 import os
-import shutil
 import sys
 import time
-import traceback
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from anm_torchrl.experiments.cells import RECIPES, run_cells, shown
 from anm_torchrl.experiments.formatting import replace_marked_blocks
 from anm_torchrl.experiments.leaderboard import ANM6, gap_table_path, reference_returns
 from anm_torchrl.experiments.ppo_runs import time_to_reach
@@ -39,9 +36,6 @@ from anm_torchrl.experiments.time_to_return import censored_summary
 
 log = logging.getLogger(__name__)
 
-RECIPES = Path(__file__).resolve().parents[2] / "recipes"
-#: a recipe's config name under recipes/conf
-RECIPE_CONFIGS = {"ppo.py": "config", "sac.py": "sac", "shac.py": "shac"}
 #: the clocks of a time to a threshold (a curve point's keys)
 CLOCKS = ("wall_s", "frames", "true_env_frames")
 
@@ -74,80 +68,6 @@ def cell_command(method: str, network: str, seed: int, run_dir: Path, protocol: 
             *(k.format(pinn=pinn) for k in method_keys), "eval.track_test=true",
             f"eval.test_episodes={protocol['episodes']}", f"eval.test_seed={protocol['seed']}",
             f"eval.test_max_steps={protocol['steps']}", "logger.progress=false", *overrides, f"hydra.run.dir={run_dir}"]
-
-
-def _keys(command: list[str]) -> list[str]:
-    """The config keys of a cell's ``command`` (the run directory's left out)."""
-    return [a for a in command[2:] if not a.startswith("hydra.run.dir=")]
-
-
-def _shown(command: list[str]) -> str:
-    """``command`` as the README writes it (``python recipes/<x>.py ...``, the run directory left out)."""
-    return " ".join(["python", f"recipes/{Path(command[1]).name}", *_keys(command)])
-
-
-def _cell_config(command: list[str]):
-    """``(config, network defaults)`` of a cell: the recipe's config composed with the command's keys, the network's
-    defaults applied to the keys it does not set (as the recipe does)."""
-    from anm_torchrl.training.network_defaults import compose_recipe_config
-
-    return compose_recipe_config(_keys(command), RECIPE_CONFIGS[Path(command[1]).name])
-
-
-def _train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
-    """Train one cell into ``run_dir`` in this (worker) process: its config (:func:`_cell_config`) through the
-    shared protocol (which checks the config first)."""
-    from anm_torchrl.training import protocol
-
-    shutil.rmtree(run_dir, ignore_errors=True)  # an unfinished earlier attempt: its logs would mix with these
-    t0, load = time.perf_counter(), os.getloadavg()[0]
-    cfg, defaults = _cell_config(command)
-    protocol.train(cfg, run_dir, network_defaults=defaults)
-    return {"process_wall_s": time.perf_counter() - t0, "load_avg_1min": [load, os.getloadavg()[0]]}
-
-
-def _finished(command: list[str], run_dir: Path) -> bool:
-    """Whether ``run_dir`` holds a finished cell of ``command`` trained with the config the command has today: the
-    same command line alone would reuse a cell trained at a former default (e.g. an older per-network entry). The
-    table of per-network entries itself is not compared (another network's entry changes no cell here)."""
-    from omegaconf import OmegaConf
-
-    from anm_torchrl.training.checkpoint import config_diff
-    from anm_torchrl.training.network_defaults import TABLE_KEY
-
-    marker, summary = run_dir / "study_cell.json", run_dir / "summary.json"
-    if not (summary.is_file() and marker.is_file() and json.loads(marker.read_text())["command"] == command):
-        return False
-    def trains_with(config: dict) -> dict:  # the per-network table left out: its entry's values are in the other keys
-        return {k: v for k, v in config.items() if k != TABLE_KEY}
-
-    changed = config_diff(trains_with(json.loads(summary.read_text()).get("config", {})),
-                          trains_with(OmegaConf.to_container(_cell_config(command)[0], resolve=True)))
-    if changed:
-        log.info("%s was trained with another config (%s): trained again", run_dir, ", ".join(changed))
-    return not changed
-
-
-def run_cells(commands: dict[Path, list[str]], jobs: int) -> list[dict[str, Any]]:
-    """Train every cell of ``commands`` (run directory -> command) not already finished with the same command,
-    ``jobs`` at a time, each in a fresh process; returns how each went (``error`` holds a failed cell's traceback)."""
-    todo = {d: c for d, c in commands.items() if not _finished(c, d)}
-    outcomes = [{"run_dir": str(d), "reused": True, "error": None} for d in commands if d not in todo]
-    if not todo:
-        return outcomes
-    ctx = multiprocessing.get_context("spawn")  # no forked torch state; one cell per process
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, max_tasks_per_child=1) as pool:
-        futures = {d: pool.submit(_train_cell, c, d) for d, c in todo.items()}
-        for d, fut in futures.items():
-            try:
-                info = fut.result()
-            except Exception as err:  # noqa: BLE001 - a failed cell is reported, the others go on
-                outcomes.append({"run_dir": str(d), "reused": False,
-                                 "error": "".join(traceback.format_exception(err))[-2000:]})
-                continue
-            (d / "study_cell.json").write_text(json.dumps({"command": todo[d], **info}) + "\n")
-            outcomes.append({"run_dir": str(d), "reused": False, "error": None})
-    return outcomes
 
 
 def train_pinn(network: str, folder: Path) -> float:
@@ -231,7 +151,7 @@ def campaign(network: str, methods: list[str], seeds: list[int], runs_dir: Path,
         runs = [read_run(d, protocol) for mm, _, d in cells if mm == m and (d / "summary.json").is_file()]
         offset = pinn_s if m == "shac_pinn" else 0.0
         first = next(commands[d] for mm, _, d in cells if mm == m)
-        rows.append({"method": m, "label": METHODS[m][2], "command": _shown(first), "pinn_training_s": offset or None,
+        rows.append({"method": m, "label": METHODS[m][2], "command": shown(first), "pinn_training_s": offset or None,
                      "runs": runs, "thresholds": summarize(runs, levels, offset)})
     return {"what": __doc__.split("\n\n")[0].replace("\n", " "), "network": network, "protocol": protocol,
             "optimum": reference_returns(network, gap)[0],

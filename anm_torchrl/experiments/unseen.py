@@ -1,0 +1,271 @@
+"""Networks nobody tuned: the documented training commands, at their defaults, on random networks a user could bring.
+
+A network is a spec ``SEED:BUSES:radial|meshed`` of :func:`anm_torchrl.networks.random.generate` (every device
+type, daily profiles), written to ``<runs_dir>/<name>.npz`` with
+:func:`~anm_torchrl.networks.user.save_network`, as a user saves theirs. On each one:
+
+* the baselines on the test states every recipe reports on (the per-network protocol's ``default`` entry: the
+  ``eval.test_*`` keys of the PPO recipe's config for that file), the perfect-foresight AC optimum and do-nothing,
+  by the gap study's command (``python -m anm_torchrl.cli.gap --network <file> --rows optimal,do_nothing ...``,
+  one process per network, ``jobs`` at a time);
+* each algorithm's recipe with nothing on its command line but the network and the seed
+  (``python recipes/<ppo|shac|sac>.py network=<file> seed=<s>``: the ``default`` per-network entry), as cells of
+  :mod:`.cells`; a cell's score is its ``best.pt`` (chosen on its validation states) on the test states, read from
+  its ``summary.json`` after checking that the states are the baselines'.
+
+Shares of the optimum's gain over do-nothing, ``100 (R − R_dn) / (R_opt − R_dn)``, as the leaderboards'.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import statistics
+import subprocess
+import sys
+import time
+import traceback
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from anm_torchrl.experiments.cells import RECIPES, cell_config, run_cells, shown
+from anm_torchrl.experiments.formatting import replace_marked_blocks
+
+log = logging.getLogger(__name__)
+
+#: algorithm -> its recipe
+RECIPE = {"ppo": "ppo.py", "shac": "shac.py", "sac": "sac.py"}
+MARKERS = ("<!-- unseen:networks -->", "<!-- /unseen:networks -->")
+
+
+def parse_spec(spec: str) -> tuple[int, int, bool]:
+    """``"SEED:BUSES:radial|meshed"`` -> (seed, bus count, meshed).
+
+    Raises:
+        ValueError: another form, naming the spec.
+    """
+    parts = spec.split(":")
+    if len(parts) != 3 or parts[2] not in ("radial", "meshed") or not all(p.isdigit() for p in parts[:2]):
+        raise ValueError(f"network spec {spec!r}: expected SEED:BUSES:radial|meshed, e.g. 9101:18:radial")
+    return int(parts[0]), int(parts[1]), parts[2] == "meshed"
+
+
+def write_network(spec: str, folder: Path) -> tuple[Path, dict[str, Any]]:
+    """The random network of ``spec`` saved as ``folder/random<seed>_<buses>_<topology>.npz``; (path, its meta with
+    the simulator's ``network_key``). An existing file of another network (the generator changed) is replaced."""
+    from anm_torchrl.grid.identity import network_key
+    from anm_torchrl.networks import simulator
+    from anm_torchrl.networks.random import generate
+    from anm_torchrl.networks.user import save_network
+
+    seed, n_bus, meshed = parse_spec(spec)
+    case = generate(seed, n_bus=n_bus, meshed=meshed)
+    path = folder / f"random{seed}_{n_bus}_{'meshed' if meshed else 'radial'}.npz"
+    folder.mkdir(parents=True, exist_ok=True)
+    if path.is_file():
+        old = network_key(simulator(str(path)))
+        save_network(path, case.network, case.load_p, case.gen_p_max)
+        if network_key(simulator(str(path))) != old:
+            log.warning("%s held another network (the generator changed): replaced; its runs are trained again", path)
+    else:
+        save_network(path, case.network, case.load_p, case.gen_p_max)
+    meta = {k: v for k, v in case.meta.items() if k in ("seed", "n_bus", "topology", "n_load", "n_gen", "n_des",
+                                                         "n_classical", "n_branch", "peak_load_mw")}
+    # the generator's n_gen counts classical and renewable generators, n_des its storage units
+    return path, {**meta, "n_renewable": meta["n_gen"] - meta["n_classical"], "n_storage": meta.pop("n_des"),
+                  "network_key": network_key(simulator(str(path)))}
+
+
+def test_protocol(path: Path, overrides: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The test states every recipe reports on for the network file ``path`` (the PPO recipe's config with the
+    network's per-network entry and ``overrides``): episodes, seed, steps, gamma."""
+    cfg, _ = cell_config([sys.executable, str(RECIPES / "ppo.py"), f"network={path}", *overrides])
+    ev = cfg.eval
+    steps = ev.test_max_steps if ev.test_max_steps is not None else ev.max_steps
+    return {"episodes": int(ev.test_episodes), "seed": int(ev.test_seed), "steps": int(steps), "gamma": float(ev.gamma)}
+
+
+def gap_argv(path: Path, protocol: dict, out: Path) -> list[str]:
+    """The gap study's arguments for the baselines of ``path`` on ``protocol``'s states."""
+    return ["--network", str(path), "--rows", "optimal,do_nothing", "--episodes", str(protocol["episodes"]),
+            "--seed", str(protocol["seed"]), "--steps", str(protocol["steps"]), "--out", str(out)]
+
+
+def _baselines_done(out: Path, path: Path, protocol: dict, key: str) -> bool:
+    if not out.is_file():
+        return False
+    rec = json.loads(out.read_text())
+    p = rec.get("protocol", {})
+    same = (p.get("network") == str(path) and rec.get("network_key") == key
+            and all(p.get(k) == v for k, v in protocol.items()))
+    return same and {"optimal", "do_nothing"} <= set(rec.get("rows", {}))
+
+
+def _solve_baselines(argv: list[str], key: str) -> float:
+    """The gap study's command in a process of its own; its record gets the network's key (a later study reuses it
+    only for the same network). Returns the wall time (s).
+
+    Raises:
+        RuntimeError: the command failed (with its stderr's tail).
+    """
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "anm_torchrl.cli.gap", *argv], capture_output=True, text=True,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    if proc.returncode:
+        raise RuntimeError(f"python -m anm_torchrl.cli.gap {' '.join(argv)} failed (exit {proc.returncode}):\n"
+                           f"{proc.stderr[-2000:]}")
+    out = Path(argv[argv.index("--out") + 1])
+    out.write_text(json.dumps({**json.loads(out.read_text()), "network_key": key}, indent=1) + "\n")
+    return time.perf_counter() - t0
+
+
+def solve_baselines(todo: dict[Path, tuple[list[str], str]], jobs: int) -> list[dict[str, Any]]:
+    """Run the gap study's command of every ``out -> (argv, network key)`` in ``todo``, ``jobs`` at a time; how each
+    went (``error`` holds a failure's message)."""
+    if not todo:
+        return []
+    outcomes = []
+    with ThreadPoolExecutor(max_workers=jobs) as pool:  # threads that wait on processes
+        futures = {out: pool.submit(_solve_baselines, argv, key) for out, (argv, key) in todo.items()}
+        for out, fut in futures.items():
+            try:
+                outcomes.append({"record": str(out), "wall_s": fut.result(), "error": None})
+            except Exception as err:  # noqa: BLE001 - a failed network is reported, the others go on
+                outcomes.append({"record": str(out), "error": "".join(traceback.format_exception(err))[-2000:]})
+    return outcomes
+
+
+def cell_command(algorithm: str, path: Path, seed: int, run_dir: Path, overrides: tuple[str, ...] = ()) -> list[str]:
+    """A cell: the recipe's documented command on the network file (its ``default`` entry), ``seed``, then
+    ``overrides`` (a smoke test's smaller budget)."""
+    return [sys.executable, str(RECIPES / RECIPE[algorithm]), f"network={path}", f"seed={seed}",
+            "logger.progress=false", *overrides, f"hydra.run.dir={run_dir}"]
+
+
+def read_cell(run_dir: Path, protocol: dict) -> dict[str, Any]:
+    """A finished cell's score on the test states (its ``best.pt``), budget and time.
+
+    Raises:
+        ValueError: the run's test states are not ``protocol``'s.
+    """
+    s = json.loads((run_dir / "summary.json").read_text())
+    test = s["test"]
+    got = {"episodes": test["num_episodes"], "seed": test["seed"], "steps": test["max_steps"], "gamma": test["gamma"]}
+    if got != protocol:
+        raise ValueError(f"{run_dir}: tested on {got}, the baselines on {protocol}")
+    return {"run_dir": str(run_dir), "seed": int(s["config"]["seed"]), "discounted_return": test["best"]["discounted_return"],
+            "validation_best": s["best_eval"]["discounted_return"], "frames": int(s["frames"]),
+            "model_frames": s.get("model_frames"), "wall_s": float(s["wall_time"]),
+            "stopped_early": bool(s["stopped_early"])}
+
+
+def gain_pct(ret: float, opt: float, dn: float) -> float:
+    """Share of the optimum's gain over do-nothing, %."""
+    return 100.0 * (ret - dn) / (opt - dn)
+
+
+def study(specs: list[str], algorithms: list[str], seeds: list[int], runs_dir: Path, jobs: int = 2,
+          overrides: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Write every network, solve (or reuse) its baselines, train (or reuse) every cell, then the record."""
+    unknown = sorted(set(algorithms) - set(RECIPE))
+    if unknown:
+        raise ValueError(f"unknown algorithms {unknown}; choose from {sorted(RECIPE)}")
+    runs_dir = Path(runs_dir).resolve()
+    t0 = time.perf_counter()
+    nets = []
+    for spec in specs:
+        path, meta = write_network(spec, runs_dir)
+        protocol = test_protocol(path, overrides)
+        nets.append({"spec": spec, "path": path, "meta": meta, "protocol": protocol,
+                     "gap": path.with_suffix(".gap.json")})
+    todo = {n["gap"]: (gap_argv(n["path"], n["protocol"], n["gap"]), n["meta"]["network_key"]) for n in nets
+            if not _baselines_done(n["gap"], n["path"], n["protocol"], n["meta"]["network_key"])}
+    for out in todo:
+        out.unlink(missing_ok=True)  # another network or protocol: the gap command would refuse to extend it
+    failed = [o for o in solve_baselines(todo, jobs) if o["error"]]
+    commands = {runs_dir / f"{n['path'].stem}_{a}_s{s}": cell_command(a, n["path"], s,
+                                                                        runs_dir / f"{n['path'].stem}_{a}_s{s}",
+                                                                        tuple(overrides))
+                for n in nets for a in algorithms for s in seeds}
+    for d, c in commands.items():  # a cell of a replaced network file is not reused
+        marker = d / "study_cell.json"
+        if marker.is_file() and json.loads(marker.read_text()).get("network_key") not in (None, _key_of(c, nets)):
+            marker.unlink()
+    failed += [o for o in run_cells(commands, jobs) if o["error"]]
+    for d, c in commands.items():
+        marker = d / "study_cell.json"
+        if marker.is_file():
+            marker.write_text(json.dumps({**json.loads(marker.read_text()), "network_key": _key_of(c, nets)}) + "\n")
+    rows = [_network_row(n, algorithms, seeds, runs_dir, commands) for n in nets]
+    return {"what": __doc__.split("\n\n")[0].replace("\n", " "), "algorithms": algorithms, "seeds": seeds,
+            "jobs": jobs, "overrides": list(overrides), "networks": rows, "failed": failed,
+            "invocation_wall_s": time.perf_counter() - t0,
+            "machine": {"cpus": os.cpu_count(), "threads_per_run": 1, "concurrent_runs": jobs}}
+
+
+def _key_of(command: list[str], nets: list[dict]) -> str:
+    path = next(a for a in command if a.startswith("network="))[len("network="):]
+    return next(n["meta"]["network_key"] for n in nets if str(n["path"]) == path)
+
+
+def _network_row(net: dict, algorithms: list[str], seeds: list[int], runs_dir: Path,
+                 commands: dict[Path, list[str]]) -> dict[str, Any]:
+    row = {"spec": net["spec"], "file": net["path"].name, **net["meta"], "protocol": net["protocol"],
+           "optimum": None, "do_nothing": None, "optimum_wall_s": None, "algorithms": []}
+    if net["gap"].is_file():
+        rec = json.loads(net["gap"].read_text())
+        rows = rec.get("rows", {})
+        if {"optimal", "do_nothing"} <= set(rows):
+            row.update(optimum=rows["optimal"]["mean_discounted_return"],
+                       do_nothing=rows["do_nothing"]["mean_discounted_return"],
+                       optimum_wall_s=rows["optimal"]["wall_s"], baselines_command=rec["commands"][-1])
+    for a in algorithms:
+        dirs = [runs_dir / f"{net['path'].stem}_{a}_s{s}" for s in seeds]
+        runs = [read_cell(d, net["protocol"]) for d in dirs if (d / "summary.json").is_file()]
+        entry = {"algorithm": a, "command": shown(commands[dirs[0]]).replace(str(net["path"]), net["path"].name),
+                 "runs": runs}
+        if runs:
+            values = [r["discounted_return"] for r in runs]
+            entry.update(discounted_return=statistics.fmean(values),
+                         std_over_seeds=statistics.stdev(values) if len(values) > 1 else None,
+                         wall_s=statistics.fmean(r["wall_s"] for r in runs),
+                         frames=statistics.fmean(r["frames"] for r in runs))
+            if row["optimum"] is not None:
+                entry["gain_pct"] = gain_pct(entry["discounted_return"], row["optimum"], row["do_nothing"])
+                entry["gain_pct_per_seed"] = [gain_pct(v, row["optimum"], row["do_nothing"]) for v in values]
+        row["algorithms"].append(entry)
+    return row
+
+
+def markdown(record: dict) -> str:
+    """The study as a Markdown table: one line per network, each algorithm's test return and gain share."""
+    algos = record["algorithms"]
+    head = ["network", "buses", "loads / classical / renewable / storage", "do-nothing", "optimum"] + [a.upper() for a in algos]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * 3 + "---:|" * (2 + len(algos))]
+    for n in record["networks"]:
+        cells = [f"`{n['spec']}`", str(n["n_bus"]),
+                 f"{n['n_load']} / {n['n_classical']} / {n['n_renewable']} / {n['n_storage']}",
+                 _num(n["do_nothing"]), _num(n["optimum"])]
+        for a in n["algorithms"]:
+            if "discounted_return" not in a:
+                cells.append("–")
+                continue
+            gain = f" ({a['gain_pct']:.1f} %)" if a.get("gain_pct") is not None else ""
+            cells.append(f"{_num(a['discounted_return'])}{gain}, {a['frames']:,.0f} frames, {a['wall_s']:,.0f} s")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _num(x: float | None) -> str:
+    return "–" if x is None else f"{x:.4f}"
+
+
+def update_page(page: str | Path, record: dict, source: str) -> None:
+    """Rewrite the study's block of ``page`` with :func:`markdown` of ``record`` (read from ``source``).
+
+    Raises:
+        ValueError: the page has no block (nothing is written then).
+    """
+    replace_marked_blocks([page], *MARKERS, markdown(record) + f"\n_From `{source}`._\n")

@@ -1,0 +1,81 @@
+"""The study of networks nobody tuned (anm_torchrl.experiments.unseen): a random network written as a user's file,
+its optimum and do-nothing on the recipes' test states, a recipe's documented command on it, reuse on a second run."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from anm_torchrl.experiments import cells, unseen
+from tests.test_recipes_ppo import TINY
+
+SPEC = "101:6:radial"
+# PPO's smoke budget, with 2 test states of 8 steps (the optimum's horizon) instead of the feeders' 4 x 3,000
+SMOKE = tuple(k for k in TINY if not k.startswith(("logger.progress=", "eval.test_episodes="))) + (
+    "eval.test_episodes=2", "eval.test_max_steps=8")
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    runs = tmp_path_factory.mktemp("unseen") / "runs"
+    return unseen.study([SPEC], ["ppo"], [0], runs, jobs=1, overrides=SMOKE), runs.resolve()
+
+
+def test_a_study_scores_the_recipe_against_the_optimum_on_the_same_states(study):
+    record, runs = study
+    assert record["failed"] == [] and record["overrides"] == list(SMOKE)
+    (net,) = record["networks"]
+    assert (runs / net["file"]).is_file() and net["n_bus"] == 6 and net["topology"] == "radial"
+    assert net["protocol"] == {"episodes": 2, "seed": 0, "steps": 8, "gamma": 0.995}
+    # the optimum plans the same 8 steps do-nothing runs: it cannot do worse (IPOPT's tolerance aside)
+    assert net["optimum"] >= net["do_nothing"] - 1e-6
+    (ppo,) = net["algorithms"]
+    assert ppo["command"].startswith(f"python recipes/ppo.py network={net['file']} seed=0")
+    (run,) = ppo["runs"]
+    assert run["frames"] == 64 and run["discounted_return"] == ppo["discounted_return"]
+    assert ppo["gain_pct"] == pytest.approx(unseen.gain_pct(run["discounted_return"], net["optimum"],
+                                                            net["do_nothing"]))
+    table = unseen.markdown(record)
+    assert f"| `{SPEC}` | 6 |" in table and "64 frames" in table
+
+
+def test_a_second_run_reuses_the_baselines_and_the_cells(study, monkeypatch):
+    record, runs = study
+    monkeypatch.setattr(cells, "ProcessPoolExecutor", lambda *a, **k: pytest.fail("a finished cell was run again"))
+    monkeypatch.setattr(unseen, "ThreadPoolExecutor", lambda *a, **k: pytest.fail("the baselines were solved again"))
+    again = unseen.study([SPEC], ["ppo"], [0], runs, jobs=1, overrides=SMOKE)
+    assert again["networks"] == record["networks"]
+
+
+def test_baselines_of_another_network_or_protocol_are_not_reused(study):
+    record, runs = study
+    net = record["networks"][0]
+    path, gap = runs / net["file"], (runs / net["file"]).with_suffix(".gap.json")
+    protocol, key = net["protocol"], net["network_key"]
+    assert unseen._baselines_done(gap, path, protocol, key)
+    assert not unseen._baselines_done(gap, path, protocol, "another key")
+    assert not unseen._baselines_done(gap, path, {**protocol, "steps": 9}, key)
+
+
+def test_a_malformed_spec_is_refused_by_name(capsys):
+    from anm_torchrl.cli import unseen_networks as cli
+
+    with pytest.raises(ValueError, match=r"network spec '9101:18': expected SEED:BUSES:radial\|meshed"):
+        unseen.parse_spec("9101:18")
+    with pytest.raises(SystemExit):
+        cli.main(["--networks", "9101:18:ring"])
+    assert "network spec '9101:18:ring': expected SEED:BUSES:radial|meshed" in capsys.readouterr().err
+
+
+def test_the_committed_record_matches_its_block():
+    from tests.test_recipes_ppo import ROOT
+
+    path = ROOT / "results" / "unseen" / "unseen_networks.json"
+    if not path.is_file():
+        pytest.skip("no study record committed yet")
+    record = json.loads(path.read_text())
+    text = (ROOT / "README.md").read_text()
+    start = text.index(unseen.MARKERS[0]) + len(unseen.MARKERS[0]) + 1
+    block = text[start:text.index(unseen.MARKERS[1])]
+    assert block == unseen.markdown(record) + "\n_From `results/unseen/unseen_networks.json`._\n"
