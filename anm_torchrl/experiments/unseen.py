@@ -231,7 +231,9 @@ def _network_row(net: dict, algorithms: list[str], seeds: list[int], runs_dir: P
             entry.update(discounted_return=statistics.fmean(values),
                          std_over_seeds=statistics.stdev(values) if len(values) > 1 else None,
                          wall_s=statistics.fmean(r["wall_s"] for r in runs),
-                         frames=statistics.fmean(r["frames"] for r in runs))
+                         frames=statistics.fmean(r["frames"] for r in runs),
+                         model_frames=(statistics.fmean(r["model_frames"] for r in runs)
+                                       if all(r["model_frames"] is not None for r in runs) else None))
             if row["optimum"] is not None:
                 entry["gain_pct"] = gain_pct(entry["discounted_return"], row["optimum"], row["do_nothing"])
                 entry["gain_pct_per_seed"] = [gain_pct(v, row["optimum"], row["do_nothing"]) for v in values]
@@ -242,6 +244,14 @@ def _network_row(net: dict, algorithms: list[str], seeds: list[int], runs_dir: P
 def markdown(record: dict) -> str:
     """The study as a Markdown table: one line per network, each algorithm's test return and gain share."""
     algos = record["algorithms"]
+    p = record["networks"][0]["protocol"]
+    first = record["networks"][0]["algorithms"]
+    intro = [f"Random networks (`SEED:BUSES:topology`, `anm_torchrl.networks.random.generate`) saved as a user's files; "
+             f"{p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, γ = {p['gamma']}; each algorithm's "
+             f"`best.pt` (chosen on its validation states) after "
+             + ", ".join(f"`{a['command'].split(' seed=')[0]}`" for a in first)
+             + f" (seeds {', '.join(map(str, record['seeds']))}); in parentheses the share of the optimum's gain over "
+             f"do-nothing", ""]
     head = ["network", "buses", "loads / classical / renewable / storage", "do-nothing", "optimum"] + [a.upper() for a in algos]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * 3 + "---:|" * (2 + len(algos))]
     for n in record["networks"]:
@@ -253,9 +263,11 @@ def markdown(record: dict) -> str:
                 cells.append("–")
                 continue
             gain = f" ({a['gain_pct']:.1f} %)" if a.get("gain_pct") is not None else ""
-            cells.append(f"{_num(a['discounted_return'])}{gain}, {a['frames']:,.0f} frames, {a['wall_s']:,.0f} s")
+            frames = (f"{a['frames']:,.0f} frames" if a["model_frames"] is None  # SHAC: 0 true-env frames
+                      else f"{a['model_frames']:,.0f} model frames")
+            cells.append(f"{_num(a['discounted_return'])}{gain}, {frames}, {a['wall_s']:,.0f} s")
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(intro + lines) + "\n"
 
 
 def _num(x: float | None) -> str:
