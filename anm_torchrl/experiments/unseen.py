@@ -249,7 +249,8 @@ def markdown(record: dict) -> str:
     intro = [f"Random networks (`SEED:BUSES:topology`, `anm_torchrl.networks.random.generate`) saved as a user's files; "
              f"{p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, γ = {p['gamma']}; each algorithm's "
              f"`best.pt` (chosen on its validation states) after "
-             + ", ".join(f"`{a['command'].split(' seed=')[0]}`" for a in first)
+             + ", ".join(f"`{a['command'].split(' seed=')[0].replace(record['networks'][0]['file'], '<file>')}`"
+                         for a in first)
              + f" (seeds {', '.join(map(str, record['seeds']))}); in parentheses the share of the optimum's gain over "
              f"do-nothing", ""]
     head = ["network", "buses", "loads / classical / renewable / storage", "do-nothing", "optimum"] + [a.upper() for a in algos]
