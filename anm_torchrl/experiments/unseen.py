@@ -9,7 +9,8 @@ type, daily profiles), written to ``<runs_dir>/<name>.npz`` with
   by the gap study's command (``python -m anm_torchrl.cli.gap --network <file> --rows optimal,do_nothing ...``,
   one process per network, ``jobs`` at a time);
 * each algorithm's recipe with nothing on its command line but the network and the seed
-  (``python recipes/<ppo|shac|sac>.py network=<file> seed=<s>``: the ``default`` per-network entry), as cells of
+  (``python recipes/<ppo|shac|sac>.py network=<file> seed=<s>``: the ``default`` per-network entry; and the main job,
+  ``python recipes/ppo.py network=<file> surrogate=pinn``, its PINN trained on first use), as cells of
   :mod:`.cells`; a cell's score is its ``best.pt`` (chosen on its validation states) on the test states, read from
   its ``summary.json`` after checking that the states are the baselines'.
 
@@ -35,8 +36,14 @@ from anm_torchrl.experiments.formatting import replace_marked_blocks
 
 log = logging.getLogger(__name__)
 
-#: algorithm -> its recipe
-RECIPE = {"ppo": "ppo.py", "shac": "shac.py", "sac": "sac.py"}
+#: a column -> (its recipe, the keys its documented command sets besides the network, label)
+RECIPE: dict[str, tuple[str, tuple[str, ...], str]] = {
+    "ppo": ("ppo.py", (), "PPO"),
+    "shac": ("shac.py", (), "SHAC"),
+    "sac": ("sac.py", (), "SAC"),
+    # the main job on a user's network: the PINN trained on first use (counted in the run's wall time)
+    "ppo_pinn": ("ppo.py", ("surrogate=pinn",), "PPO on the PINN"),
+}
 MARKERS = ("<!-- unseen:networks -->", "<!-- /unseen:networks -->")
 
 
@@ -138,9 +145,10 @@ def solve_baselines(todo: dict[Path, tuple[list[str], str]], jobs: int) -> list[
 
 
 def cell_command(algorithm: str, path: Path, seed: int, run_dir: Path, overrides: tuple[str, ...] = ()) -> list[str]:
-    """A cell: the recipe's documented command on the network file (its ``default`` entry), ``seed``, then
-    ``overrides`` (a smoke test's smaller budget)."""
-    return [sys.executable, str(RECIPES / RECIPE[algorithm]), f"network={path}", f"seed={seed}",
+    """A cell: the recipe's documented command on the network file (its ``default`` entry; ``surrogate=pinn`` for
+    ``ppo_pinn``), ``seed``, then ``overrides`` (a smoke test's smaller budget)."""
+    recipe, keys, _ = RECIPE[algorithm]
+    return [sys.executable, str(RECIPES / recipe), f"network={path}", *keys, f"seed={seed}",
             "logger.progress=false", *overrides, f"hydra.run.dir={run_dir}"]
 
 
@@ -253,7 +261,7 @@ def markdown(record: dict) -> str:
                          for a in first)
              + f" (seeds {', '.join(map(str, record['seeds']))}); in parentheses the share of the optimum's gain over "
              f"do-nothing", ""]
-    head = ["network", "buses", "loads / classical / renewable / storage", "do-nothing", "optimum"] + [a.upper() for a in algos]
+    head = ["network", "buses", "loads / classical / renewable / storage", "do-nothing", "optimum"] + [RECIPE[a][2] for a in algos]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * 3 + "---:|" * (2 + len(algos))]
     for n in record["networks"]:
         cells = [f"`{n['spec']}`", str(n["n_bus"]),
