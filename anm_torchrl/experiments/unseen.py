@@ -163,8 +163,11 @@ def read_cell(run_dir: Path, protocol: dict) -> dict[str, Any]:
     got = {"episodes": test["num_episodes"], "seed": test["seed"], "steps": test["max_steps"], "gamma": test["gamma"]}
     if got != protocol:
         raise ValueError(f"{run_dir}: tested on {got}, the baselines on {protocol}")
-    return {"run_dir": str(run_dir), "seed": int(s["config"]["seed"]), "discounted_return": test["best"]["discounted_return"],
+    surrogate = s["config"]["surrogate"]["name"]
+    return {"run_dir": str(run_dir), "seed": int(s["config"]["seed"]),
+            "discounted_return": test["best"]["discounted_return"],
             "validation_best": s["best_eval"]["discounted_return"], "frames": int(s["frames"]),
+            "surrogate": surrogate, "true_env_frames": int(s["frames"]) if surrogate == "none" else 0,
             "model_frames": s.get("model_frames"), "wall_s": float(s["wall_time"]),
             "stopped_early": bool(s["stopped_early"])}
 
@@ -239,7 +242,8 @@ def _network_row(net: dict, algorithms: list[str], seeds: list[int], runs_dir: P
             entry.update(discounted_return=statistics.fmean(values),
                          std_over_seeds=statistics.stdev(values) if len(values) > 1 else None,
                          wall_s=statistics.fmean(r["wall_s"] for r in runs),
-                         frames=statistics.fmean(r["frames"] for r in runs),
+                         frames=statistics.fmean(r["frames"] for r in runs), surrogate=runs[0]["surrogate"],
+                         true_env_frames=statistics.fmean(r["true_env_frames"] for r in runs),
                          model_frames=(statistics.fmean(r["model_frames"] for r in runs)
                                        if all(r["model_frames"] is not None for r in runs) else None))
             if row["optimum"] is not None:
@@ -254,14 +258,15 @@ def markdown(record: dict) -> str:
     algos = record["algorithms"]
     p = record["networks"][0]["protocol"]
     first = record["networks"][0]["algorithms"]
-    intro = [f"Random networks (`SEED:BUSES:topology`, `anm_torchrl.networks.random.generate`) saved as a user's files; "
-             f"{p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, γ = {p['gamma']}; each algorithm's "
-             f"`best.pt` (chosen on its validation states) after "
+    intro = [f"Random networks (`SEED:BUSES:topology`, `anm_torchrl.networks.random.generate`) saved as a user's "
+             f"files; {p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, γ = {p['gamma']}; each "
+             f"algorithm's `best.pt` (chosen on its validation states) after "
              + ", ".join(f"`{a['command'].split(' seed=')[0].replace(record['networks'][0]['file'], '<file>')}`"
                          for a in first)
              + f" (seeds {', '.join(map(str, record['seeds']))}); in parentheses the share of the optimum's gain over "
              f"do-nothing", ""]
-    head = ["network", "buses", "loads / classical / renewable / storage", "do-nothing", "optimum"] + [RECIPE[a][2] for a in algos]
+    head = ["network", "buses", "loads / classical / renewable / storage", "do-nothing", "optimum"]
+    head += [RECIPE[a][2] for a in algos]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * 3 + "---:|" * (2 + len(algos))]
     for n in record["networks"]:
         cells = [f"`{n['spec']}`", str(n["n_bus"]),
@@ -272,8 +277,12 @@ def markdown(record: dict) -> str:
                 cells.append("–")
                 continue
             gain = f" ({a['gain_pct']:.1f} %)" if a.get("gain_pct") is not None else ""
-            frames = (f"{a['frames']:,.0f} frames" if a["model_frames"] is None  # SHAC: 0 true-env frames
-                      else f"{a['model_frames']:,.0f} model frames")
+            if a["model_frames"] is not None:  # SHAC: 0 true-env frames
+                frames = f"{a['model_frames']:,.0f} model frames"
+            elif a["surrogate"] != "none":  # trained on a surrogate: 0 true-env frames
+                frames = f"{a['frames']:,.0f} {a['surrogate'].upper()} frames"
+            else:
+                frames = f"{a['frames']:,.0f} frames"
             cells.append(f"{_num(a['discounted_return'])}{gain}, {frames}, {a['wall_s']:,.0f} s")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(intro + lines) + "\n"
