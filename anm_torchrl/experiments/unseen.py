@@ -85,7 +85,7 @@ def write_network(spec: str, folder: Path) -> tuple[Path, dict[str, Any]]:
                   "network_key": network_key(simulator(str(path)))}
 
 
-def test_protocol(path: Path, overrides: tuple[str, ...] = ()) -> dict[str, Any]:
+def reported_states(path: Path, overrides: tuple[str, ...] = ()) -> dict[str, Any]:
     """The test states every recipe reports on for the network file ``path`` (the PPO recipe's config with the
     network's per-network entry and ``overrides``): episodes, seed, steps, gamma."""
     cfg, _ = cell_config([sys.executable, str(RECIPES / "ppo.py"), f"network={path}", *overrides])
@@ -188,7 +188,7 @@ def study(specs: list[str], algorithms: list[str], seeds: list[int], runs_dir: P
     nets = []
     for spec in specs:
         path, meta = write_network(spec, runs_dir)
-        protocol = test_protocol(path, overrides)
+        protocol = reported_states(path, overrides)
         nets.append({"spec": spec, "path": path, "meta": meta, "protocol": protocol,
                      "gap": path.with_suffix(".gap.json")})
     todo = {n["gap"]: (gap_argv(n["path"], n["protocol"], n["gap"]), n["meta"]["network_key"]) for n in nets
