@@ -43,7 +43,7 @@ def test_a_study_scores_the_recipe_against_the_optimum_on_the_same_states(study)
 def test_a_second_run_reuses_the_baselines_and_the_cells(study, monkeypatch):
     record, runs = study
     monkeypatch.setattr(cells, "ProcessPoolExecutor", lambda *a, **k: pytest.fail("a finished cell was run again"))
-    monkeypatch.setattr(unseen, "ThreadPoolExecutor", lambda *a, **k: pytest.fail("the baselines were solved again"))
+    monkeypatch.setattr(unseen, "ProcessPoolExecutor", lambda *a, **k: pytest.fail("the baselines were solved again"))
     again = unseen.study([SPEC], ["ppo"], [0], runs, jobs=1, overrides=SMOKE)
     assert again["networks"] == record["networks"]
 

@@ -23,9 +23,8 @@ from pathlib import Path
 import torch
 
 from anm_torchrl.cli.args import count, index
-from anm_torchrl.evaluation import EVAL_GAMMA, EVAL_MAX_STEPS
-from anm_torchrl.experiments.gap import (ANM6, DEFAULT_ROWS, compare_formulations, evaluate_row, machine, markdown,
-                                         merge_rows, stability, table, true_env, write_record)
+from anm_torchrl.evaluation import EVAL_MAX_STEPS
+from anm_torchrl.experiments.gap import ANM6, DEFAULT_ROWS, markdown, measure, write_record
 
 log = logging.getLogger(__name__)
 
@@ -87,53 +86,13 @@ def main(argv: list[str] | None = None) -> dict:
         return rec
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     torch.set_num_threads(1)
-    from anm_torchrl.networks import simulator as network_simulator
-    from anm_torchrl.evaluation import draw_initial_states
-
-    sim, env = network_simulator(args.network), true_env(args.network, 1)
-    states = draw_initial_states(args.episodes, args.seed, sim, env.init)
-    # "states" names the draw as the committed records do (from when the protocol lived in training/): a record
-    # key compared on --out and --merge, so it stays verbatim
-    protocol = {"network": args.network, "episodes": args.episodes, "seed": args.seed, "steps": args.steps,
-                "gamma": EVAL_GAMMA, "states": "training.evaluation.draw_initial_states(episodes, seed)"}
-    if args.network != ANM6:  # ANM6-Easy's records predate this key (gym-anm's reset distribution)
-        protocol.update(init=env.init, states="training.evaluation.draw_initial_states(episodes, seed, sim, init)")
-    only = [int(i) for i in args.only.split(",") if i]
-    if any(not 0 <= i < args.episodes for i in only):
-        raise SystemExit(f"--only {only}: indices must lie in [0, {args.episodes})")
-    out = Path(args.out)
-    rec = json.loads(out.read_text()) if out.exists() else {}
-    if rec and rec.get("protocol") != protocol:
-        raise SystemExit(f"{out} holds protocol {rec.get('protocol')}, this run {protocol}: use another --out")
-    rec.setdefault("rows", {})
-    rec["protocol"] = protocol
-    for name in [r for r in args.drop.split(",") if r]:
-        if name not in rec["rows"]:
-            raise SystemExit(f"--drop {name}: {out} has no such row (rows: {sorted(rec['rows'])})")
-        del rec["rows"][name]
-    for path in args.merge:
-        other = json.loads(Path(path).read_text())
-        if other.get("protocol") != protocol:
-            raise SystemExit(f"--merge: {path} holds protocol {other.get('protocol')}, this run {protocol}")
-        for name, row in other["rows"].items():
-            rec["rows"][name] = merge_rows(rec["rows"][name], row, args.episodes) if name in rec["rows"] else row
-        rec.update({k: other[k] for k in ("stability", "formulations") if k in other})
-        rec.setdefault("commands", []).extend(other.get("commands", []))
-    for name in [r for r in args.rows.split(",") if r and not args.merge]:
-        log.info("row %s ...", name)
-        row = evaluate_row(name, sim, states[only] if only else states, args.steps, args.network)
-        rec["rows"][name] = {**row, **({"episode_index": only} if only else {}), "machine": machine()}
-        log.info("row %s: %s", name, rec["rows"][name]["discounted_return"])
-        write_record(out, rec)
-    if args.formulations:
-        rec["formulations"] = {**compare_formulations(sim, states[0], args.formulations), "machine": machine()}
-    if args.stability:
-        rec["stability"] = {"episodes": stability(sim, states, args.steps, args.stability, args.seed),
-                            "machine": machine()}
-    rec["table"] = table(rec["rows"], args.episodes)
-    rec.setdefault("commands", []).append(command)
-    write_record(out, rec)
-    return rec
+    try:
+        return measure(args.network, args.episodes, args.seed, args.steps, Path(args.out), command,
+                       rows=[r for r in args.rows.split(",") if r], only=[int(i) for i in args.only.split(",") if i],
+                       drop=[r for r in args.drop.split(",") if r], merge=args.merge, formulations=args.formulations,
+                       stability_states=args.stability)
+    except ValueError as err:  # bad input named by the library: the command's error
+        raise SystemExit(str(err)) from None
 
 
 if __name__ == "__main__":

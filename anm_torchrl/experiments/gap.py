@@ -268,3 +268,63 @@ def write_record(path: Path, rec: dict) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json.dumps(rec, indent=1) + "\n")
     os.replace(tmp, path)
+
+
+def measure(network: str, episodes: int, seed: int, steps: int, out: Path, command: str, *, rows: list[str],
+            only: list[int] = (), drop: list[str] = (), merge: list[str] = (), formulations: int = 0,
+            stability_states: int = 0) -> dict:
+    """The gap study's measurement (``python -m anm_torchrl.cli.gap``, which passes its options here): ``rows`` on
+    ``episodes`` states of ``seed`` (``only``: some of them), T = ``steps``, into the record ``out`` (its other rows
+    kept, ``drop`` removed first; ``merge``: records of the same protocol merged instead of measuring), written after
+    every row; ``command`` is appended to its ``commands``.
+
+    Raises:
+        ValueError: an ``only`` index outside the states, ``out`` or a ``merge`` record of another protocol, or a
+            ``drop`` row ``out`` does not hold.
+    """
+    from anm_torchrl.evaluation import draw_initial_states
+    from anm_torchrl.networks import simulator as network_simulator
+
+    sim, env = network_simulator(network), true_env(network, 1)
+    states = draw_initial_states(episodes, seed, sim, env.init)
+    # "states" names the draw as the committed records do (from when the protocol lived in training/): a record
+    # key compared on --out and --merge, so it stays verbatim
+    protocol = {"network": network, "episodes": episodes, "seed": seed, "steps": steps,
+                "gamma": EVAL_GAMMA, "states": "training.evaluation.draw_initial_states(episodes, seed)"}
+    if network != ANM6:  # ANM6-Easy's records predate this key (gym-anm's reset distribution)
+        protocol.update(init=env.init, states="training.evaluation.draw_initial_states(episodes, seed, sim, init)")
+    only = list(only)
+    if any(not 0 <= i < episodes for i in only):
+        raise ValueError(f"--only {only}: indices must lie in [0, {episodes})")
+    out = Path(out)
+    rec = json.loads(out.read_text()) if out.exists() else {}
+    if rec and rec.get("protocol") != protocol:
+        raise ValueError(f"{out} holds protocol {rec.get('protocol')}, this run {protocol}: use another --out")
+    rec.setdefault("rows", {})
+    rec["protocol"] = protocol
+    for name in drop:
+        if name not in rec["rows"]:
+            raise ValueError(f"--drop {name}: {out} has no such row (rows: {sorted(rec['rows'])})")
+        del rec["rows"][name]
+    for path in merge:
+        other = json.loads(Path(path).read_text())
+        if other.get("protocol") != protocol:
+            raise ValueError(f"--merge: {path} holds protocol {other.get('protocol')}, this run {protocol}")
+        for name, row in other["rows"].items():
+            rec["rows"][name] = merge_rows(rec["rows"][name], row, episodes) if name in rec["rows"] else row
+        rec.update({k: other[k] for k in ("stability", "formulations") if k in other})
+        rec.setdefault("commands", []).extend(other.get("commands", []))
+    for name in ([] if merge else rows):
+        log.info("row %s ...", name)
+        row = evaluate_row(name, sim, states[only] if only else states, steps, network)
+        rec["rows"][name] = {**row, **({"episode_index": only} if only else {}), "machine": machine()}
+        log.info("row %s: %s", name, rec["rows"][name]["discounted_return"])
+        write_record(out, rec)
+    if formulations:
+        rec["formulations"] = {**compare_formulations(sim, states[0], formulations), "machine": machine()}
+    if stability_states:
+        rec["stability"] = {"episodes": stability(sim, states, steps, stability_states, seed), "machine": machine()}
+    rec["table"] = table(rec["rows"], episodes)
+    rec.setdefault("commands", []).append(command)
+    write_record(out, rec)
+    return rec

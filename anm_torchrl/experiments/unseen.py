@@ -6,8 +6,9 @@ type, daily profiles), written to ``<runs_dir>/<name>.npz`` with
 
 * the baselines on the test states every recipe reports on (the per-network protocol's ``default`` entry: the
   ``eval.test_*`` keys of the PPO recipe's config for that file), the perfect-foresight AC optimum and do-nothing,
-  by the gap study's command (``python -m anm_torchrl.cli.gap --network <file> --rows optimal,do_nothing ...``,
-  one process per network, ``jobs`` at a time);
+  by the gap study's measurement (:func:`.gap.measure`, what ``python -m anm_torchrl.cli.gap --network <file>
+  --rows optimal,do_nothing ...`` runs; the record names that command), one process per network, ``jobs`` at a
+  time;
 * each algorithm's recipe with nothing on its command line but the network and the seed
   (``python recipes/<ppo|shac|sac>.py network=<file> seed=<s>``: the ``default`` per-network entry; and the main job,
   ``python recipes/ppo.py network=<file> surrogate=pinn``, its PINN trained on first use), as cells of
@@ -21,13 +22,13 @@ from __future__ import annotations
 
 import json
 import logging
+import multiprocessing
 import os
 import statistics
-import subprocess
 import sys
 import time
 import traceback
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -94,10 +95,10 @@ def reported_states(path: Path, overrides: tuple[str, ...] = ()) -> dict[str, An
     return {"episodes": int(ev.test_episodes), "seed": int(ev.test_seed), "steps": int(steps), "gamma": float(ev.gamma)}
 
 
-def gap_argv(path: Path, protocol: dict, out: Path) -> list[str]:
-    """The gap study's arguments for the baselines of ``path`` on ``protocol``'s states."""
-    return ["--network", str(path), "--rows", "optimal,do_nothing", "--episodes", str(protocol["episodes"]),
-            "--seed", str(protocol["seed"]), "--steps", str(protocol["steps"]), "--out", str(out)]
+def baselines_command(path: Path, protocol: dict, out: Path) -> str:
+    """The gap study's command line that measures the baselines of ``path`` on ``protocol``'s states into ``out``."""
+    return (f"python -m anm_torchrl.cli.gap --network {path} --rows optimal,do_nothing --episodes "
+            f"{protocol['episodes']} --seed {protocol['seed']} --steps {protocol['steps']} --out {out}")
 
 
 def _baselines_done(out: Path, path: Path, protocol: dict, key: str) -> bool:
@@ -110,32 +111,32 @@ def _baselines_done(out: Path, path: Path, protocol: dict, key: str) -> bool:
     return same and {"optimal", "do_nothing"} <= set(rec.get("rows", {}))
 
 
-def _solve_baselines(argv: list[str], key: str) -> float:
-    """The gap study's command in a process of its own; its record gets the network's key (a later study reuses it
-    only for the same network). Returns the wall time (s).
+def _solve_baselines(path: Path, protocol: dict, out: Path, key: str) -> float:
+    """Worker: the gap study's measurement of the optimum and do-nothing (:func:`.gap.measure`, as its command line
+    does); its record gets the network's key (a later study reuses it only for the same network). Returns the wall
+    time (s)."""
+    import torch
 
-    Raises:
-        RuntimeError: the command failed (with its stderr's tail).
-    """
+    from anm_torchrl.experiments.gap import measure
+
+    torch.set_num_threads(1)
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "anm_torchrl.cli.gap", *argv], capture_output=True, text=True,
-                          env={**os.environ, "OMP_NUM_THREADS": "1"})
-    if proc.returncode:
-        raise RuntimeError(f"python -m anm_torchrl.cli.gap {' '.join(argv)} failed (exit {proc.returncode}):\n"
-                           f"{proc.stderr[-2000:]}")
-    out = Path(argv[argv.index("--out") + 1])
-    out.write_text(json.dumps({**json.loads(out.read_text()), "network_key": key}, indent=1) + "\n")
+    rec = measure(str(path), protocol["episodes"], protocol["seed"], protocol["steps"], out,
+                  baselines_command(path, protocol, out), rows=["optimal", "do_nothing"])
+    out.write_text(json.dumps({**rec, "network_key": key}, indent=1) + "\n")
     return time.perf_counter() - t0
 
 
-def solve_baselines(todo: dict[Path, tuple[list[str], str]], jobs: int) -> list[dict[str, Any]]:
-    """Run the gap study's command of every ``out -> (argv, network key)`` in ``todo``, ``jobs`` at a time; how each
-    went (``error`` holds a failure's message)."""
+def solve_baselines(todo: dict[Path, tuple[Path, dict, str]], jobs: int) -> list[dict[str, Any]]:
+    """Measure the baselines of every ``out -> (network file, protocol, network key)`` in ``todo``, ``jobs`` at a
+    time, each in a fresh process; how each went (``error`` holds a failure's traceback)."""
     if not todo:
         return []
     outcomes = []
-    with ThreadPoolExecutor(max_workers=jobs) as pool:  # threads that wait on processes
-        futures = {out: pool.submit(_solve_baselines, argv, key) for out, (argv, key) in todo.items()}
+    ctx = multiprocessing.get_context("spawn")  # no forked torch state; one network per process
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, max_tasks_per_child=1) as pool:
+        futures = {out: pool.submit(_solve_baselines, path, protocol, out, key)
+                   for out, (path, protocol, key) in todo.items()}
         for out, fut in futures.items():
             try:
                 outcomes.append({"record": str(out), "wall_s": fut.result(), "error": None})
@@ -191,7 +192,7 @@ def study(specs: list[str], algorithms: list[str], seeds: list[int], runs_dir: P
         protocol = reported_states(path, overrides)
         nets.append({"spec": spec, "path": path, "meta": meta, "protocol": protocol,
                      "gap": path.with_suffix(".gap.json")})
-    todo = {n["gap"]: (gap_argv(n["path"], n["protocol"], n["gap"]), n["meta"]["network_key"]) for n in nets
+    todo = {n["gap"]: (n["path"], n["protocol"], n["meta"]["network_key"]) for n in nets
             if not _baselines_done(n["gap"], n["path"], n["protocol"], n["meta"]["network_key"])}
     for out in todo:
         out.unlink(missing_ok=True)  # another network or protocol: the gap command would refuse to extend it
