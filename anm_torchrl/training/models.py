@@ -256,8 +256,9 @@ def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), a
                     init_action: torch.Tensor | str | None = None, init_action_clip: float = 0.98,
                     time_features: bool = False, state_dependent_scale: bool = False,
                     ) -> tuple[ProbabilisticActor, ValueOperator, ObservationNormalizer]:
-    """PPO's actor (:func:`make_actor`, state-independent scale unless ``state_dependent_scale``), its value network (``"state_value"``, separate
-    weights as SB3's MlpPolicy, the same normaliser) and the normaliser. Arguments as :func:`make_actor`."""
+    """PPO's actor (:func:`make_actor`, state-independent scale unless ``state_dependent_scale``), its value network
+    (``"state_value"``, separate weights as SB3's MlpPolicy, the same normaliser) and the normaliser. Arguments as
+    :func:`make_actor`."""
     actor, normalizer, value_mlp = make_actor(env, actor_cells, activation, max_obs_scale, obs_clip, init_log_std,
                                               obs_stats, obs_key, init_action, init_action_clip,
                                               critic_cells=critic_cells, time_features=time_features,
