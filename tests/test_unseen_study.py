@@ -4,6 +4,7 @@ its optimum and do-nothing on the recipes' test states, a recipe's documented co
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 
@@ -34,8 +35,8 @@ def test_a_study_scores_the_recipe_against_the_optimum_on_the_same_states(study)
     assert ppo["command"].startswith(f"python recipes/ppo.py network={net['file']} seed=0")
     (run,) = ppo["runs"]
     assert run["frames"] == 64 and run["discounted_return"] == ppo["discounted_return"]
-    assert ppo["gain_pct"] == pytest.approx(unseen.gain_pct(run["discounted_return"], net["optimum"],
-                                                            net["do_nothing"]))
+    gain = 100 * (run["discounted_return"] - net["do_nothing"]) / (net["optimum"] - net["do_nothing"])
+    assert ppo["gain_pct"] == pytest.approx(gain)
     table = unseen.markdown(record)
     assert f"| `{SPEC}` | 6 |" in table and "64 frames" in table
 
@@ -46,6 +47,21 @@ def test_a_second_run_reuses_the_baselines_and_the_cells(study, monkeypatch):
     monkeypatch.setattr(unseen, "ProcessPoolExecutor", lambda *a, **k: pytest.fail("the baselines were solved again"))
     again = unseen.study([SPEC], ["ppo"], [0], runs, jobs=1, overrides=SMOKE)
     assert again["networks"] == record["networks"]
+
+
+def test_a_cell_trained_on_other_network_data_is_trained_again(study, tmp_path):
+    """The same file name with other tables (the generator changed): its network key differs, the cell is not
+    reused."""
+    record, runs = study
+    cell = tmp_path / "cell"
+    shutil.copytree(runs / f"{record['networks'][0]['file'][:-4]}_ppo_s0", cell)
+    marker = json.loads((cell / "study_cell.json").read_text())
+    command = [f"hydra.run.dir={cell}" if a.startswith("hydra.run.dir=") else a for a in marker["command"]]
+    assert marker["network_key"] == record["networks"][0]["network_key"]
+    (cell / "study_cell.json").write_text(json.dumps({**marker, "command": command}))
+    assert cells.finished(command, cell)
+    (cell / "study_cell.json").write_text(json.dumps({**marker, "command": command, "network_key": "other"}))
+    assert not cells.finished(command, cell)
 
 
 def test_baselines_of_another_network_or_protocol_are_not_reused(study):

@@ -40,42 +40,69 @@ def cell_config(command: list[str]):
     return compose_recipe_config(command_keys(command), RECIPE_CONFIGS[Path(command[1]).name])
 
 
+def tested_states(summary: dict) -> dict[str, Any]:
+    """The test states a finished run reported on (its ``summary.json``): episodes, seed, steps, gamma, named as the
+    gap tables' protocol names them."""
+    test = summary["test"]
+    return {"episodes": test["num_episodes"], "seed": test["seed"], "steps": test["max_steps"], "gamma": test["gamma"]}
+
+
+def network_key(cfg) -> str:
+    """The identity key of the network a cell's config trains on (its data, not its name: a network file rewritten
+    with other tables, or a registered network whose data changed, gets another key)."""
+    from anm_torchrl.grid.identity import network_key as key
+    from anm_torchrl.networks import simulator
+
+    return key(simulator(cfg.network))
+
+
 def train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
-    """Train one cell into ``run_dir`` in this (worker) process: its config (:func:`_cell_config`) through the
-    shared protocol (which checks the config first)."""
+    """Train one cell into ``run_dir`` in this (worker) process: its config (:func:`cell_config`) through the
+    shared protocol (which checks the config first). Returns what its marker keeps besides the command: wall
+    time, load average, the network's key."""
     from anm_torchrl.training import protocol
 
     shutil.rmtree(run_dir, ignore_errors=True)  # an unfinished earlier attempt: its logs would mix with these
     t0, load = time.perf_counter(), os.getloadavg()[0]
     cfg, defaults = cell_config(command)
+    key = network_key(cfg)
     protocol.train(cfg, run_dir, network_defaults=defaults)
-    return {"process_wall_s": time.perf_counter() - t0, "load_avg_1min": [load, os.getloadavg()[0]]}
+    return {"process_wall_s": time.perf_counter() - t0, "load_avg_1min": [load, os.getloadavg()[0]],
+            "network_key": key}
 
 
 def finished(command: list[str], run_dir: Path) -> bool:
     """Whether ``run_dir`` holds a finished cell of ``command`` trained with the config the command has today: the
-    same command line alone would reuse a cell trained at a former default (e.g. an older per-network entry). The
-    table of per-network entries itself is not compared (another network's entry changes no cell here)."""
+    same command line alone would reuse a cell trained at a former default (e.g. an older per-network entry), or on
+    a network whose data changed under the same name or file (its key, where the marker holds one). The table of
+    per-network entries itself is not compared (another network's entry changes no cell here)."""
     from omegaconf import OmegaConf
 
     from anm_torchrl.training.checkpoint import config_diff
     from anm_torchrl.training.network_defaults import TABLE_KEY
 
     marker, summary = run_dir / "study_cell.json", run_dir / "summary.json"
-    if not (summary.is_file() and marker.is_file() and json.loads(marker.read_text())["command"] == command):
+    if not (summary.is_file() and marker.is_file()):
+        return False
+    kept = json.loads(marker.read_text())
+    if kept["command"] != command:
+        return False
+    cfg = cell_config(command)[0]
+    if kept.get("network_key") not in (None, network_key(cfg)):
+        log.info("%s was trained on other network data: trained again", run_dir)
         return False
     def trains_with(config: dict) -> dict:  # the per-network table left out: its entry's values are in the other keys
         return {k: v for k, v in config.items() if k != TABLE_KEY}
 
     changed = config_diff(trains_with(json.loads(summary.read_text()).get("config", {})),
-                          trains_with(OmegaConf.to_container(cell_config(command)[0], resolve=True)))
+                          trains_with(OmegaConf.to_container(cfg, resolve=True)))
     if changed:
         log.info("%s was trained with another config (%s): trained again", run_dir, ", ".join(changed))
     return not changed
 
 
 def run_cells(commands: dict[Path, list[str]], jobs: int) -> list[dict[str, Any]]:
-    """Train every cell of ``commands`` (run directory -> command) not already finished with the same command,
+    """Train every cell of ``commands`` (run directory -> command) not already finished (:func:`finished`),
     ``jobs`` at a time, each in a fresh process; returns how each went (``error`` holds a failed cell's traceback)."""
     todo = {d: c for d, c in commands.items() if not finished(c, d)}
     outcomes = [{"run_dir": str(d), "reused": True, "error": None} for d in commands if d not in todo]

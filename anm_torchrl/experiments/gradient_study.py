@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.experiments.cells import RECIPES, run_cells, shown
+from anm_torchrl.experiments.cells import RECIPES, run_cells, shown, tested_states
 from anm_torchrl.experiments.formatting import replace_marked_blocks
 from anm_torchrl.experiments.leaderboard import ANM6, gap_table_path, reference_returns
 from anm_torchrl.experiments.ppo_runs import time_to_reach
@@ -107,7 +107,7 @@ def read_run(run_dir: Path, protocol: dict) -> dict[str, Any]:
     s = json.loads((run_dir / "summary.json").read_text())
     cell = json.loads((run_dir / "study_cell.json").read_text())
     test = s["test"]
-    got = {"episodes": test["num_episodes"], "seed": test["seed"], "steps": test["max_steps"], "gamma": test["gamma"]}
+    got = tested_states(s)
     want = {k: protocol[k] for k in got}
     if got != want or not s.get("curve") or any("test" not in p for p in s["curve"]):
         raise ValueError(f"{run_dir}: not a study cell (tracked test states {got}, the gap table's {want})")

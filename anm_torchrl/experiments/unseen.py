@@ -32,8 +32,9 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from anm_torchrl.experiments.cells import RECIPES, cell_config, run_cells, shown
+from anm_torchrl.experiments.cells import RECIPES, cell_config, run_cells, shown, tested_states
 from anm_torchrl.experiments.formatting import replace_marked_blocks
+from anm_torchrl.experiments.leaderboard import against_optimum
 
 log = logging.getLogger(__name__)
 
@@ -72,18 +73,16 @@ def write_network(spec: str, folder: Path) -> tuple[Path, dict[str, Any]]:
     case = generate(seed, n_bus=n_bus, meshed=meshed)
     path = folder / f"random{seed}_{n_bus}_{'meshed' if meshed else 'radial'}.npz"
     folder.mkdir(parents=True, exist_ok=True)
-    if path.is_file():
-        old = network_key(simulator(str(path)))
-        save_network(path, case.network, case.load_p, case.gen_p_max)
-        if network_key(simulator(str(path))) != old:
-            log.warning("%s held another network (the generator changed): replaced; its runs are trained again", path)
-    else:
-        save_network(path, case.network, case.load_p, case.gen_p_max)
+    old = network_key(simulator(str(path))) if path.is_file() else None
+    save_network(path, case.network, case.load_p, case.gen_p_max)
+    key = network_key(simulator(str(path)))
+    if old not in (None, key):
+        log.warning("%s held another network (the generator changed): replaced; its runs are trained again", path)
     meta = {k: v for k, v in case.meta.items() if k in ("seed", "n_bus", "topology", "n_load", "n_gen", "n_des",
                                                          "n_classical", "n_branch", "peak_load_mw")}
     # the generator's n_gen counts classical and renewable generators, n_des its storage units
     return path, {**meta, "n_renewable": meta["n_gen"] - meta["n_classical"], "n_storage": meta.pop("n_des"),
-                  "network_key": network_key(simulator(str(path)))}
+                  "network_key": key}
 
 
 def reported_states(path: Path, overrides: tuple[str, ...] = ()) -> dict[str, Any]:
@@ -145,6 +144,11 @@ def solve_baselines(todo: dict[Path, tuple[Path, dict, str]], jobs: int) -> list
     return outcomes
 
 
+def cell_dir(runs_dir: Path, path: Path, algorithm: str, seed: int) -> Path:
+    """The run directory of the cell of ``algorithm`` and ``seed`` on the network file ``path``."""
+    return runs_dir / f"{path.stem}_{algorithm}_s{seed}"
+
+
 def cell_command(algorithm: str, path: Path, seed: int, run_dir: Path, overrides: tuple[str, ...] = ()) -> list[str]:
     """A cell: the recipe's documented command on the network file (its ``default`` entry; ``surrogate=pinn`` for
     ``ppo_pinn``), ``seed``, then ``overrides`` (a smoke test's smaller budget)."""
@@ -160,22 +164,16 @@ def read_cell(run_dir: Path, protocol: dict) -> dict[str, Any]:
         ValueError: the run's test states are not ``protocol``'s.
     """
     s = json.loads((run_dir / "summary.json").read_text())
-    test = s["test"]
-    got = {"episodes": test["num_episodes"], "seed": test["seed"], "steps": test["max_steps"], "gamma": test["gamma"]}
+    got = tested_states(s)
     if got != protocol:
         raise ValueError(f"{run_dir}: tested on {got}, the baselines on {protocol}")
     surrogate = s["config"]["surrogate"]["name"]
     return {"run_dir": str(run_dir), "seed": int(s["config"]["seed"]),
-            "discounted_return": test["best"]["discounted_return"],
+            "discounted_return": s["test"]["best"]["discounted_return"],
             "validation_best": s["best_eval"]["discounted_return"], "frames": int(s["frames"]),
             "surrogate": surrogate, "true_env_frames": int(s["frames"]) if surrogate == "none" else 0,
             "model_frames": s.get("model_frames"), "wall_s": float(s["wall_time"]),
             "stopped_early": bool(s["stopped_early"])}
-
-
-def gain_pct(ret: float, opt: float, dn: float) -> float:
-    """Share of the optimum's gain over do-nothing, %."""
-    return 100.0 * (ret - dn) / (opt - dn)
 
 
 def study(specs: list[str], algorithms: list[str], seeds: list[int], runs_dir: Path, jobs: int = 2,
@@ -197,29 +195,16 @@ def study(specs: list[str], algorithms: list[str], seeds: list[int], runs_dir: P
     for out in todo:
         out.unlink(missing_ok=True)  # another network or protocol: the gap command would refuse to extend it
     failed = [o for o in solve_baselines(todo, jobs) if o["error"]]
-    commands = {runs_dir / f"{n['path'].stem}_{a}_s{s}": cell_command(a, n["path"], s,
-                                                                        runs_dir / f"{n['path'].stem}_{a}_s{s}",
-                                                                        tuple(overrides))
-                for n in nets for a in algorithms for s in seeds}
-    for d, c in commands.items():  # a cell of a replaced network file is not reused
-        marker = d / "study_cell.json"
-        if marker.is_file() and json.loads(marker.read_text()).get("network_key") not in (None, _key_of(c, nets)):
-            marker.unlink()
+    # a cell of a replaced network file is trained again: its marker's network key differs (cells.finished)
+    commands = {d: cell_command(a, n["path"], s, d, tuple(overrides))
+                for n in nets for a in algorithms for s in seeds
+                for d in [cell_dir(runs_dir, n["path"], a, s)]}
     failed += [o for o in run_cells(commands, jobs) if o["error"]]
-    for d, c in commands.items():
-        marker = d / "study_cell.json"
-        if marker.is_file():
-            marker.write_text(json.dumps({**json.loads(marker.read_text()), "network_key": _key_of(c, nets)}) + "\n")
     rows = [_network_row(n, algorithms, seeds, runs_dir, commands) for n in nets]
     return {"what": __doc__.split("\n\n")[0].replace("\n", " "), "algorithms": algorithms, "seeds": seeds,
             "jobs": jobs, "overrides": list(overrides), "networks": rows, "failed": failed,
             "invocation_wall_s": time.perf_counter() - t0,
             "machine": {"cpus": os.cpu_count(), "threads_per_run": 1, "concurrent_runs": jobs}}
-
-
-def _key_of(command: list[str], nets: list[dict]) -> str:
-    path = next(a for a in command if a.startswith("network="))[len("network="):]
-    return next(n["meta"]["network_key"] for n in nets if str(n["path"]) == path)
 
 
 def _network_row(net: dict, algorithms: list[str], seeds: list[int], runs_dir: Path,
@@ -234,7 +219,7 @@ def _network_row(net: dict, algorithms: list[str], seeds: list[int], runs_dir: P
                        do_nothing=rows["do_nothing"]["mean_discounted_return"],
                        optimum_wall_s=rows["optimal"]["wall_s"], baselines_command=rec["commands"][-1])
     for a in algorithms:
-        dirs = [runs_dir / f"{net['path'].stem}_{a}_s{s}" for s in seeds]
+        dirs = [cell_dir(runs_dir, net["path"], a, s) for s in seeds]
         runs = [read_cell(d, net["protocol"]) for d in dirs if (d / "summary.json").is_file()]
         entry = {"algorithm": a, "command": shown(commands[dirs[0]]).replace(str(net["path"]), net["path"].name),
                  "runs": runs}
@@ -248,8 +233,11 @@ def _network_row(net: dict, algorithms: list[str], seeds: list[int], runs_dir: P
                          model_frames=(statistics.fmean(r["model_frames"] for r in runs)
                                        if all(r["model_frames"] is not None for r in runs) else None))
             if row["optimum"] is not None:
-                entry["gain_pct"] = gain_pct(entry["discounted_return"], row["optimum"], row["do_nothing"])
-                entry["gain_pct_per_seed"] = [gain_pct(v, row["optimum"], row["do_nothing"]) for v in values]
+                def gain(ret: float) -> float:
+                    return against_optimum(ret, row["optimum"], row["do_nothing"])[1]
+
+                entry["gain_pct"] = gain(entry["discounted_return"])
+                entry["gain_pct_per_seed"] = [gain(v) for v in values]
         row["algorithms"].append(entry)
     return row
 
@@ -258,12 +246,11 @@ def markdown(record: dict) -> str:
     """The study as a Markdown table: one line per network, each algorithm's test return and gain share."""
     algos = record["algorithms"]
     p = record["networks"][0]["protocol"]
-    first = record["networks"][0]["algorithms"]
     intro = [f"Random networks (`SEED:BUSES:topology`, `anm_torchrl.networks.random.generate`) saved as a user's "
              f"files; {p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, γ = {p['gamma']}; each "
              f"algorithm's `best.pt` (chosen on its validation states) after "
-             + ", ".join(f"`{a['command'].split(' seed=')[0].replace(record['networks'][0]['file'], '<file>')}`"
-                         for a in first)
+             + ", ".join(f"`{' '.join(['python', f'recipes/{RECIPE[a][0]}', 'network=<file>', *RECIPE[a][1]])}`"
+                         for a in algos)
              + f" (seeds {', '.join(map(str, record['seeds']))}); in parentheses the share of the optimum's gain over "
              f"do-nothing", ""]
     head = ["network", "buses", "loads / classical / renewable / storage", "do-nothing", "optimum"]
