@@ -58,6 +58,7 @@ def test_default_configs_pass():
     ("logger.backend=foo", "logger.backend must be one of tensorboard, csv, wandb, mlflow, null; got 'foo'"),
     ("loss.gae_every_epoch=1", "loss.gae_every_epoch must be true or false, got 1"),
     ("loss.compile=yes", "loss.compile must be true or false, got 'yes'"),
+    ("collector.sync=sometimes", "collector.sync must be true or false, got 'sometimes'"),
     ("eval.test_seed=1", "eval.seed (validation states) and eval.test_seed (test states) must differ"),
     ("eval.render_interval=-1", "eval.render_interval must be an integer >= 0, got -1"),
     ("eval.background=1", "eval.background must be auto, true or false; got 1"),

@@ -245,6 +245,43 @@ def test_multiprocess_collector(tmp_path):
     assert summary["frames"] == 64 and math.isfinite(summary["final_eval"]["discounted_return"])
 
 
+def test_async_collection_in_one_worker_process(tmp_path):
+    """collector.sync=false with one worker: TorchRL's AsyncCollector collects the next batch in another process
+    while this one updates; the budget stays exact (80 frames: the third batch cut) and the run is written whole."""
+    run_dir = tmp_path / "async"
+    run(PPO, *TINY, "collector.sync=false", "collector.total_frames=80", f"hydra.run.dir={run_dir}", cwd=tmp_path)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["frames"] == 80 and summary["updates"] == 3
+    assert math.isfinite(summary["final_eval"]["discounted_return"])
+    assert (run_dir / "checkpoints" / "best.pt").is_file() and (run_dir / "checkpoints" / "last.pt").is_file()
+    logged = scalars(run_dir)
+    assert all(math.isfinite(v) for _, v in logged["train/loss_objective"]) and len(logged["train/loss_objective"]) == 3
+
+
+def test_one_async_worker_is_torchrl_async_collector_and_keeps_the_thread_count():
+    """One worker with collector.sync=false is TorchRL's AsyncCollector (every other test runs the in-process one);
+    TorchRL would set this process's torch threads to the cores its workers leave, and raise them at shutdown."""
+    from torchrl.collectors import AsyncCollector
+
+    from anm_torchrl.training.algorithms.ppo import PPO as PPOAlgorithm
+    from anm_torchrl.training.network_defaults import compose_recipe_config
+
+    # two threads: TorchRL's own choice would be 2 - 1 worker = 1 while running
+    cfg = compose_recipe_config([*TINY, "collector.sync=false", "threads=2"], "config")[0]
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(cfg.threads))
+    try:
+        algo = PPOAlgorithm(cfg, device=torch.device("cpu"), seed=0, budget=64, reward_scale=0.01, resume=None)
+        try:
+            assert isinstance(algo.collector, AsyncCollector) and algo.collector.num_workers == 1
+            assert torch.get_num_threads() == int(cfg.threads)
+        finally:
+            algo.close()
+        assert torch.get_num_threads() == int(cfg.threads)
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_wall_clock_budget_stops_the_run(tmp_path):
     run_dir = tmp_path / "budget"
     run(PPO, *TINY, "collector.total_frames=320", "collector.max_minutes=0.0001", "logger.backend=null",

@@ -66,6 +66,7 @@ def test_resuming_another_algorithms_checkpoint_is_refused(sac_run, tmp_path):
     ("loss.tau=0", "loss.tau must be in (0, 1], got 0"),
     ("loss.alpha_init=-1", "loss.alpha_init must be > 0, got -1"),
     ("collector.num_workers=2", "collector.num_workers must be 1 for sac (one collector process), got 2"),
+    ("collector.sync=false", "collector.sync must be true for sac (collection and updates take turns), got False"),
 ])
 def test_sac_config_errors_name_the_key(override, message):
     from hydra import compose, initialize_config_dir

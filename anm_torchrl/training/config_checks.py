@@ -159,6 +159,7 @@ def _check_collector(cfg: Mapping) -> int:
     n = _int(cfg, "env.num_envs")
     fpb = _int(cfg, "collector.frames_per_batch")
     workers = _int(cfg, "collector.num_workers")
+    _bool(cfg, "collector.sync")
     if n % workers:
         raise ValueError(f"env.num_envs ({n}) must be a positive multiple of collector.num_workers ({workers})")
     if fpb < n or fpb % n:
@@ -213,6 +214,9 @@ def check_sac_config(cfg: Mapping) -> None:
     if _get(cfg, "collector.num_workers") != 1:
         raise ValueError(f"collector.num_workers must be 1 for sac (one collector process), got "
                          f"{_get(cfg, 'collector.num_workers')!r}")
+    if _get(cfg, "collector.sync") is not True:  # SAC's collector runs in this process, between its updates
+        raise ValueError(f"collector.sync must be true for sac (collection and updates take turns), got "
+                         f"{_get(cfg, 'collector.sync')!r}")
     _int(cfg, "collector.init_random_frames", low=0)
     buffer = _int(cfg, "replay.size")
     batch = _int(cfg, "replay.batch_size")

@@ -52,15 +52,23 @@ def budget_mask(batch_size, remaining: int):
 
 
 def make_collector(cfg: DictConfig, policy, device, seed: int, budget: int, env=None):
-    """TorchRL's collector over the training env (one process: ``env`` if given; or ``collector.num_workers``
-    processes, each building its own), collecting whole batches of ``collector.frames_per_batch`` up to ``budget``
-    frames (the last batch is cut by :func:`budget_mask`). Returns None for a budget of 0 (``env`` is closed)."""
-    from torchrl.collectors import Collector
+    """TorchRL's collector over the training env, collecting whole batches of ``collector.frames_per_batch`` up to
+    ``budget`` frames (the last batch is cut by :func:`budget_mask`):
+
+    * one worker, ``collector.sync`` true: ``Collector`` in this process (``env`` if given); collection and the
+      update take turns;
+    * one worker, ``sync`` false: ``AsyncCollector``, one process that builds its own env and collects the next batch
+      while this one updates, with the weights from before that update (the data one update behind the learner);
+    * ``collector.num_workers`` = k > 1: k processes with ``env.num_envs / k`` grids each, ``MultiSyncCollector``
+      (``sync``) or ``MultiAsyncCollector``.
+
+    Returns None for a budget of 0. ``env`` is closed wherever it is not the collector's."""
+    from torchrl.collectors import AsyncCollector, Collector
 
     from anm_torchrl.training.factory import make_train_env, train_env_kwargs
 
-    num_workers = int(cfg.collector.num_workers)
-    if budget <= 0 or num_workers > 1:
+    num_workers, sync = int(cfg.collector.num_workers), bool(cfg.collector.sync)
+    if budget <= 0 or num_workers > 1 or not sync:
         if env is not None:
             env.close()
         env = None
@@ -70,8 +78,12 @@ def make_collector(cfg: DictConfig, policy, device, seed: int, budget: int, env=
     env_kwargs = train_env_kwargs(cfg, str(device), num_workers)
     kwargs = dict(policy=policy, frames_per_batch=frames_per_batch, device=device,
                   total_frames=-(-budget // frames_per_batch) * frames_per_batch, auto_register_policy_transforms=False)
-    if num_workers == 1:
+    if num_workers == 1 and sync:
         return Collector(env if env is not None else make_train_env(seed=seed, **env_kwargs), **kwargs)
+    # TorchRL sets this process's thread count to the cores left over by its workers unless told: keep ``threads``
+    kwargs["num_threads"] = int(cfg.threads)
+    if num_workers == 1:
+        return AsyncCollector(partial(make_train_env, seed=seed, **env_kwargs), **kwargs)
     factories = [partial(make_train_env, seed=seed + 1000 * i, **env_kwargs) for i in range(num_workers)]
     return Collector(factories, num_collectors=num_workers, sync=bool(cfg.collector.sync), **kwargs)
 
@@ -199,6 +211,9 @@ class PPO(Algorithm):
             import logging
 
             logging.getLogger(__name__).warning("collector shutdown after Ctrl-C: %s", err)
+        finally:
+            # a multi-process collector's shutdown hands its workers' threads back to this process
+            torch.set_num_threads(int(self.cfg.threads))
         self.collector = None
 
     @staticmethod
