@@ -145,3 +145,18 @@ def test_ppo_recipe_takes_a_network_file(tmp_path):
                           f"hydra.run.dir={tmp_path / 'runs' / 'bad'}"], cwd=tmp_path, env=env, capture_output=True,
                          text=True, timeout=120)
     assert bad.returncode != 0 and "no such network file" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_training_refuses_a_network_with_nothing_to_control(tmp_path):
+    """A valid network whose devices are the slack and loads only: every training recipe stops before it builds a
+    surrogate or a model, naming why (a policy would have no action)."""
+    net, load_p, _ = feeder()
+    net = {**net, "device": [d for d in net["device"] if d[2] in (0, -1)]}
+    N.save_network(tmp_path / "loads_only.npz", net, load_p, np.zeros((load_p.shape[0], 0)))
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    for recipe, extra in (("ppo.py", ["surrogate=pinn"]), ("shac.py", [])):
+        proc = subprocess.run([sys.executable, str(ROOT / "recipes" / recipe), "network=loads_only.npz", *extra,
+                               f"hydra.run.dir={tmp_path / recipe}"], cwd=tmp_path, env=env, capture_output=True,
+                              text=True, timeout=120)
+        assert proc.returncode != 0 and "has no controllable device" in proc.stderr, proc.stderr[-2000:]
+        assert "Traceback" not in proc.stderr and not (tmp_path / recipe / "checkpoints").exists()

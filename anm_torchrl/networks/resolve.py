@@ -77,6 +77,18 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
                                      profile_clip_level=logging.INFO if shipped else logging.WARNING)
 
 
+def check_controllable(network: str | NetworkCase) -> None:
+    """Refuse a network with nothing to control (the slack and loads only), before a controller is trained for it.
+
+    Raises:
+        ValueError: naming the network and what it lacks (or :func:`simulator`'s error for an invalid one).
+    """
+    if simulator(network).action_dim == 0:
+        name = network.name if isinstance(network, NetworkCase) else network
+        raise ValueError(f"network {name!r} has no controllable device (a generator other than the slack, or a "
+                         "storage unit): a policy would have no action to take")
+
+
 @functools.lru_cache(maxsize=1)
 def _anm6_key() -> str:
     from anm_torchrl.networks.registry import ANM6_EASY
