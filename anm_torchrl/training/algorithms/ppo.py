@@ -85,7 +85,7 @@ def make_collector(cfg: DictConfig, policy, device, seed: int, budget: int, env=
     if num_workers == 1:
         return AsyncCollector(partial(make_train_env, seed=seed, **env_kwargs), **kwargs)
     factories = [partial(make_train_env, seed=seed + 1000 * i, **env_kwargs) for i in range(num_workers)]
-    return Collector(factories, num_collectors=num_workers, sync=bool(cfg.collector.sync), **kwargs)
+    return Collector(factories, num_collectors=num_workers, sync=sync, **kwargs)
 
 
 def episode_metrics(kept: TensorDict) -> dict[str, torch.Tensor]:
