@@ -111,3 +111,19 @@ class _Float32Net:
 
     def __init__(self, net):
         self.dev = net.dev.float()
+
+
+def test_the_compiled_kernel_is_loaded_once_per_process(monkeypatch):
+    """The first transition of a process loads (or compiles) the kernel and says so; later calls go straight to it
+    (a module flag, not numba's ``signatures`` property, which re-hashes the argument types on every call)."""
+    import anm_torchrl.grid.backends.numba as nb
+    from anm_torchrl.networks import simulator as network_simulator
+    from anm_torchrl.surrogates.pinn.evaluate import random_transitions
+
+    sim = network_simulator("anm6_easy", backend="numba")
+    state, action = random_transitions(sim, 4, seed=0)
+    first, _ = sim.step(state, action)
+    assert nb._KERNEL_READY
+    monkeypatch.setattr(nb, "_first_call", lambda run: pytest.fail("the kernel was loaded a second time"))
+    again, _ = sim.step(state, action)
+    assert torch.equal(first, again)

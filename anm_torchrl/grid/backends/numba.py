@@ -36,6 +36,7 @@ from anm_torchrl.grid.transition import Transition
 log = logging.getLogger(__name__)
 PARALLEL_MIN_BATCH = 1024  # below this, splitting the batch over threads costs more than it saves
 SLICES_PER_THREAD = 8
+_KERNEL_READY = False  # set by _first_call once this process has loaded (or compiled) the kernel
 _POOL: dict[int, tuple[int, ThreadPoolExecutor]] = {}  # pid -> (threads, pool): a forked child makes its own
 
 
@@ -632,8 +633,12 @@ def _first_call(run) -> None:
     if cold:
         log.warning("numba: compiling the transition kernels (first use of this install; about a minute on 2 cores, "
                     "cached on disk afterwards)")
+    global _KERNEL_READY
     start = time.perf_counter()
     run()
+    # a flag, not ``_transition.signatures``: that property re-hashes every argument type of the kernel's
+    # signature (~0.1 ms a call, 40 % of a 16-env step)
+    _KERNEL_READY = True
     log.info("numba: transition kernels %s in %.1f s", "compiled" if cold else "loaded", time.perf_counter() - start)
 
 
@@ -705,7 +710,7 @@ class CompiledTransition:
             _transition(c, *(x[lo:hi] for x in inputs), tuple(o[lo:hi] for o in outs))
 
         threads = torch.get_num_threads()
-        if not _transition.signatures:  # the process's first call: load or compile, and say which
+        if not _KERNEL_READY:  # the process's first call: load or compile, and say which
             _first_call(lambda: run(0, n))
         elif threads > 1 and n >= PARALLEL_MIN_BATCH:
             # more slices than threads: a slice holding the rare 100-iteration envs does not hold up the rest
