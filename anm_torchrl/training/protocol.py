@@ -355,7 +355,6 @@ def run_recipe(cfg: DictConfig) -> dict:
     from hydra.core.hydra_config import HydraConfig
 
     from anm_torchrl.networks import check_network_name
-    from anm_torchrl.networks.resolve import check_controllable
     from anm_torchrl.networks.user import network_argument
     from anm_torchrl.training.algorithms import check_algorithm_config
     from anm_torchrl.training.recipe_errors import check_artifact_cache, check_device, user_errors
@@ -366,7 +365,6 @@ def run_recipe(cfg: DictConfig) -> dict:
         # a network file's path is relative to where the command was typed, not to the run directory
         cfg.network = network_argument(cfg.network, hydra.utils.get_original_cwd())
         check_network_name(cfg.network)  # before its defaults are applied (and logged)
-        check_controllable(cfg.network)  # before a surrogate is trained for it or a model is built
         hydra_cfg = HydraConfig.get()
         conf_dir = next((src.path for src in hydra_cfg.runtime.config_sources
                          if src.provider == "main" and src.schema == "file"), None)
@@ -378,6 +376,11 @@ def run_recipe(cfg: DictConfig) -> dict:
             cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
             if not Path(cfg.checkpoint.resume).is_file():
                 raise FileNotFoundError(f"checkpoint.resume: no file {cfg.checkpoint.resume}")
+        # last: it builds the network's simulator (torch), after every check that needs nothing heavy; before a
+        # surrogate is trained for it or a model is built
+        from anm_torchrl.networks.resolve import check_controllable
+
+        check_controllable(cfg.network)
     print(f"run directory: {run_dir}", flush=True)
     try:
         return train(cfg, run_dir, network_defaults=defaults)
