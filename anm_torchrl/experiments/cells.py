@@ -88,7 +88,7 @@ def finished(command: list[str], run_dir: Path) -> bool:
     if kept["command"] != command:
         return False
     cfg = cell_config(command)[0]
-    if kept.get("network_key") not in (None, network_key(cfg)):
+    if kept.get("network_key") is not None and kept["network_key"] != network_key(cfg):  # none kept: not compared
         log.info("%s was trained on other network data: trained again", run_dir)
         return False
     def trains_with(config: dict) -> dict:  # the per-network table left out: its entry's values are in the other keys

@@ -116,13 +116,13 @@ def _solve_baselines(path: Path, protocol: dict, out: Path, key: str) -> float:
     time (s)."""
     import torch
 
-    from anm_torchrl.experiments.gap import measure
+    from anm_torchrl.experiments.gap import measure, write_record
 
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     rec = measure(str(path), protocol["episodes"], protocol["seed"], protocol["steps"], out,
                   baselines_command(path, protocol, out), rows=["optimal", "do_nothing"])
-    out.write_text(json.dumps({**rec, "network_key": key}, indent=1) + "\n")
+    write_record(out, {**rec, "network_key": key})
     return time.perf_counter() - t0
 
 
