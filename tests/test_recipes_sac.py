@@ -99,3 +99,27 @@ def test_the_replay_buffer_stores_only_what_the_loss_reads():
         algo.close()
     assert stored - {"index"} == set(algo.loss_module.in_keys), stored  # "index": the sampler's, if it adds one
     assert "state" not in stored and ("next", "state") not in stored
+
+
+def test_the_target_entropy_is_per_dimension_of_the_box_scaled_to_unit_half_width():
+    """SAC's target counts nats in the box scaled to [-1, 1]: ANM6-Easy keeps its tuned total (-1 nat per MW-unit
+    dimension, -6, the same float32 the loss stores), and a network of small devices gets the same noise relative
+    to its box; in MW units CIGRE MV's target was above what a uniform action over its box has (unreachable)."""
+    import torch
+    from torchrl.data import Bounded
+
+    from anm_torchrl.training.algorithms.sac import box_target_entropy
+    from anm_torchrl.training.factory import make_true_env
+
+    default = -4.510698737319501  # recipes/conf/loss/sac.yaml
+    anm6 = make_true_env(2, network="anm6_easy").full_action_spec["action"]
+    assert torch.tensor(box_target_entropy(anm6, default), dtype=torch.float32).item() == -6.0
+    cigre = make_true_env(1, network="cigre_mv").full_action_spec["action"]
+    half = (cigre.space.high - cigre.space.low)[0].double() / 2
+    uniform = float(half.log().sum() + math.log(2) * half.numel())  # a uniform action's entropy over the box, nats
+    assert -1.0 * half.numel() > uniform  # the former target: out of reach
+    target = box_target_entropy(cigre, default)
+    assert target < uniform and math.isclose(target - half.log().sum().item(), default * half.numel())
+    empty = Bounded(low=torch.tensor([0.0, 1.0]), high=torch.tensor([2.0, 1.0]), shape=(2,))
+    with pytest.raises(ValueError, match=r"dimension\(s\) \[1\] have half-width \[0.0\]"):
+        box_target_entropy(empty, default)

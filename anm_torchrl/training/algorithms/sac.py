@@ -25,6 +25,31 @@ from anm_torchrl.training.algorithms.base import Algorithm
 from anm_torchrl.training.algorithms.ppo import budget_mask, episode_metrics, model_options
 
 
+def box_target_entropy(action_spec, per_dim: float) -> float:
+    """SAC's target entropy (nats): ``per_dim`` nats per action dimension of the action box scaled to [-1, 1].
+
+    The actor's ``TanhNormal`` spans the box in the action's own units (MW, MVAr), so its entropy carries
+    ``log h`` per dimension of half-width ``h``: a target in those units asks for a different noise on every network
+    (on CIGRE MV and SimBench, whose mean ``log h`` is -3.3, -1 nat per MW dimension is more entropy than a uniform
+    action over the box has, and the temperature grows without bound). Summing ``per_dim + log h`` over the
+    dimensions asks for the same noise relative to each box.
+
+    Args:
+        action_spec: the env's ``Bounded`` action spec, shape (..., A), every half-width finite and > 0.
+        per_dim: target nats per dimension of the box scaled to [-1, 1] (a uniform action there has log 2).
+
+    Raises:
+        ValueError: a dimension's box is empty or unbounded (no entropy target exists for it).
+    """
+    low, high = action_spec.space.low, action_spec.space.high
+    half = ((high - low).double() / 2).reshape(-1, action_spec.shape[-1])[0]
+    bad = [i for i, h in enumerate(half.tolist()) if not (math.isfinite(h) and h > 0)]
+    if bad:
+        raise ValueError(f"SAC's target entropy needs every action dimension's box to be finite and non-empty; "
+                         f"dimension(s) {bad} have half-width {[half[i].item() for i in bad]}")
+    return float((per_dim + half.log()).sum())
+
+
 class SAC(Algorithm):
     """Soft actor-critic (TorchRL ``SACLoss``, version 2: no separate value network)."""
 
@@ -46,10 +71,10 @@ class SAC(Algorithm):
         self.actor, qvalue, self.normalizer = make_sac_models(
             env, obs_stats=resume["obs_norm"] if resume else None, **model_options(cfg))
         self.actor, qvalue = self.actor.to(device), qvalue.to(device)
-        act_dim = int(env.full_action_spec["action"].shape[-1])
         self.loss_module = SACLoss(actor_network=self.actor, qvalue_network=qvalue, num_qvalue_nets=2,
                                    loss_function=cfg.loss.loss_function, alpha_init=float(cfg.loss.alpha_init),
-                                   target_entropy=float(cfg.loss.target_entropy_per_dim) * act_dim,
+                                   target_entropy=box_target_entropy(env.full_action_spec["action"],
+                                                                     float(cfg.loss.target_entropy_per_dim)),
                                    action_spec=env.full_action_spec["action"])
         self.loss_module.make_value_estimator(gamma=float(cfg.loss.gamma))
         self.target_updater = SoftUpdate(self.loss_module, tau=float(cfg.loss.tau))
