@@ -117,6 +117,28 @@ def test_summary_separates_validation_from_test_states(base_run):
     assert test["best"]["discounted_return"] != best["discounted_return"]
 
 
+def test_the_summary_compares_best_with_doing_nothing_and_says_when_it_is_worse(base_run):
+    """do-nothing on the same validation states (its discounted return to the last digit of an independent pass),
+    and one warning line when best.pt scores below it: the user would otherwise take a policy worse than no
+    controller for a trained one."""
+    import torch
+
+    from anm_torchrl.baselines import make_baseline
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.training.factory import make_true_env
+
+    base_run, proc = base_run
+    summary = json.loads((base_run / "summary.json").read_text())
+    val = summary["validation"]
+    env = make_true_env(val["num_episodes"], seed=val["seed"])
+    states = draw_initial_states(val["num_episodes"], val["seed"], env.sim, env.init)
+    expected = evaluate_policy(make_baseline("do_nothing", sim=env.sim), states, max_steps=val["max_steps"],
+                               gamma=val["gamma"], env=env).metrics()["discounted_return"]
+    assert val["do_nothing_discounted_return"] == expected and torch.isfinite(torch.tensor(expected))
+    worse = summary["best_eval"]["discounted_return"] < expected
+    assert ("best.pt is worse than doing nothing on the validation states" in proc.stderr + proc.stdout) == worse
+
+
 def test_ppo_on_another_network(tmp_path, evaluate_recipe):
     """``python recipes/ppo.py network=case33bw surrogate=none``: trains and evaluates on the 33-bus feeder's true
     env, states from its reset distribution; evaluate.py takes the network from the checkpoint."""

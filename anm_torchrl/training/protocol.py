@@ -296,6 +296,16 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
         interrupted = True
         log.warning("test evaluation interrupted (Ctrl-C): summary.json has no test figures")
 
+    # what a user gets, against no controller at all on the same validation states: a run that never beat doing
+    # nothing says so (its best.pt would be worse than leaving the grid alone)
+    from anm_torchrl.baselines import make_baseline
+
+    do_nothing = evaluate(make_baseline("do_nothing", sim=eval_env.sim), val_states, eval_env,
+                          int(cfg.eval.max_steps), float(cfg.eval.gamma))["discounted_return"]
+    if best is not None and best["discounted_return"] < do_nothing:
+        log.warning("best.pt is worse than doing nothing on the validation states (eval/discounted_return %.4g "
+                    "against do-nothing's %.4g): this policy should not control a grid", best["discounted_return"],
+                    do_nothing)
     unit_keys = {} if unit == "frames" else {"budget_unit": unit, unit: frames}
     summary = {"algorithm": algorithm_cls.name, "best_eval": best, "final_eval": last_eval,
                "frames": true_env_frames(), **unit_keys,
@@ -303,7 +313,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                "interrupted": interrupted, "wall_time": wall_before + time.perf_counter() - t_start,
                "run_dir": str(run_dir),
                "validation": {"seed": int(cfg.eval.seed), "num_episodes": int(cfg.eval.num_episodes),
-                              "max_steps": int(cfg.eval.max_steps), "gamma": float(cfg.eval.gamma)},
+                              "max_steps": int(cfg.eval.max_steps), "gamma": float(cfg.eval.gamma),
+                              "do_nothing_discounted_return": do_nothing},
                "test": test, "curve": curve, "track_seconds": track_s, "reward_scale": reward_scale,
                "network_defaults": network_defaults,
                "checkpoints": {name: str(ckpt_dir / f"{name}.pt") if (ckpt_dir / f"{name}.pt").is_file() else None
