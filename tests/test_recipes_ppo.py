@@ -235,6 +235,7 @@ def interrupt_run(run_dir: Path, marker: str, *args: str, env: dict | None = Non
     assert proc.returncode == 130, out[-3000:]
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["interrupted"] and 32 <= summary["frames"] < 1000000
+    assert summary["validation"]["do_nothing_discounted_return"] is None  # no extra pass after a Ctrl-C
 
     from anm_torchrl.training.checkpoint import load_checkpoint
 

@@ -297,12 +297,18 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
         log.warning("test evaluation interrupted (Ctrl-C): summary.json has no test figures")
 
     # what a user gets, against no controller at all on the same validation states: a run that never beat doing
-    # nothing says so (its best.pt would be worse than leaving the grid alone)
+    # nothing says so (its best.pt would be worse than leaving the grid alone). Not after a Ctrl-C: the user wants out
     from anm_torchrl.baselines import make_baseline
 
-    do_nothing = evaluate(make_baseline("do_nothing", sim=eval_env.sim), val_states, eval_env,
-                          int(cfg.eval.max_steps), float(cfg.eval.gamma))["discounted_return"]
-    if best is not None and best["discounted_return"] < do_nothing:
+    do_nothing = None
+    if not interrupted:
+        try:
+            do_nothing = evaluate(make_baseline("do_nothing", sim=eval_env.sim), val_states, eval_env,
+                                  int(cfg.eval.max_steps), float(cfg.eval.gamma))["discounted_return"]
+        except KeyboardInterrupt:
+            interrupted = True
+            log.warning("do-nothing's validation pass interrupted (Ctrl-C): summary.json has no do-nothing figure")
+    if best is not None and do_nothing is not None and best["discounted_return"] < do_nothing:
         log.warning("best.pt is worse than doing nothing on the validation states (eval/discounted_return %.4g "
                     "against do-nothing's %.4g): this policy should not control a grid", best["discounted_return"],
                     do_nothing)
