@@ -160,3 +160,22 @@ def test_training_refuses_a_network_with_nothing_to_control(tmp_path):
                               text=True, timeout=120)
         assert proc.returncode != 0 and "has no controllable device" in proc.stderr, proc.stderr[-2000:]
         assert "Traceback" not in proc.stderr and not (tmp_path / recipe / "checkpoints").exists()
+
+
+def test_training_refuses_an_action_whose_range_is_a_single_value(tmp_path):
+    """A valid network whose generator has no reactive range (QMAX = QMIN = 0): the policies' TanhNormal needs
+    low < high, so the training recipes stop with one line naming the device, not TorchRL's traceback."""
+    net, load_p, gen_p_max = feeder()
+    gen = next(i for i, d in enumerate(net["device"]) if d[2] not in (0, -1, 3))
+    device = list(net["device"][gen])
+    device[6] = device[7] = device[10] = device[11] = 0.0  # QMAX, QMIN, Q+, Q-
+    net = {**net, "device": [device if i == gen else d for i, d in enumerate(net["device"])]}
+    N.save_network(tmp_path / "flat_q.npz", net, load_p, gen_p_max)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
+    for recipe in ("ppo.py", "sac.py"):
+        proc = subprocess.run([sys.executable, str(ROOT / "recipes" / recipe), "network=flat_q.npz",
+                               f"hydra.run.dir={tmp_path / recipe}"], cwd=tmp_path, env=env, capture_output=True,
+                              text=True, timeout=120)
+        message = f"the action range of Q of device {int(device[0])} (0 MW/MVAr) is a single value"
+        assert proc.returncode != 0 and message in proc.stderr, proc.stderr[-2000:]
+        assert "Traceback" not in proc.stderr and not (tmp_path / recipe / "checkpoints").exists()

@@ -78,15 +78,26 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
 
 
 def check_controllable(network: str | NetworkCase) -> None:
-    """Refuse a network with nothing to control (the slack and loads only), before a controller is trained for it.
+    """Refuse a network a policy cannot be trained for, before a controller is trained for it: nothing to control
+    (the slack and loads only), or an action whose range is a single value (e.g. QMAX = QMIN: every trained policy's
+    bounded ``TanhNormal`` needs low < high, and TorchRL stops with a traceback otherwise).
 
     Raises:
         ValueError: naming the network and what it lacks (or :func:`simulator`'s error for an invalid one).
     """
-    if simulator(network).action_dim == 0:
-        name = network.name if isinstance(network, NetworkCase) else network
+    sim = simulator(network)
+    name = network.name if isinstance(network, NetworkCase) else network
+    if sim.action_dim == 0:
         raise ValueError(f"network {name!r} has no controllable device (a generator other than the slack, or a "
                          "storage unit): a policy would have no action to take")
+    low, high = sim.action_bounds()
+    ids = sim.net.dev[:, 0].long().tolist()
+    labels = [f"{q} of device {ids[i]}" for q, rows in (("P", sim.gen_idx), ("Q", sim.gen_idx), ("P", sim.des_idx),
+                                                      ("Q", sim.des_idx)) for i in rows.tolist()]
+    flat = [f"{labels[j]} ({low[j].item():g} MW/MVAr)" for j in (high <= low).nonzero().flatten().tolist()]
+    if flat:
+        raise ValueError(f"network {name!r}: the action range of {', '.join(flat)} is a single value; a trained "
+                         "policy needs low < high on every action (give the device a range, or make it a load)")
 
 
 @functools.lru_cache(maxsize=1)
