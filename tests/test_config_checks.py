@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 
 from anm_torchrl.training.checkpoint import (check_resume_config, load_actor, load_checkpoint, save_checkpoint,
                                              validate_checkpoint)
-from anm_torchrl.training.config_checks import check_evaluate_config, check_ppo_config
+from anm_torchrl.training.config_checks import check_evaluate_config, check_ppo_config, check_sac_config
 
 CONF = Path(__file__).resolve().parents[1] / "recipes" / "conf"
 torch.set_num_threads(1)
@@ -70,6 +70,15 @@ def test_ppo_config_ranges(override, message):
     with pytest.raises(ValueError) as err:
         check_ppo_config(ppo_config(*override.split()))
     assert message in str(err.value)
+
+
+def test_sac_takes_a_contextual_bandit_s_discount_of_zero():
+    """loss.gamma=0 (a network without storage: the critic a reward model, as PPO's and SHAC's 0) is a SAC setting;
+    below 0 is refused."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        check_sac_config(compose(config_name="sac", overrides=["loss.gamma=0"]))
+        with pytest.raises(ValueError, match=r"loss.gamma must be in \[0, 1\], got -0.1"):
+            check_sac_config(compose(config_name="sac", overrides=["loss.gamma=-0.1"]))
 
 
 @pytest.mark.parametrize("key, value, message", [

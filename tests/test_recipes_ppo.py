@@ -217,10 +217,11 @@ def test_resume_with_another_activation_fails(ppo_checkpoint, tmp_path):
     assert "model.activation: checkpoint 'tanh', this run 'relu'" in proc.stderr, proc.stderr[-2000:]
 
 
-def interrupt_run(run_dir: Path, marker: str, *args: str, env: dict | None = None) -> str:
-    """Run ``ppo.py`` (TINY, an endless budget, ``args``) into ``run_dir``, send SIGINT once a line of its output
-    holds ``marker``; check exit status 130, ``summary.json`` marked interrupted and ``last.pt`` at its frames;
-    returns the output."""
+def interrupt_run(run_dir: Path, marker: str, *args: str, env: dict | None = None, sig=signal.SIGINT,
+                  status: int = 130) -> str:
+    """Run ``ppo.py`` (TINY, an endless budget, ``args``) into ``run_dir``, send ``sig`` once a line of its output
+    holds ``marker``; check exit status ``status``, ``summary.json`` marked interrupted and ``last.pt`` at its
+    frames; returns the output."""
     proc = subprocess.Popen([sys.executable, str(PPO), *TINY, "collector.total_frames=1000000", "eval.patience=null",
                              *args, f"hydra.run.dir={run_dir}"], cwd=run_dir.parent, env=env or ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -228,11 +229,11 @@ def interrupt_run(run_dir: Path, marker: str, *args: str, env: dict | None = Non
     for line in proc.stdout:
         lines.append(line)
         if marker in line:
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(sig)
             break
     out, _ = proc.communicate(timeout=120)
     out = "".join(lines) + out
-    assert proc.returncode == 130, out[-3000:]
+    assert proc.returncode == status, out[-3000:]
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["interrupted"] and 32 <= summary["frames"] < 1000000
     assert summary["validation"]["do_nothing_discounted_return"] is None  # no extra pass after a Ctrl-C
@@ -248,6 +249,14 @@ def test_ctrl_c_ends_the_run_cleanly(tmp_path):
     run_dir = tmp_path / "interrupted"
     out = interrupt_run(run_dir, "update 1, 32 frames")
     assert f"run directory: {run_dir}" in out
+
+
+def test_sigterm_ends_the_run_as_ctrl_c_does(tmp_path):
+    """SIGTERM (``kill``, a scheduler's preemption) after the first evaluation: exit status 143 (128 + 15), last.pt
+    and summary.json marked interrupted, as after a Ctrl-C; before, the run died without its summary."""
+    run_dir = tmp_path / "terminated"
+    out = interrupt_run(run_dir, "update 1, 32 frames", sig=signal.SIGTERM, status=143)
+    assert "interrupted (Ctrl-C or SIGTERM) after" in out
 
 
 def test_resume_from_wrong_kind_fails_clearly(tmp_path):

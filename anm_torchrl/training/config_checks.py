@@ -225,7 +225,7 @@ def check_sac_config(cfg: Mapping) -> None:
     if batch > buffer:
         raise ValueError(f"replay.batch_size ({batch}) must be <= replay.size ({buffer})")
     _in_range(cfg, "replay.samples_per_frame", 0, math.inf, True, True)
-    _in_range(cfg, "loss.gamma", 0, 1, True, False)
+    _in_range(cfg, "loss.gamma", 0, 1, False, False)  # 0: a contextual bandit (no storage), the critic a reward model
     _in_range(cfg, "loss.tau", 0, 1, True, False)
     _number(cfg, "loss.alpha_init")
     if not _get(cfg, "loss.alpha_init") > 0:

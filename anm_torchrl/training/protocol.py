@@ -11,11 +11,13 @@ and update behind :class:`~anm_torchrl.training.algorithms.base.Algorithm`; ever
   (``eval.seed``) are evaluated every ``eval.interval`` iterations and choose ``best.pt`` and the early stop
   (``eval.patience``); the **test** states (``eval.test_seed``) are evaluated once at the end, for ``best.pt`` and
   ``last.pt`` (``test/*`` tags, ``summary.json["test"]``): every reported figure comes from them;
-* Ctrl-C: ``last.pt`` and ``summary.json`` (``"interrupted": true``) are written, then ``KeyboardInterrupt``.
+* Ctrl-C (or SIGTERM, under :func:`run_recipe`): ``last.pt`` and ``summary.json`` (``"interrupted": true``) are
+  written, then ``KeyboardInterrupt``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import logging
@@ -267,7 +269,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                 break
     except KeyboardInterrupt:
         interrupted = True
-        log.warning("interrupted (Ctrl-C) after %d frames: writing last.pt and summary.json", frames)
+        log.warning("interrupted (Ctrl-C or SIGTERM) after %d frames: writing last.pt and summary.json", frames)
         try:
             take_results(wait=True)  # the second process ignores the Ctrl-C: its pass finishes
         except (RuntimeError, KeyboardInterrupt) as err:
@@ -362,7 +364,7 @@ def run_recipe(cfg: DictConfig) -> dict:
     """The body of a training recipe under ``hydra.main`` (``recipes/ppo.py``, ``recipes/sac.py``): train into the
     Hydra run directory (the working directory, ``hydra.job.chdir``), printing it when the run starts and when it
     ends (finished, failed or interrupted). Ctrl-C exits with status 130 after ``summary.json`` is written with
-    ``"interrupted": true``.
+    ``"interrupted": true``; SIGTERM (a scheduler's preemption) likewise, with status 143.
 
     A config error (a value out of range, an unknown algorithm or network) exits with one line naming the key,
     before anything heavy is imported, and removes the run directory Hydra made for it (it holds only Hydra's own
@@ -399,9 +401,34 @@ def run_recipe(cfg: DictConfig) -> dict:
 
         check_controllable(cfg.network)
     print(f"run directory: {run_dir}", flush=True)
+    with sigterm_as_interrupt() as stop:
+        try:
+            return train(cfg, run_dir, network_defaults=defaults)
+        except KeyboardInterrupt:
+            raise SystemExit(143 if stop["signal"] == "SIGTERM" else 130) from None
+        finally:
+            print(f"run directory: {run_dir}", flush=True)
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Within: SIGTERM (``kill``, a scheduler's preemption or time limit) stops a run as Ctrl-C does, so it keeps
+    ``last.pt`` and writes ``summary.json``; yields ``{"signal": None | "SIGTERM"}``, set once one came. Outside the
+    main thread (where Python runs signal handlers) SIGTERM keeps its default."""
+    import signal
+    import threading
+
+    stop = {"signal": None}
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def on_sigterm(signum, frame):
+        stop["signal"] = "SIGTERM"
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
     try:
-        return train(cfg, run_dir, network_defaults=defaults)
-    except KeyboardInterrupt:
-        raise SystemExit(130) from None
+        yield stop
     finally:
-        print(f"run directory: {run_dir}", flush=True)
+        signal.signal(signal.SIGTERM, previous)
