@@ -162,6 +162,40 @@ def test_time_features_are_continuous_across_midnight():
         check_ppo_config(compose("config", ["model.time_features=yes"]))
 
 
+@pytest.mark.parametrize("network", ["case33bw", "anm6_easy"])
+def test_forecast_features_are_the_loads_and_potentials_the_next_steps_bring(network):
+    """``model.forecast_steps=k``: k x (n_load + n_gen) inputs more; made at a state, row j (scaled back to MW) is
+    the load P and the potentials the env's own steps then put into the state j steps later (a perfect forecast),
+    across the end of the profile too (ANM6-Easy's day wraps every 96 steps)."""
+    from anm_torchrl.training.factory import make_true_env
+
+    k = 3
+    env = make_true_env(2, seed=5, network=network)
+    sim = env.sim
+    _, critic, norm = make_ppo_models(env, forecast_steps=k)
+    _, _, plain = make_ppo_models(env)
+    m = sim.n_load + sim.n_gen
+    assert norm.out_features == plain.out_features + k * m
+    td = env.reset()
+    if network == "anm6_easy":  # start 2 steps before the wrap, so the forecast crosses it
+        state = td["state"].clone()
+        state[:, -1] = 94.0
+        from anm_torchrl.evaluation import reset_to
+
+        td = reset_to(env, state)
+    rows = norm.forecast(td["observation"]).reshape(2, k, m) * norm.forecast.scale * sim.net.base_mva
+    sl, b = sim.state_slices(), sim.net.base_mva
+    dn = DoNothingPolicy(sim)
+    for j in range(k):
+        td = env.step(dn(td))["next"]
+        state = td["state"]
+        seen = torch.cat([state[:, sl["dev_p"].start + sim.load_idx], state[:, sl["gen_p_max"]]], -1)
+        assert torch.allclose(rows[:, j].double(), seen, atol=1e-5 * b), (j, rows[:, j], seen)
+    assert critic(td)["state_value"].shape == (2, 1)
+    with pytest.raises(ValueError, match="model.forecast_steps must be an integer >= 0, got -1"):
+        check_ppo_config(compose("config", ["model.forecast_steps=-1"]))
+
+
 def test_state_dependent_scale_is_a_head_of_the_actor():
     """``model.state_dependent_scale``: the actor's MLP also outputs the scale (softplus), equal to
     exp(init_log_std) for the untrained policy up to its small last layer, different between observations; off by

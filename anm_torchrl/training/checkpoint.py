@@ -219,9 +219,9 @@ def check_resume_config(saved: dict, config: dict, source: str = "checkpoint") -
         return cfg
 
     changed = config_diff(saved, config)
-    # an architecture flag added after the checkpoint was written (absent there) was off when it was
+    # an architecture flag or count added after the checkpoint was written (absent there) was off (0) when it was
     arch = [k for k in changed if k in get_algorithm(saved["algorithm"]).architecture_keys
-            and not (value(saved, k) is None and value(config, k) is False)]
+            and not (value(saved, k) is None and value(config, k) in (False, 0))]
     if arch:
         details = "; ".join(f"{k}: checkpoint {value(saved, k)!r}, this run {value(config, k)!r}" for k in arch)
         raise ValueError(f"cannot resume from {source}: its networks were built with another architecture "

@@ -152,6 +152,7 @@ def _check_model(cfg: Mapping) -> None:
     _choice(cfg, "model.init_action", ("center", "do_nothing"))
     _in_range(cfg, "model.init_action_clip", 0, 1, True, True)
     _choice(cfg, "model.time_features", (False, True))
+    _int(cfg, "model.forecast_steps", low=0)
 
 
 def _check_collector(cfg: Mapping) -> int:

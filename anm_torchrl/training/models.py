@@ -36,7 +36,7 @@ class ObservationNormalizer(nn.Module):
     """
 
     def __init__(self, loc: torch.Tensor, scale: torch.Tensor, clip: float = 5.0,
-                 time_of_day: tuple[int, int] | None = None):
+                 time_of_day: tuple[int, int] | None = None, forecast: ProfileForecast | None = None):
         super().__init__()
         loc, scale = torch.as_tensor(loc, dtype=torch.float32), torch.as_tensor(scale, dtype=torch.float32)
         if loc.shape != scale.shape or loc.ndim != 1:
@@ -50,16 +50,21 @@ class ObservationNormalizer(nn.Module):
         if time_of_day is not None and not (0 <= int(time_of_day[0]) < loc.shape[0] and int(time_of_day[1]) >= 2):
             raise ValueError(f"time_of_day must be (index < {loc.shape[0]}, period >= 2), got {time_of_day}")
         self.time_of_day = None if time_of_day is None else (int(time_of_day[0]), int(time_of_day[1]))
-        self.out_features = int(loc.shape[0]) + (2 if time_of_day is not None else 0)
+        self.forecast = forecast
+        self.out_features = (int(loc.shape[0]) + (2 if time_of_day is not None else 0)
+                             + (forecast.out_features if forecast is not None else 0))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         z = ((x - self.loc) / self.scale).clamp(-self.clip, self.clip)
-        if self.time_of_day is None:
-            return z
-        index, period = self.time_of_day
-        # the time index wraps (95 -> 0 on ANM6-Easy): as a number, midnight is the farthest apart two steps can be
-        phase = (2 * math.pi / period) * torch.remainder(x[..., index], period)
-        return torch.cat([z, torch.sin(phase)[..., None], torch.cos(phase)[..., None]], -1)
+        parts = [z]
+        if self.time_of_day is not None:
+            index, period = self.time_of_day
+            # the time index wraps (95 -> 0 on ANM6-Easy): as a number, midnight is the farthest apart two steps are
+            phase = (2 * math.pi / period) * torch.remainder(x[..., index], period)
+            parts += [torch.sin(phase)[..., None], torch.cos(phase)[..., None]]
+        if self.forecast is not None:
+            parts.append(self.forecast(x))
+        return parts[0] if len(parts) == 1 else torch.cat(parts, -1)
 
     def stats(self) -> dict[str, torch.Tensor]:
         """``{"loc", "scale"}`` copies (for checkpoints)."""
@@ -167,7 +172,51 @@ def time_of_day_feature(env: EnvBase) -> tuple[int, int]:
     raise ValueError("model.time_features needs the time index ('aux') in the observation")
 
 
-def _specs(env: EnvBase, obs_key: str, activation: str, max_obs_scale, obs_clip, obs_stats, time_features=False):
+class ProfileForecast(nn.Module):
+    """The next ``steps`` steps of every load's P and every generator's potential, read from the network's profiles
+    at the observation's time index: a **perfect forecast** (what MPC-perfect and the optimum see), which a
+    controller in the field does not have. Opt-in (``model.forecast_steps``); never in a default.
+
+    ``table`` (T, n_load + n_gen) holds the profiles as the simulator applies them (clipped to the devices' limits,
+    p.u.), each column divided by its largest magnitude over T (``scale``, p.u.), so entries lie in [-1, 1]. It is rebuilt from the
+    env's simulator whenever the model is (a non-persistent buffer: checkpoints stay small, and a saved policy is
+    loaded with its network's env).
+    """
+
+    def __init__(self, table: torch.Tensor, aux_index: int, steps: int):
+        """``table`` (T, m) p.u. as the simulator applies it; ``aux_index`` the observation's time index entry."""
+        super().__init__()
+        if table.ndim != 2 or table.shape[0] < 1 or not torch.isfinite(table).all():
+            raise ValueError(f"the forecast table must be a finite (T, m) tensor, got shape {tuple(table.shape)}")
+        if int(steps) < 1:
+            raise ValueError(f"forecast steps must be >= 1, got {steps}")
+        peak = table.abs().amax(0)
+        self.register_buffer("scale", torch.where(peak > 0, peak, torch.ones_like(peak)).float(), persistent=False)
+        self.register_buffer("table", (table / self.scale.to(table)).float(), persistent=False)
+        self.register_buffer("offsets", torch.arange(1, int(steps) + 1), persistent=False)
+        self.aux_index, self.steps = int(aux_index), int(steps)
+        self.out_features = int(steps) * int(table.shape[1])
+
+    @classmethod
+    def from_env(cls, env: EnvBase, steps: int) -> ProfileForecast:
+        """The forecast of ``env``'s simulator (``env.sim``: its load and potential series, the observation's time
+        index ``aux``, as :func:`time_of_day_feature` finds it)."""
+        aux_index, _ = time_of_day_feature(env)
+        sim = _base_env(env).sim
+        t = torch.arange(sim.n_time, device=sim.net.dev.device)
+        return cls(torch.cat([sim.loads_at(t)[0], sim.p_pot_at(t)], -1).double().cpu(), aux_index, steps)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(..., obs_dim) observation -> (..., steps x m): rows t+1..t+steps (mod T) of the table, t = its time
+        index (gym-anm's next state reads row t+1)."""
+        n = self.table.shape[0]
+        t = torch.remainder(x[..., self.aux_index].round().long(), n)
+        rows = self.table[torch.remainder(t[..., None] + self.offsets, n)]
+        return rows.flatten(-2)
+
+
+def _specs(env: EnvBase, obs_key: str, activation: str, max_obs_scale, obs_clip, obs_stats, time_features=False,
+           forecast_steps: int = 0):
     """(obs spec, action spec, normaliser) of ``env``, after checking ``activation``."""
     if activation not in ACTIVATIONS:
         raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
@@ -180,15 +229,16 @@ def _specs(env: EnvBase, obs_key: str, activation: str, max_obs_scale, obs_clip,
         loc, scale = observation_stats(obs_spec, max_obs_scale)
     else:
         loc, scale = obs_stats["loc"], obs_stats["scale"]
+    forecast = ProfileForecast.from_env(env, forecast_steps) if forecast_steps else None
     return obs_spec, act_spec, ObservationNormalizer(loc, scale, obs_clip,
-                                                     time_of_day_feature(env) if time_features else None)
+                                                     time_of_day_feature(env) if time_features else None, forecast)
 
 
 def make_actor(env: EnvBase, cells=(64, 64), activation: str = "tanh", max_obs_scale: float | None = 50.0,
                obs_clip: float = 5.0, init_log_std: float = -2.0, obs_stats: dict[str, torch.Tensor] | None = None,
                obs_key: str = "observation", init_action: torch.Tensor | str | None = None,
                init_action_clip: float = 0.98, state_dependent_scale: bool = False,
-               critic_cells=None, time_features: bool = False,
+               critic_cells=None, time_features: bool = False, forecast_steps: int = 0,
                ) -> tuple[ProbabilisticActor, ObservationNormalizer, nn.Module | None]:
     """The bounded ``TanhNormal`` actor of every algorithm, and its observation normaliser.
 
@@ -214,6 +264,8 @@ def make_actor(env: EnvBase, cells=(64, 64), activation: str = "tanh", max_obs_s
             actor's MLP and before either is initialised (the order of random draws every PPO run has used).
         time_features: also feed sin/cos of the time of day (:func:`time_of_day_feature`) to every network: two
             inputs more, continuous across midnight. Reads the observation only (no forecast).
+        forecast_steps: also feed the next ``forecast_steps`` steps of the network's loads and potentials
+            (:class:`ProfileForecast`, a perfect forecast; needs ``env.sim``); 0: none.
 
     Returns:
         ``ProbabilisticActor`` writing ``"action"`` (…, A) within the action box (a ``TanhNormal`` scaled to
@@ -222,7 +274,7 @@ def make_actor(env: EnvBase, cells=(64, 64), activation: str = "tanh", max_obs_s
     """
     init_action = _initial_action(env, init_action)
     obs_spec, act_spec, normalizer = _specs(env, obs_key, activation, max_obs_scale, obs_clip, obs_stats,
-                                            time_features)
+                                            time_features, int(forecast_steps))
     obs_dim, act_dim = normalizer.out_features, int(act_spec.shape[-1])
     mlp = _mlp(obs_dim, act_dim * (2 if state_dependent_scale else 1), cells, activation)
     value_mlp = None if critic_cells is None else _mlp(obs_dim, 1, critic_cells, activation)
@@ -254,7 +306,7 @@ def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), a
                     max_obs_scale: float | None = 50.0, obs_clip: float = 5.0, init_log_std: float = -2.0,
                     obs_stats: dict[str, torch.Tensor] | None = None, obs_key: str = "observation",
                     init_action: torch.Tensor | str | None = None, init_action_clip: float = 0.98,
-                    time_features: bool = False, state_dependent_scale: bool = False,
+                    time_features: bool = False, state_dependent_scale: bool = False, forecast_steps: int = 0,
                     ) -> tuple[ProbabilisticActor, ValueOperator, ObservationNormalizer]:
     """PPO's actor (:func:`make_actor`, state-independent scale unless ``state_dependent_scale``), its value network
     (``"state_value"``, separate weights as SB3's MlpPolicy, the same normaliser) and the normaliser. Arguments as
@@ -262,7 +314,8 @@ def make_ppo_models(env: EnvBase, actor_cells=(64, 64), critic_cells=(64, 64), a
     actor, normalizer, value_mlp = make_actor(env, actor_cells, activation, max_obs_scale, obs_clip, init_log_std,
                                               obs_stats, obs_key, init_action, init_action_clip,
                                               critic_cells=critic_cells, time_features=time_features,
-                                              state_dependent_scale=state_dependent_scale)
+                                              state_dependent_scale=state_dependent_scale,
+                                              forecast_steps=forecast_steps)
     critic = ValueOperator(nn.Sequential(normalizer, value_mlp), in_keys=[obs_key])
     return actor, critic, normalizer
 
@@ -284,14 +337,14 @@ def make_sac_models(env: EnvBase, actor_cells=(256, 256), critic_cells=(256, 256
                     max_obs_scale: float | None = 50.0, obs_clip: float = 5.0, init_log_std: float = -1.0,
                     obs_stats: dict[str, torch.Tensor] | None = None, obs_key: str = "observation",
                     init_action: torch.Tensor | str | None = None, init_action_clip: float = 0.98,
-                    time_features: bool = False,
+                    time_features: bool = False, forecast_steps: int = 0,
                     ) -> tuple[ProbabilisticActor, ValueOperator, ObservationNormalizer]:
     """SAC's actor (:func:`make_actor`, state-dependent scale), one Q network template (``"state_action_value"``
     from the normalised observation and the action scaled to [-1, 1]; ``SACLoss`` makes its twins) and the
     normaliser. Arguments as :func:`make_actor`."""
     actor, normalizer, _ = make_actor(env, actor_cells, activation, max_obs_scale, obs_clip, init_log_std, obs_stats,
                                       obs_key, init_action, init_action_clip, state_dependent_scale=True,
-                                      time_features=time_features)
+                                      time_features=time_features, forecast_steps=forecast_steps)
     act_spec = _unbatched(env.full_action_spec, "action")
     low, high = act_spec.space.low.float(), act_spec.space.high.float()
     obs_dim, act_dim = normalizer.out_features, int(low.shape[-1])

@@ -105,7 +105,7 @@ class PPO(Algorithm):
 
     name = "ppo"
     architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip",
-                         "model.time_features", "model.state_dependent_scale")
+                         "model.time_features", "model.state_dependent_scale", "model.forecast_steps")
 
     def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
                  resume: Mapping[str, Any] | None):

@@ -55,7 +55,7 @@ class SAC(Algorithm):
 
     name = "sac"
     architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip",
-                         "model.time_features")
+                         "model.time_features", "model.forecast_steps")
 
     def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
                  resume: Mapping[str, Any] | None):
