@@ -178,9 +178,9 @@ class ProfileForecast(nn.Module):
     controller in the field does not have. Opt-in (``model.forecast_steps``); never in a default.
 
     ``table`` (T, n_load + n_gen) holds the profiles as the simulator applies them (clipped to the devices' limits,
-    p.u.), each column divided by its largest magnitude over T (``scale``, p.u.), so entries lie in [-1, 1]. It is rebuilt from the
-    env's simulator whenever the model is (a non-persistent buffer: checkpoints stay small, and a saved policy is
-    loaded with its network's env).
+    p.u.), each column divided by its largest magnitude over T (``scale``, p.u.), so entries lie in [-1, 1]. It is
+    rebuilt from the env's simulator whenever the model is (a non-persistent buffer: checkpoints stay small, and a
+    saved policy is loaded with its network's env).
     """
 
     def __init__(self, table: torch.Tensor, aux_index: int, steps: int):
