@@ -191,7 +191,7 @@ def check_ppo_config(cfg: Mapping) -> None:
     _in_range(cfg, "loss.gae_lambda", 0, 1, False, False)
     _in_range(cfg, "loss.clip_epsilon", 0, math.inf, True, True)
     _int(cfg, "loss.ppo_epochs")
-    _bool(cfg, "loss.gae_every_epoch", "loss.compile")
+    _bool(cfg, "loss.gae_every_epoch", "loss.compile", "loss.return_norm")
     mini = _int(cfg, "loss.mini_batch_size")
     if mini > fpb:
         raise ValueError(f"loss.mini_batch_size ({mini}) must be <= collector.frames_per_batch ({fpb})")

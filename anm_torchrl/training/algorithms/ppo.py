@@ -138,10 +138,17 @@ class PPO(Algorithm):
         self._loss = torch.compile(self.loss_module, dynamic=False) if cfg.loss.compile else self.loss_module
         self.optim = torch.optim.Adam(self.loss_module.parameters(), lr=cfg.optim.lr, eps=cfg.optim.eps,
                                       weight_decay=cfg.optim.weight_decay)
+        self.return_norm = None
+        if cfg.loss.get("return_norm", False):
+            from anm_torchrl.training.return_norm import ReturnNormalizer
+
+            self.return_norm = ReturnNormalizer(float(cfg.loss.gamma))
         if resume:
             self.actor.load_state_dict(resume["actor"])
             self.critic.load_state_dict(resume["state"]["critic"])
             self.optim.load_state_dict(resume["state"]["optimizer"])
+            if self.return_norm is not None and resume["state"].get("return_norm") is not None:
+                self.return_norm.load_state_dict(resume["state"]["return_norm"])
         self.total_frames = int(cfg.collector.total_frames)
         self.frames = int(resume["frames"]) if resume else 0
         self.collector = make_collector(cfg, self.actor, device, seed, budget, env=spec_env)
@@ -159,6 +166,9 @@ class PPO(Algorithm):
         metrics = {**episode_metrics(kept), "train/action_scale": kept["scale"].mean()}
         if self.reward_scale != 1.0:
             data.set(("next", "reward"), data.get(("next", "reward")) * self.reward_scale)
+        if self.return_norm is not None:  # after the fixed scale, which it then only sets the start of
+            data.set(("next", "reward"), self.return_norm(data.get(("next", "reward")), data.get(("next", "done"))))
+            metrics["train/return_std"] = self.return_norm.var ** 0.5
 
         # GAE recomputed before every epoch (on the whole batch: its bootstrap needs every step), minibatches
         # without replacement over the kept frames
@@ -198,7 +208,8 @@ class PPO(Algorithm):
         return n_frames, metrics
 
     def state_dict(self) -> dict[str, Any]:
-        return {"critic": self.critic.state_dict(), "optimizer": self.optim.state_dict()}
+        return {"critic": self.critic.state_dict(), "optimizer": self.optim.state_dict(),
+                "return_norm": None if self.return_norm is None else self.return_norm.state_dict()}
 
     def close(self, interrupted: bool = False) -> None:
         if self.collector is None:
