@@ -53,7 +53,7 @@ def test_default_configs_pass():
     ("optim.lr=0", "optim.lr must be in (0, inf), got 0"),
     ("optim.max_grad_norm=-1", "optim.max_grad_norm must be in (0, inf) or null, got -1"),
     ("collector.max_minutes=0", "collector.max_minutes must be in (0, inf) or null, got 0"),
-    ("model.activation=gelu", "model.activation must be one of elu, leaky_relu, relu, silu, tanh; got 'gelu'"),
+    ("model.activation=gelu", "model.activation must be one of elu, leaky_relu, relu, silu, tanh, tanh_sigmoid; got 'gelu'"),
     ("model.actor_cells=[64,0]", "model.actor_cells must be a list of positive layer widths"),
     ("logger.backend=foo", "logger.backend must be one of tensorboard, csv, wandb, mlflow, null; got 'foo'"),
     ("loss.gae_every_epoch=1", "loss.gae_every_epoch must be true or false, got 1"),

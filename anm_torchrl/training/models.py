@@ -26,7 +26,33 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 
-ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU, "leaky_relu": nn.LeakyReLU, "silu": nn.SiLU}
+class _SigmoidTanh(torch.autograd.Function):
+    """tanh(x) as 2 sigmoid(2x) - 1 (equal to round-off, ~1e-7), backward (1 - y^2) from the output alone."""
+
+    @staticmethod
+    def forward(ctx, x):
+        y = torch.sigmoid(2 * x).mul_(2).sub_(1)
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad):
+        (y,) = ctx.saved_tensors
+        return torch.ops.aten.tanh_backward(grad, y)  # the fused kernel nn.Tanh uses: grad (1 - y^2)
+
+
+class SigmoidTanh(nn.Module):
+    """``model.activation=tanh_sigmoid``: tanh through the sigmoid, opt-in for speed. On this 2-core Xeon's torch
+    2.13 CPU build ``torch.tanh`` of a (16384, 64) float32 batch takes 3.0 ms, ``torch.sigmoid`` 0.42 ms and a
+    64 x 64 matmul 1.5 ms; ``nn.Tanh`` was a fifth of PPO's loop (py-spy). Not the default: its round-off differs
+    from ``torch.tanh``'s, so the recorded runs would not repeat to the last digit."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return _SigmoidTanh.apply(x)
+
+
+ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU, "leaky_relu": nn.LeakyReLU, "silu": nn.SiLU,
+               "tanh_sigmoid": SigmoidTanh}
 
 
 class ObservationNormalizer(nn.Module):
