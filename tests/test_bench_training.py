@@ -22,6 +22,7 @@ def test_compare_measures_every_row_twice_in_one_run():
     assert record["rows"][0]["env_fps"] == record["rows"][1]["env_fps"]
     text = training.markdown(record)
     assert "rows marked `compare` add loss.ppo_epochs=1" in text
+    assert record["machine"]["cpu"] and record["machine"]["cpu"] in text  # a rate says on what machine
     assert "| ppo | 8 | base |" in text and "| ppo | 8 | compare |" in text
 
 

@@ -129,16 +129,19 @@ def measure(network: str = "anm6_easy", batch_sizes=(256, 1024, 4096), algorithm
                              "loop_over_env_cpu": row["loop_cpu_fps"] / env["cpu_fps"]})
     import os
 
+    from anm_torchrl.provenance import machine_info
+
     return {"network": network, "steps_per_env": STEPS, "threads": 1, "iterations": iterations,
             "overrides": list(overrides), "compare": list(compare), "load_avg_1min": os.getloadavg()[0],
-            "torch": torch.__version__, "rows": rows}
+            "torch": torch.__version__, "machine": machine_info(), "rows": rows}
 
 
 def markdown(record: dict) -> str:
     """The table of :func:`measure`'s record."""
     compare = record.get("compare")
+    cpu = (record.get("machine") or {}).get("cpu")  # records before 2026-12-06 do not name their CPU
     lines = [f"Training loop throughput on {record['network']} ({record['steps_per_env']} steps per env per "
-             f"iteration, 1 thread, load {record['load_avg_1min']:.1f}"
+             f"iteration, 1 thread, load {record['load_avg_1min']:.1f}" + (f", {cpu}" if cpu else "")
              + (f"; overrides: {' '.join(record['overrides'])}" if record.get("overrides") else "")
              + (f"; rows marked `compare` add {' '.join(compare)}" if compare else "")
              + "); frames/s of wall time (CPU time)" + ("; warm-up: the first iteration's seconds" if compare else ""),
