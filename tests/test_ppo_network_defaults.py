@@ -162,13 +162,21 @@ def test_time_features_are_continuous_across_midnight():
         check_ppo_config(compose("config", ["model.time_features=yes"]))
 
 
-@pytest.mark.parametrize("network", ["case33bw", "anm6_easy"])
-def test_forecast_features_are_the_loads_and_potentials_the_next_steps_bring(network):
+@pytest.mark.parametrize("network", ["case33bw", "anm6_easy", "random"])
+def test_forecast_features_are_the_loads_and_potentials_the_next_steps_bring(network, tmp_path):
     """``model.forecast_steps=k``: k x (n_load + n_gen) inputs more; made at a state, row j (scaled back to MW) is
     the load P and the potentials the env's own steps then put into the state j steps later (a perfect forecast),
-    across the end of the profile too (ANM6-Easy's day wraps every 96 steps)."""
+    across the end of the profile too (ANM6-Easy's day wraps every 96 steps); also on a generated network saved as a
+    user's file."""
     from anm_torchrl.training.factory import make_true_env
 
+    if network == "random":
+        from anm_torchrl.networks.random import generate
+        from anm_torchrl.networks.user import save_network
+
+        case = generate(5151, n_bus=12)
+        network = str(tmp_path / "random5151.npz")
+        save_network(network, case.network, case.load_p, case.gen_p_max)
     k = 3
     env = make_true_env(2, seed=5, network=network)
     sim = env.sim

@@ -177,10 +177,11 @@ def _orthogonal_init(mlp: nn.Module, last_gain: float) -> nn.Module:
     return mlp
 
 
-def time_of_day_feature(env: EnvBase) -> tuple[int, int]:
+def time_of_day_feature(env: EnvBase, key: str = "model.time_features") -> tuple[int, int]:
     """``(index, period)`` of the time-of-day input of ``env``'s observation: the position of its ``aux`` entry
     (gym-anm's time index: ANM6-Easy's 0..95, a feeder's row of its load/generation tables) and the steps per day
-    ``24 / delta_t`` (96 at 15-min steps); the time of day is ``aux mod period``.
+    ``24 / delta_t`` (96 at 15-min steps); the time of day is ``aux mod period``. ``key``: the config key that
+    asked for it, named in the errors.
 
     Raises:
         ValueError: the observation has no ``aux`` entry, or the env has no observation map.
@@ -188,14 +189,14 @@ def time_of_day_feature(env: EnvBase) -> tuple[int, int]:
     base = _base_env(env)
     obs_map = getattr(base, "obs_map", None)
     if obs_map is None:
-        raise ValueError(f"model.time_features needs an env with an observation map (.obs_map), got "
+        raise ValueError(f"{key} needs an env with an observation map (.obs_map), got "
                          f"{type(base).__name__}")
     offset = 0
     for key, rows, _ in obs_map.entries:
         if key == "aux":
             return offset, int(round(24 / float(base.sim.net.delta_t)))
         offset += int(rows.numel())
-    raise ValueError("model.time_features needs the time index ('aux') in the observation")
+    raise ValueError(f"{key} needs the time index ('aux') in the observation")
 
 
 class ProfileForecast(nn.Module):
@@ -220,14 +221,14 @@ class ProfileForecast(nn.Module):
         self.register_buffer("scale", torch.where(peak > 0, peak, torch.ones_like(peak)).float(), persistent=False)
         self.register_buffer("table", (table / self.scale.to(table)).float(), persistent=False)
         self.register_buffer("offsets", torch.arange(1, int(steps) + 1), persistent=False)
-        self.aux_index, self.steps = int(aux_index), int(steps)
+        self.aux_index = int(aux_index)
         self.out_features = int(steps) * int(table.shape[1])
 
     @classmethod
     def from_env(cls, env: EnvBase, steps: int) -> ProfileForecast:
         """The forecast of ``env``'s simulator (``env.sim``: its load and potential series, the observation's time
         index ``aux``, as :func:`time_of_day_feature` finds it)."""
-        aux_index, _ = time_of_day_feature(env)
+        aux_index, _ = time_of_day_feature(env, "model.forecast_steps")
         sim = _base_env(env).sim
         t = torch.arange(sim.n_time, device=sim.net.dev.device)
         return cls(torch.cat([sim.loads_at(t)[0], sim.p_pot_at(t)], -1).double().cpu(), aux_index, steps)

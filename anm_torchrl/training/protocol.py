@@ -109,10 +109,11 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     seed = int(cfg.seed) + update  # a resumed run does not replay the first run's random streams
     torch.manual_seed(seed)
     total_frames = int(cfg.collector.total_frames)
-    if int(cfg.model.get("forecast_steps", 0) or 0):
+    forecast_steps = int(cfg.model.get("forecast_steps", 0) or 0)
+    if forecast_steps:
         log.warning("model.forecast_steps=%d: the policy reads the next %d steps of the network's loads and potentials "
                     "from its profiles, a perfect forecast a controller in the field does not have (as MPC-perfect)",
-                    int(cfg.model.forecast_steps), int(cfg.model.forecast_steps))
+                    forecast_steps, forecast_steps)
 
     # ---- evaluation states: the network's true simulator, from its reset distribution -----------------------------
     eval_env = make_true_env(int(cfg.eval.num_episodes), device, seed=int(cfg.eval.seed), network=cfg.network)

@@ -14,8 +14,8 @@ import torch
 
 
 class ReturnNormalizer:
-    """Running mean/variance (Chan et al.'s parallel update, as SB3's ``RunningMeanStd``) of per-env discounted
-    returns, and the rewards divided by their standard deviation.
+    """Per-env discounted returns, their running mean and variance (Gymnasium's ``RunningMeanStd``, the statistics
+    its ``NormalizeReward`` keeps), and the rewards divided by their standard deviation.
 
     Args:
         gamma: the training objective's discount.
@@ -23,11 +23,18 @@ class ReturnNormalizer:
     """
 
     def __init__(self, gamma: float, eps: float = 1e-8):
+        from gymnasium.wrappers.utils import RunningMeanStd
+
         if not 0 <= float(gamma) <= 1:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
         self.gamma, self.eps = float(gamma), float(eps)
         self.ret: torch.Tensor | None = None  # (..., 1): each env's return so far, carried across batches
-        self.count, self.mean, self.var = 1e-4, 0.0, 1.0
+        self.stats = RunningMeanStd(shape=())
+
+    @property
+    def var(self) -> float:
+        """The running variance of the returns."""
+        return float(self.stats.var)
 
     def __call__(self, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
         """``reward`` / std of the running returns, after updating them with this batch.
@@ -47,20 +54,13 @@ class ReturnNormalizer:
             self.ret = self.gamma * self.ret + reward[..., t, :].double()
             returns.append(self.ret)
             self.ret = torch.where(done[..., t, :], torch.zeros_like(self.ret), self.ret)
-        batch = torch.stack(returns, -2)
-        n = batch.numel()
-        b_mean, b_var = float(batch.mean()), float(batch.var(unbiased=False))
-        total = self.count + n
-        delta = b_mean - self.mean
-        self.mean += delta * n / total
-        self.var = (self.var * self.count + b_var * n + delta ** 2 * self.count * n / total) / total
-        self.count = total
+        self.stats.update(torch.stack(returns, -2).reshape(-1).cpu().numpy())
         return (reward / (self.var + self.eps) ** 0.5).to(reward.dtype)
 
     def state_dict(self) -> dict:
-        return {"count": self.count, "mean": self.mean, "var": self.var,
+        return {"count": float(self.stats.count), "mean": float(self.stats.mean), "var": self.var,
                 "ret": None if self.ret is None else self.ret.clone()}
 
     def load_state_dict(self, state: dict) -> None:
-        self.count, self.mean, self.var = float(state["count"]), float(state["mean"]), float(state["var"])
+        self.stats.count, self.stats.mean, self.stats.var = (float(state[k]) for k in ("count", "mean", "var"))
         self.ret = None if state["ret"] is None else state["ret"].clone()
