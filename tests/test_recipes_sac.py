@@ -123,3 +123,39 @@ def test_the_target_entropy_is_per_dimension_of_the_box_scaled_to_unit_half_widt
     empty = Bounded(low=torch.tensor([0.0, 1.0]), high=torch.tensor([2.0, 1.0]), shape=(2,))
     with pytest.raises(ValueError, match=r"dimension\(s\) \[1\] have half-width \[0.0\]"):
         box_target_entropy(empty, default)
+
+
+def test_the_actor_and_temperature_wait_for_optim_actor_delay_frames():
+    """Until ``optim.actor_delay_frames`` frames are collected only the Q networks step (the actor keeps its
+    do-nothing start and the temperature its initial value); the first batch past it steps all three."""
+    import torch
+    from recipe_utils import compose
+
+    from anm_torchrl.training.algorithms import get_algorithm
+
+    cfg = compose("sac", ["network=case33bw", "env.num_envs=4", "collector.frames_per_batch=32",
+                          "collector.init_random_frames=0", "replay.batch_size=16", "model.actor_cells=[16]",
+                          "model.critic_cells=[16]", "optim.actor_delay_frames=64"])
+    algo = get_algorithm("sac")(cfg, device=torch.device("cpu"), seed=0, budget=96, reward_scale=1.0, resume=None)
+
+    def snapshot():
+        q = algo.loss_module.qvalue_network_params.flatten_keys()
+        return ([p.detach().clone() for p in algo.actor.parameters()], [p.detach().clone() for p in q.values()],
+                algo.loss_module.log_alpha.detach().clone())
+
+    def same(a, b):
+        return all(torch.equal(x, y) for x, y in zip(a, b))
+
+    try:
+        actor0, q0, alpha0 = snapshot()
+        for remaining in (96, 64):  # 32 and 64 frames collected: not past the delay
+            algo.iterate(remaining)
+        actor1, q1, alpha1 = snapshot()
+        assert same(actor0, actor1) and torch.equal(alpha0, alpha1)
+        assert not same(q0, q1)
+        algo.iterate(32)  # 96 frames: past it
+        actor2, _, alpha2 = snapshot()
+        assert not same(actor1, actor2) and not torch.equal(alpha1, alpha2)
+    finally:
+        algo.close()
+

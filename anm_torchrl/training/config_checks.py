@@ -234,6 +234,7 @@ def check_sac_config(cfg: Mapping) -> None:
     _number(cfg, "loss.target_entropy_per_dim")
     _choice(cfg, "loss.loss_function", ("l2", "l1", "smooth_l1"))
     _check_adam(cfg)
+    _int(cfg, "optim.actor_delay_frames", low=0)
 
 
 def check_make_dataset_config(cfg: Mapping) -> None:

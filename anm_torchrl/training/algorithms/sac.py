@@ -93,6 +93,8 @@ class SAC(Algorithm):
                                              batch_size=int(cfg.replay.batch_size))
         frames_per_batch = int(cfg.collector.frames_per_batch)
         resumed = int(resume["frames"]) if resume else 0
+        self.frames = resumed  # collected so far: the actor's delay counts these
+        self.actor_delay = int(cfg.optim.get("actor_delay_frames", 0) or 0)
         self.collector = None
         if budget > 0:
             self.collector = Collector(
@@ -110,6 +112,10 @@ class SAC(Algorithm):
         keep = budget_mask(data.batch_size, remaining)
         kept = (data if keep is None else data[keep]).reshape(-1)
         n_frames = kept.numel()
+        self.frames += n_frames
+        # before optim.actor_delay_frames, the Q networks learn the initial policy's values alone: an actor that
+        # follows an untrained critic leaves its (do-nothing) start within a few steps (sac_validation.json)
+        critic_only = self.frames <= self.actor_delay
         metrics = episode_metrics(kept)
         if self.reward_scale != 1.0:
             kept.set(("next", "reward"), kept.get(("next", "reward")) * self.reward_scale)
@@ -123,12 +129,14 @@ class SAC(Algorithm):
         for _ in range(n_updates):
             batch = self.buffer.sample()
             loss = self.loss_module(batch)
+            optims = [self.optims["qvalue"]] if critic_only else list(self.optims.values())
             for optim in self.optims.values():
                 optim.zero_grad(set_to_none=True)
-            (loss["loss_qvalue"] + loss["loss_actor"] + loss["loss_alpha"]).backward()
+            (loss["loss_qvalue"] if critic_only else loss["loss_qvalue"] + loss["loss_actor"] + loss["loss_alpha"]
+             ).backward()
             grad_norm = (torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), cfg.optim.max_grad_norm)
                          if cfg.optim.max_grad_norm else torch.zeros(()))
-            for optim in self.optims.values():
+            for optim in optims:
                 optim.step()
             self.target_updater.step()
             losses.append(loss.select("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy",
