@@ -11,13 +11,13 @@ and update behind :class:`~anm_torchrl.training.algorithms.base.Algorithm`; ever
   (``eval.seed``) are evaluated every ``eval.interval`` iterations and choose ``best.pt`` and the early stop
   (``eval.patience``); the **test** states (``eval.test_seed``) are evaluated once at the end, for ``best.pt`` and
   ``last.pt`` (``test/*`` tags, ``summary.json["test"]``): every reported figure comes from them;
-* Ctrl-C (or SIGTERM, under :func:`run_recipe`): ``last.pt`` and ``summary.json`` (``"interrupted": true``) are
-  written, then ``KeyboardInterrupt``.
+* Ctrl-C: ``last.pt`` and ``summary.json`` (``"interrupted": true``) are written, then ``KeyboardInterrupt``;
+  under :func:`run_recipe` SIGTERM too, and the first of either lets the current iteration finish
+  (:mod:`anm_torchrl.training.signals`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import json
 import logging
@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
+
+from anm_torchrl.training.signals import graceful, stop_requested, stop_signals
 
 log = logging.getLogger(__name__)
 
@@ -227,51 +229,54 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
 
     last_due = False  # last.pt is written at the first update with no validation pass pending
     try:
-        while frames < total_frames:
-            n_frames, train_metrics = algo.iterate(total_frames - frames)
-            frames += n_frames  # counted once the update is done: an interrupted update is not a trained batch
-            update += 1
-            pbar.update(n_frames)
+        with graceful():  # a signal here stops the run after its iteration (training.signals)
+            while frames < total_frames:
+                n_frames, train_metrics = algo.iterate(total_frames - frames)
+                frames += n_frames  # counted once the update is done: an interrupted update is not a trained batch
+                update += 1
+                pbar.update(n_frames)
 
-            # evaluation on the true simulator, deterministic policy, fixed validation states
-            is_last = frames >= total_frames
-            evaluated = eval_interval is not None and (update % int(eval_interval) == 0 or is_last)
-            decisive = False
-            if evaluated:
-                take_results(wait=True)  # one pass queued at a time: the curve lags by one pass at most
-                snapshot = {"frames": frames, "update": update, "true_env_frames": true_env_frames(),
-                            # best.pt's content if this pass is the best: training goes on while it runs
-                            "payload": copy.deepcopy(checkpoint_payload()) if background else None}
-                if cfg.eval.track_test:  # a measurement only: nothing below reads it
-                    t_track = time.perf_counter()
-                    snapshot["tracked"] = run_eval(actor, test_states, test_env, steps=test_max_steps)
-                    track_s += time.perf_counter() - t_track
-                n_evals += 1
-                if render_interval and n_evals % render_interval == 0:
-                    log_episode_figure(logger, actor, val_states[:1], cfg, frames)
-                validation.submit(actor.state_dict() if background else None, snapshot)
-                # wait where this pass decides the run: the end, or an early stop (as if evaluated here)
-                decisive = is_last or (patience is not None and evals_since_best + 1 >= int(patience))
-            take_results(wait=decisive)
-            train_metrics["time/total_fps"] = frames / (wall_before + time.perf_counter() - t_start)
-            if update % int(cfg.logger.interval) == 0 or evaluated:
-                log_metrics(train_metrics, step=frames)
+                # evaluation on the true simulator, deterministic policy, fixed validation states
+                is_last = frames >= total_frames
+                evaluated = eval_interval is not None and (update % int(eval_interval) == 0 or is_last)
+                decisive = False
+                if evaluated:
+                    take_results(wait=True)  # one pass queued at a time: the curve lags by one pass at most
+                    snapshot = {"frames": frames, "update": update, "true_env_frames": true_env_frames(),
+                                # best.pt's content if this pass is the best: training goes on while it runs
+                                "payload": copy.deepcopy(checkpoint_payload()) if background else None}
+                    if cfg.eval.track_test:  # a measurement only: nothing below reads it
+                        t_track = time.perf_counter()
+                        snapshot["tracked"] = run_eval(actor, test_states, test_env, steps=test_max_steps)
+                        track_s += time.perf_counter() - t_track
+                    n_evals += 1
+                    if render_interval and n_evals % render_interval == 0:
+                        log_episode_figure(logger, actor, val_states[:1], cfg, frames)
+                    validation.submit(actor.state_dict() if background else None, snapshot)
+                    # wait where this pass decides the run: the end, or an early stop (as if evaluated here)
+                    decisive = is_last or (patience is not None and evals_since_best + 1 >= int(patience))
+                take_results(wait=decisive)
+                train_metrics["time/total_fps"] = frames / (wall_before + time.perf_counter() - t_start)
+                if update % int(cfg.logger.interval) == 0 or evaluated:
+                    log_metrics(train_metrics, step=frames)
 
-            stopped_early = patience is not None and evals_since_best >= int(patience)
-            out_of_time = max_minutes is not None and time.perf_counter() - t_start >= 60 * float(max_minutes)
-            if out_of_time:
-                take_results(wait=True)
-            last_due |= update % int(cfg.checkpoint.interval) == 0 or is_last or stopped_early or out_of_time
-            if last_due and not validation.pending:
-                save_checkpoint(ckpt_dir / "last.pt", checkpoint_payload())
-                last_due = False
-            if stopped_early:
-                log.info("early stop: %d evaluations without improvement of eval/discounted_return",
-                         evals_since_best)
-                break
-            if out_of_time:
-                log.info("stop: collector.max_minutes=%s of wall time used", max_minutes)
-                break
+                stopped_early = patience is not None and evals_since_best >= int(patience)
+                out_of_time = max_minutes is not None and time.perf_counter() - t_start >= 60 * float(max_minutes)
+                if out_of_time:
+                    take_results(wait=True)
+                last_due |= update % int(cfg.checkpoint.interval) == 0 or is_last or stopped_early or out_of_time
+                if last_due and not validation.pending:
+                    save_checkpoint(ckpt_dir / "last.pt", checkpoint_payload())
+                    last_due = False
+                if stop_requested():
+                    raise KeyboardInterrupt
+                if stopped_early:
+                    log.info("early stop: %d evaluations without improvement of eval/discounted_return",
+                             evals_since_best)
+                    break
+                if out_of_time:
+                    log.info("stop: collector.max_minutes=%s of wall time used", max_minutes)
+                    break
     except KeyboardInterrupt:
         interrupted = True
         log.warning("interrupted (Ctrl-C or SIGTERM) after %d frames: writing last.pt and summary.json", frames)
@@ -369,7 +374,8 @@ def run_recipe(cfg: DictConfig) -> dict:
     """The body of a training recipe under ``hydra.main`` (``recipes/ppo.py``, ``recipes/sac.py``): train into the
     Hydra run directory (the working directory, ``hydra.job.chdir``), printing it when the run starts and when it
     ends (finished, failed or interrupted). Ctrl-C exits with status 130 after ``summary.json`` is written with
-    ``"interrupted": true``; SIGTERM (a scheduler's preemption) likewise, with status 143.
+    ``"interrupted": true``; SIGTERM (a scheduler's preemption) likewise, with status 143; the first of either in
+    the training loop lets its iteration finish (:func:`~anm_torchrl.training.signals.stop_signals`).
 
     A config error (a value out of range, an unknown algorithm or network) exits with one line naming the key,
     before anything heavy is imported, and removes the run directory Hydra made for it (it holds only Hydra's own
@@ -406,34 +412,10 @@ def run_recipe(cfg: DictConfig) -> dict:
 
         check_controllable(cfg.network)
     print(f"run directory: {run_dir}", flush=True)
-    with sigterm_as_interrupt() as stop:
+    with stop_signals():
         try:
             return train(cfg, run_dir, network_defaults=defaults)
         except KeyboardInterrupt:
-            raise SystemExit(143 if stop["signal"] == "SIGTERM" else 130) from None
+            raise SystemExit(143 if stop_requested() == "SIGTERM" else 130) from None
         finally:
             print(f"run directory: {run_dir}", flush=True)
-
-
-@contextlib.contextmanager
-def sigterm_as_interrupt():
-    """Within: SIGTERM (``kill``, a scheduler's preemption or time limit) stops a run as Ctrl-C does, so it keeps
-    ``last.pt`` and writes ``summary.json``; yields ``{"signal": None | "SIGTERM"}``, set once one came. Outside the
-    main thread (where Python runs signal handlers) SIGTERM keeps its default."""
-    import signal
-    import threading
-
-    stop = {"signal": None}
-    if threading.current_thread() is not threading.main_thread():
-        yield stop
-        return
-
-    def on_sigterm(signum, frame):
-        stop["signal"] = "SIGTERM"
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, on_sigterm)
-    try:
-        yield stop
-    finally:
-        signal.signal(signal.SIGTERM, previous)

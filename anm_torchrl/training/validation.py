@@ -165,11 +165,10 @@ class BackgroundValidation(ModuleProcess):
 
 def _serve(setup_path: str) -> None:
     """The second process: read weights from stdin until its end, write each pass's metrics to stdout."""
-    import signal
+    from anm_torchrl.training.signals import ignore_stop_signals
 
     # a Ctrl-C (or a scheduler's SIGTERM to the whole job) stops the training process, which then closes us
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    ignore_stop_signals()
     out = os.fdopen(os.dup(1), "wb", buffering=0)
     os.dup2(2, 1)  # anything printed goes to stderr, not into the results
     setup = torch.load(setup_path, weights_only=False)  # written by the training process in its own temp folder

@@ -10,6 +10,7 @@ and ``time/{collect, update, fps}``.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Mapping
 from functools import partial
@@ -66,6 +67,7 @@ def make_collector(cfg: DictConfig, policy, device, seed: int, budget: int, env=
     from torchrl.collectors import AsyncCollector, Collector
 
     from anm_torchrl.training.factory import make_train_env, train_env_kwargs
+    from anm_torchrl.training.signals import in_worker
 
     num_workers, sync = int(cfg.collector.num_workers), bool(cfg.collector.sync)
     if budget <= 0 or num_workers > 1 or not sync:
@@ -82,9 +84,11 @@ def make_collector(cfg: DictConfig, policy, device, seed: int, budget: int, env=
         return Collector(env if env is not None else make_train_env(seed=seed, **env_kwargs), **kwargs)
     # TorchRL sets this process's thread count to the cores left over by its workers unless told: keep ``threads``
     kwargs["num_threads"] = int(cfg.threads)
+    # the workers ignore Ctrl-C and SIGTERM: the training process stops them (anm_torchrl.training.signals)
     if num_workers == 1:
-        return AsyncCollector(partial(make_train_env, seed=seed, **env_kwargs), **kwargs)
-    factories = [partial(make_train_env, seed=seed + 1000 * i, **env_kwargs) for i in range(num_workers)]
+        return AsyncCollector(partial(in_worker, os.getpid(), make_train_env, seed=seed, **env_kwargs), **kwargs)
+    factories = [partial(in_worker, os.getpid(), make_train_env, seed=seed + 1000 * i, **env_kwargs)
+                 for i in range(num_workers)]
     return Collector(factories, num_collectors=num_workers, sync=sync, **kwargs)
 
 

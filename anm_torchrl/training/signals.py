@@ -1,0 +1,84 @@
+"""How a training run stops on a signal: Ctrl-C (SIGINT) and SIGTERM (``kill``, a scheduler's preemption or time
+limit) alike.
+
+Under :func:`stop_signals` (what ``run_recipe`` runs ``train`` in), a signal that comes while the training loop runs
+(:func:`graceful`) only asks it to stop: the loop finishes its iteration, sees :func:`stop_requested` and ends as
+interrupted (``last.pt``, ``summary.json``). A ``KeyboardInterrupt`` raised at an arbitrary bytecode could land inside
+a library's context manager: in TorchRL's SAC loss (``params.to_module``) the exit then failed with tensordict's own
+``RuntimeError``, which replaced the interrupt, so the run died without its summary and could have left a network
+holding another's parameters. A second signal, or one outside the loop (building the models, the test states),
+interrupts at once, as before.
+
+Helper processes (the background validation, collector workers) ignore both signals (:func:`ignore_stop_signals`):
+a Ctrl-C in a terminal reaches the whole process group, and the training process closes its helpers when it stops.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from typing import Any
+
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_state: dict[str, Any] = {"signal": None, "graceful": False}
+
+
+def stop_requested() -> str | None:
+    """The name of the signal that asked the run to stop (``"SIGINT"``, ``"SIGTERM"``), or None."""
+    return _state["signal"]
+
+
+@contextlib.contextmanager
+def stop_signals() -> Iterator[dict[str, Any]]:
+    """Within: SIGINT and SIGTERM set :func:`stop_requested`; inside :func:`graceful` the first one does only that,
+    elsewhere (or a second one) it also raises ``KeyboardInterrupt``. Yields the state (``{"signal": ...}``). Outside
+    the main thread (where Python runs signal handlers) both keep their handlers."""
+    _state.update(signal=None, graceful=False)
+    if threading.current_thread() is not threading.main_thread():
+        yield _state
+        return
+
+    def on_signal(signum, frame):
+        first = _state["signal"] is None
+        _state["signal"] = signal.Signals(signum).name
+        if first and _state["graceful"]:
+            # os.write, not print or logging: a handler can run inside either's own write
+            os.write(2, b"\nstopping after this iteration (the same signal again stops at once)\n")
+            return
+        raise KeyboardInterrupt
+
+    previous = {s: signal.signal(s, on_signal) for s in _STOP_SIGNALS}
+    try:
+        yield _state
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        _state.update(graceful=False)
+
+
+@contextlib.contextmanager
+def graceful() -> Iterator[None]:
+    """Within (the training loop): a first signal under :func:`stop_signals` waits for :func:`stop_requested`."""
+    _state["graceful"] = True
+    try:
+        yield
+    finally:
+        _state["graceful"] = False
+
+
+def ignore_stop_signals() -> None:
+    """Ignore SIGINT and SIGTERM in this (helper) process: its training process stops it."""
+    for s in _STOP_SIGNALS:
+        signal.signal(s, signal.SIG_IGN)
+
+
+def in_worker(owner: int, factory: Callable[..., Any], *args, **kwargs) -> Any:
+    """``factory(*args, **kwargs)``, after :func:`ignore_stop_signals` when called in a process other than ``owner``
+    (the training process's pid: a collector worker building its env); in the training process itself, just the
+    call."""
+    if os.getpid() != owner:
+        ignore_stop_signals()
+    return factory(*args, **kwargs)
