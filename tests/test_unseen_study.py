@@ -74,6 +74,30 @@ def test_baselines_of_another_network_or_protocol_are_not_reused(study):
     assert not unseen._baselines_done(gap, path, {**protocol, "steps": 9}, key)
 
 
+def test_a_kept_record_keeps_its_baselines_and_the_columns_not_re_made(study, tmp_path, monkeypatch):
+    """``keep``: one column re-made after its defaults change, the optimum not solved again (no gap file here), the
+    other columns and their order kept and marked; a kept row of another network is refused by name."""
+    record, _ = study
+    keep = json.loads(json.dumps(record))
+    keep["algorithms"] = ["sac", "ppo"]
+    sac = {**keep["networks"][0]["algorithms"][0], "algorithm": "sac", "discounted_return": 0.25}
+    keep["networks"][0]["algorithms"].insert(0, sac)
+    monkeypatch.setattr(unseen, "ProcessPoolExecutor", lambda *a, **k: pytest.fail("the baselines were solved again"))
+    again = unseen.study([SPEC], [], [0], tmp_path / "runs", jobs=1, overrides=SMOKE, keep=keep, keep_source="k.json")
+    (net,) = again["networks"]
+    assert again["algorithms"] == ["sac", "ppo"] and again["kept_from"] == "k.json"
+    assert (net["optimum"], net["do_nothing"]) == (record["networks"][0]["optimum"], record["networks"][0]["do_nothing"])
+    assert net["baselines_kept_from"] == "k.json"
+    assert [a["algorithm"] for a in net["algorithms"]] == ["sac", "ppo"]
+    assert net["algorithms"][0]["discounted_return"] == 0.25 and all(a["kept_from"] == "k.json" for a in net["algorithms"])
+    assert "| SAC | PPO |" in unseen.markdown(again)
+    keep["networks"][0]["network_key"] = "another"
+    with pytest.raises(ValueError, match=f"k.json: {SPEC} there is network another"):
+        unseen.study([SPEC], [], [0], tmp_path / "runs", jobs=1, overrides=SMOKE, keep=keep, keep_source="k.json")
+    with pytest.raises(ValueError, match="not a record of this study"):
+        unseen.study([SPEC], [], [0], tmp_path / "runs", jobs=1, overrides=SMOKE, keep=[], keep_source="k.json")
+
+
 def test_a_malformed_spec_is_refused_by_name(capsys):
     from anm_torchrl.cli import unseen_networks as cli
 

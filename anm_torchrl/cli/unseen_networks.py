@@ -10,6 +10,7 @@ Finished baselines and cells are reused, so a stopped study resumes. Writes ``<o
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 from pathlib import Path
 
@@ -37,10 +38,18 @@ def main(argv: list[str] | None = None) -> dict:
     add_study_arguments(parser, seeds=[0], runs_dir="outputs/unseen",  # also the network files and baselines
                         out="folder of unseen_networks.json / .md (e.g. results/unseen)")
     parser.add_argument("--readme", default=None, help="a page whose unseen-networks block is re-rendered")
+    parser.add_argument("--keep", default=None, help="an earlier record of this study: its baselines, and the cells "
+                        "of the algorithms not in --algorithms, are kept (one column re-made, no optimum solved)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    keep = None
+    if args.keep:
+        try:
+            keep = json.loads(Path(args.keep).read_text())
+        except (OSError, ValueError) as err:
+            raise ValueError(f"--keep {args.keep}: not a readable JSON record ({err})") from None
     record = unseen.study(args.networks, args.algorithms, args.seeds, Path(args.runs_dir), jobs=args.jobs,
-                          overrides=tuple(args.override))
+                          overrides=tuple(args.override), keep=keep, keep_source=args.keep or "")
     finish_study("unseen_networks", argv, record)
     text = unseen.markdown(record)
     if args.out:

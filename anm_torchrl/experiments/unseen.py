@@ -176,12 +176,35 @@ def read_cell(run_dir: Path, protocol: dict) -> dict[str, Any]:
             "stopped_early": bool(s["stopped_early"])}
 
 
+def kept_network(keep: dict[str, Any] | None, net: dict[str, Any], source: str) -> dict[str, Any] | None:
+    """The row of ``net``'s spec in an earlier record ``keep`` (from ``source``), or None.
+
+    Raises:
+        ValueError: the row is another network (its key) or was scored on other test states.
+    """
+    row = next((r for r in (keep or {}).get("networks", []) if r.get("spec") == net["spec"]), None)
+    if row is not None and (row.get("network_key") != net["meta"]["network_key"]
+                            or row.get("protocol") != net["protocol"]):
+        raise ValueError(f"{source}: {net['spec']} there is network {row.get('network_key')} on the states "
+                         f"{row.get('protocol')}, here network {net['meta']['network_key']} on {net['protocol']}: "
+                         f"its rows cannot be kept")
+    return row
+
+
 def study(specs: list[str], algorithms: list[str], seeds: list[int], runs_dir: Path, jobs: int = 2,
-          overrides: tuple[str, ...] = ()) -> dict[str, Any]:
-    """Write every network, solve (or reuse) its baselines, train (or reuse) every cell, then the record."""
+          overrides: tuple[str, ...] = (), keep: dict[str, Any] | None = None,
+          keep_source: str = "the kept record") -> dict[str, Any]:
+    """Write every network, solve (or reuse) its baselines, train (or reuse) every cell, then the record.
+
+    ``keep``: an earlier record of this study (read from ``keep_source``); a network of it keeps its baselines when
+    they are not on disk, and every algorithm of it not in ``algorithms`` keeps its cells (marked ``kept_from``),
+    so one algorithm's column can be re-made after its defaults change without solving the optimum again.
+    """
     unknown = sorted(set(algorithms) - set(RECIPE))
     if unknown:
         raise ValueError(f"unknown algorithms {unknown}; choose from {sorted(RECIPE)}")
+    if keep is not None and not isinstance(keep.get("networks") if isinstance(keep, dict) else None, list):
+        raise ValueError(f"{keep_source}: not a record of this study (no 'networks' list)")
     runs_dir = Path(runs_dir).resolve()
     t0 = time.perf_counter()
     nets = []
@@ -190,8 +213,10 @@ def study(specs: list[str], algorithms: list[str], seeds: list[int], runs_dir: P
         protocol = reported_states(path, overrides)
         nets.append({"spec": spec, "path": path, "meta": meta, "protocol": protocol,
                      "gap": path.with_suffix(".gap.json")})
+        nets[-1]["kept"] = kept_network(keep, nets[-1], keep_source)
     todo = {n["gap"]: (n["path"], n["protocol"], n["meta"]["network_key"]) for n in nets
-            if not _baselines_done(n["gap"], n["path"], n["protocol"], n["meta"]["network_key"])}
+            if not _baselines_done(n["gap"], n["path"], n["protocol"], n["meta"]["network_key"])
+            and (n["kept"] or {}).get("optimum") is None}
     for out in todo:
         out.unlink(missing_ok=True)  # another network or protocol: the gap command would refuse to extend it
     failed = [o for o in solve_baselines(todo, jobs) if o["error"]]
@@ -200,17 +225,25 @@ def study(specs: list[str], algorithms: list[str], seeds: list[int], runs_dir: P
                 for n in nets for a in algorithms for s in seeds
                 for d in [cell_dir(runs_dir, n["path"], a, s)]}
     failed += [o for o in run_cells(commands, jobs) if o["error"]]
-    rows = [_network_row(n, algorithms, seeds, runs_dir, commands) for n in nets]
-    return {"what": __doc__.split("\n\n")[0].replace("\n", " "), "algorithms": algorithms, "seeds": seeds,
+    columns = [a for a in (keep or {}).get("algorithms", []) if a in RECIPE and a not in algorithms] + algorithms
+    if keep is not None:  # the kept record's order, the re-made columns where they were
+        columns = sorted(columns, key=lambda a: (keep["algorithms"] + algorithms).index(a))
+    rows = [_network_row(n, algorithms, columns, seeds, runs_dir, commands, keep_source) for n in nets]
+    return {"what": __doc__.split("\n\n")[0].replace("\n", " "), "algorithms": columns, "seeds": seeds,
+            **({"kept_from": keep_source} if keep is not None else {}),
             "jobs": jobs, "overrides": list(overrides), "networks": rows, "failed": failed,
             "invocation_wall_s": time.perf_counter() - t0,
             "machine": {"cpus": os.cpu_count(), "threads_per_run": 1, "concurrent_runs": jobs}}
 
 
-def _network_row(net: dict, algorithms: list[str], seeds: list[int], runs_dir: Path,
-                 commands: dict[Path, list[str]]) -> dict[str, Any]:
+def _network_row(net: dict, algorithms: list[str], columns: list[str], seeds: list[int], runs_dir: Path,
+                 commands: dict[Path, list[str]], keep_source: str) -> dict[str, Any]:
     row = {"spec": net["spec"], "file": net["path"].name, **net["meta"], "protocol": net["protocol"],
            "optimum": None, "do_nothing": None, "optimum_wall_s": None, "algorithms": []}
+    kept = net.get("kept") or {}
+    if kept.get("optimum") is not None and not net["gap"].is_file():
+        row.update({k: kept.get(k) for k in ("optimum", "do_nothing", "optimum_wall_s", "baselines_command")},
+                   baselines_kept_from=keep_source)
     if net["gap"].is_file():
         rec = json.loads(net["gap"].read_text())
         rows = rec.get("rows", {})
@@ -218,7 +251,11 @@ def _network_row(net: dict, algorithms: list[str], seeds: list[int], runs_dir: P
             row.update(optimum=rows["optimal"]["mean_discounted_return"],
                        do_nothing=rows["do_nothing"]["mean_discounted_return"],
                        optimum_wall_s=rows["optimal"]["wall_s"], baselines_command=rec["commands"][-1])
-    for a in algorithms:
+    for a in columns:
+        if a not in algorithms:
+            entry = next((e for e in kept.get("algorithms", []) if e["algorithm"] == a), {"algorithm": a, "runs": []})
+            row["algorithms"].append({**entry, "kept_from": keep_source})
+            continue
         dirs = [cell_dir(runs_dir, net["path"], a, s) for s in seeds]
         runs = [read_cell(d, net["protocol"]) for d in dirs if (d / "summary.json").is_file()]
         entry = {"algorithm": a, "command": shown(commands[dirs[0]]).replace(str(net["path"]), net["path"].name),
