@@ -86,10 +86,12 @@ def test_a_kept_record_keeps_its_baselines_and_the_columns_not_re_made(study, tm
     again = unseen.study([SPEC], [], [0], tmp_path / "runs", jobs=1, overrides=SMOKE, keep=keep, keep_source="k.json")
     (net,) = again["networks"]
     assert again["algorithms"] == ["sac", "ppo"] and again["kept_from"] == "k.json"
-    assert (net["optimum"], net["do_nothing"]) == (record["networks"][0]["optimum"], record["networks"][0]["do_nothing"])
+    first = record["networks"][0]
+    assert (net["optimum"], net["do_nothing"]) == (first["optimum"], first["do_nothing"])
     assert net["baselines_kept_from"] == "k.json"
     assert [a["algorithm"] for a in net["algorithms"]] == ["sac", "ppo"]
-    assert net["algorithms"][0]["discounted_return"] == 0.25 and all(a["kept_from"] == "k.json" for a in net["algorithms"])
+    assert net["algorithms"][0]["discounted_return"] == 0.25
+    assert all(a["kept_from"] == "k.json" for a in net["algorithms"])
     assert "| SAC | PPO |" in unseen.markdown(again)
     keep["networks"][0]["network_key"] = "another"
     with pytest.raises(ValueError, match=f"k.json: {SPEC} there is network another"):
