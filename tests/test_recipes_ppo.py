@@ -218,18 +218,21 @@ def test_resume_with_another_activation_fails(ppo_checkpoint, tmp_path):
 
 
 def interrupt_run(run_dir: Path, marker: str, *args: str, env: dict | None = None, sig=signal.SIGINT,
-                  status: int = 130) -> str:
+                  status: int = 130, group: bool = False) -> str:
     """Run ``ppo.py`` (TINY, an endless budget, ``args``) into ``run_dir``, send ``sig`` once a line of its output
-    holds ``marker``; check exit status ``status``, ``summary.json`` marked interrupted and ``last.pt`` at its
-    frames; returns the output."""
+    holds ``marker`` (``group``: to its whole process group, as a terminal's Ctrl-C does); check exit status
+    ``status``, ``summary.json`` marked interrupted and ``last.pt`` at its frames; returns the output."""
     proc = subprocess.Popen([sys.executable, str(PPO), *TINY, "collector.total_frames=1000000", "eval.patience=null",
                              *args, f"hydra.run.dir={run_dir}"], cwd=run_dir.parent, env=env or ENV,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=group)
     lines = []
     for line in proc.stdout:
         lines.append(line)
         if marker in line:
-            proc.send_signal(sig)
+            if group:
+                os.killpg(proc.pid, sig)
+            else:
+                proc.send_signal(sig)
             break
     out, _ = proc.communicate(timeout=120)
     out = "".join(lines) + out
@@ -257,6 +260,14 @@ def test_sigterm_ends_the_run_as_ctrl_c_does(tmp_path):
     run_dir = tmp_path / "terminated"
     out = interrupt_run(run_dir, "update 1, 32 frames", sig=signal.SIGTERM, status=143)
     assert "interrupted (Ctrl-C or SIGTERM) after" in out
+
+
+def test_ctrl_c_to_the_process_group_with_collector_workers(tmp_path):
+    """A terminal's Ctrl-C reaches the collector workers too: they ignore it, the training process finishes its
+    iteration, closes them and ends as interrupted (exit 130, summary.json, last.pt)."""
+    run_dir = tmp_path / "workers"
+    out = interrupt_run(run_dir, "update 1, 32 frames", "collector.num_workers=2", group=True)
+    assert "stopping after this iteration" in out
 
 
 def test_resume_from_wrong_kind_fails_clearly(tmp_path):
