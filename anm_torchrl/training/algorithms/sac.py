@@ -95,7 +95,7 @@ class SAC(Algorithm):
         frames_per_batch = int(cfg.collector.frames_per_batch)
         resumed = int(resume["frames"]) if resume else 0
         self.frames = resumed  # collected so far: the actor's delay counts these
-        self.actor_delay = int(cfg.optim.get("actor_delay_frames", 0) or 0)
+        self.actor_delay = int(cfg.optim.actor_delay_frames)
         self.collector = None
         if budget > 0:
             self.collector = Collector(
