@@ -203,7 +203,7 @@ def study(specs: list[str], algorithms: list[str], seeds: list[int], runs_dir: P
     unknown = sorted(set(algorithms) - set(RECIPE))
     if unknown:
         raise ValueError(f"unknown algorithms {unknown}; choose from {sorted(RECIPE)}")
-    if keep is not None and not isinstance(keep.get("networks") if isinstance(keep, dict) else None, list):
+    if keep is not None and not (isinstance(keep, dict) and isinstance(keep.get("networks"), list)):
         raise ValueError(f"{keep_source}: not a record of this study (no 'networks' list)")
     runs_dir = Path(runs_dir).resolve()
     t0 = time.perf_counter()
@@ -225,9 +225,10 @@ def study(specs: list[str], algorithms: list[str], seeds: list[int], runs_dir: P
                 for n in nets for a in algorithms for s in seeds
                 for d in [cell_dir(runs_dir, n["path"], a, s)]}
     failed += [o for o in run_cells(commands, jobs) if o["error"]]
-    columns = [a for a in (keep or {}).get("algorithms", []) if a in RECIPE and a not in algorithms] + algorithms
-    if keep is not None:  # the kept record's order, the re-made columns where they were
-        columns = sorted(columns, key=lambda a: (keep["algorithms"] + algorithms).index(a))
+    # the kept record's columns in its order, the re-made ones where they were, new ones last
+    kept_columns = [a for a in (keep or {}).get("algorithms", []) if a in RECIPE and a not in algorithms]
+    order = (keep or {}).get("algorithms", []) + algorithms
+    columns = sorted(kept_columns + algorithms, key=order.index)
     rows = [_network_row(n, algorithms, columns, seeds, runs_dir, commands, keep_source) for n in nets]
     return {"what": __doc__.split("\n\n")[0].replace("\n", " "), "algorithms": columns, "seeds": seeds,
             **({"kept_from": keep_source} if keep is not None else {}),

@@ -32,13 +32,13 @@ def stop_requested() -> str | None:
 
 
 @contextlib.contextmanager
-def stop_signals() -> Iterator[dict[str, Any]]:
+def stop_signals() -> Iterator[None]:
     """Within: SIGINT and SIGTERM set :func:`stop_requested`; inside :func:`graceful` the first one does only that,
-    elsewhere (or a second one) it also raises ``KeyboardInterrupt``. Yields the state (``{"signal": ...}``). Outside
-    the main thread (where Python runs signal handlers) both keep their handlers."""
+    elsewhere (or a second one) it also raises ``KeyboardInterrupt``. Outside the main thread (where Python runs
+    signal handlers) both keep their handlers."""
     _state.update(signal=None, graceful=False)
     if threading.current_thread() is not threading.main_thread():
-        yield _state
+        yield
         return
 
     def on_signal(signum, frame):
@@ -52,11 +52,10 @@ def stop_signals() -> Iterator[dict[str, Any]]:
 
     previous = {s: signal.signal(s, on_signal) for s in _STOP_SIGNALS}
     try:
-        yield _state
+        yield
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
-        _state.update(graceful=False)
 
 
 @contextlib.contextmanager

@@ -116,7 +116,7 @@ class SAC(Algorithm):
         self.frames += n_frames
         # before optim.actor_delay_frames, the Q networks learn the initial policy's values alone: an actor that
         # follows an untrained critic leaves its (do-nothing) start within a few steps (sac_validation.json)
-        critic_only = self.frames <= self.actor_delay
+        stepped = ["qvalue"] if self.frames <= self.actor_delay else list(self.optims)
         metrics = episode_metrics(kept)
         if self.reward_scale != 1.0:
             kept.set(("next", "reward"), kept.get(("next", "reward")) * self.reward_scale)
@@ -130,15 +130,13 @@ class SAC(Algorithm):
         for _ in range(n_updates):
             batch = self.buffer.sample()
             loss = self.loss_module(batch)
-            optims = [self.optims["qvalue"]] if critic_only else list(self.optims.values())
             for optim in self.optims.values():
                 optim.zero_grad(set_to_none=True)
-            (loss["loss_qvalue"] if critic_only else loss["loss_qvalue"] + loss["loss_actor"] + loss["loss_alpha"]
-             ).backward()
+            sum(loss[f"loss_{name}"] for name in stepped).backward()  # each optimiser's own loss term
             grad_norm = (torch.nn.utils.clip_grad_norm_(self.loss_module.parameters(), cfg.optim.max_grad_norm)
                          if cfg.optim.max_grad_norm else torch.zeros(()))
-            for optim in optims:
-                optim.step()
+            for name in stepped:
+                self.optims[name].step()
             self.target_updater.step()
             losses.append(loss.select("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy",
                                       strict=False).detach().set("grad_norm", grad_norm.detach()))
