@@ -194,6 +194,42 @@ def test_a_campaign_reuses_finished_cells_and_renders_its_record(campaign, monke
     assert again["methods"][0]["runs"] == row["runs"]
 
 
+def test_a_kept_record_keeps_the_rows_not_re_made(campaign, monkeypatch):
+    """``keep``: one method's cells re-made after its defaults change, the other methods' rows kept as they were
+    (marked with their source) in the methods' order; a record of other test states, seeds or overrides is refused
+    by name, as is a file that is not this study's record."""
+    record, runs, gap = campaign
+    monkeypatch.setattr(gs, "gap_table_path", lambda network: gap)
+    keep = json.loads(json.dumps(record))
+    ppo = {**keep["methods"][0], "method": "ppo", "label": "PPO on the true env"}
+    keep["methods"].append(ppo)
+    again = gs.campaign("anm6_easy", ["shac_exact"], [0], runs, jobs=1, overrides=TINY, keep=keep,
+                        keep_source="k.json")
+    assert [r["method"] for r in again["methods"]] == ["shac_exact", "ppo"] and again["kept_from"] == "k.json"
+    assert again["methods"][1] == {**ppo, "kept_from": "k.json"} and "kept_from" not in again["methods"][0]
+    assert again["methods"][0]["runs"] == record["methods"][0]["runs"]  # re-made (here: read back), not kept
+    for key, value in (("seeds", [0, 1]), ("overrides", []), ("protocol", {**PROTOCOL, "steps": 6})):
+        with pytest.raises(ValueError, match=f"k.json: its {key} .* cannot be kept"):
+            gs.campaign("anm6_easy", ["shac_exact"], [0], runs, jobs=1, overrides=TINY, keep={**keep, key: value},
+                        keep_source="k.json")
+    with pytest.raises(ValueError, match="k.json: not a record of the gradient study"):
+        gs.campaign("anm6_easy", ["shac_exact"], [0], runs, jobs=1, overrides=TINY, keep={"networks": []},
+                    keep_source="k.json")
+
+
+def test_the_clis_refuse_a_kept_file_that_is_not_a_record(tmp_path):
+    from anm_torchrl.cli.args import read_kept
+
+    assert read_kept(None) is None
+    (tmp_path / "list.json").write_text("[]")
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(ValueError, match="--keep .*list.json: not a record \\(a JSON list"):
+        read_kept(str(tmp_path / "list.json"))
+    for name in ("bad.json", "missing.json"):
+        with pytest.raises(ValueError, match=f"--keep .*{name}: not a readable JSON record"):
+            read_kept(str(tmp_path / name))
+
+
 def test_a_cell_trained_at_another_config_is_trained_again(campaign, tmp_path, caplog):
     """The same command line at a changed default (e.g. a new per-network entry) must not reuse the old run."""
     cell = tmp_path / "cell"

@@ -5,10 +5,12 @@ and the failure rule of the studies of training cells."""
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import sys
-from typing import Callable
+from pathlib import Path
+from typing import Any, Callable
 
 
 def integer(minimum: int) -> Callable[[str], int]:
@@ -50,6 +52,23 @@ def add_study_arguments(parser: argparse.ArgumentParser, seeds: list[int], runs_
     parser.add_argument("--runs-dir", default=runs_dir, help="the cells' run directories")
     parser.add_argument("--override", nargs="*", default=[], help="recipe keys of every cell (key=value), e.g. a "
                         "smaller budget; the record lists them")
+
+
+def read_kept(path: str | None) -> dict[str, Any] | None:
+    """The earlier record named by a study's ``--keep`` (None without one).
+
+    Raises:
+        ValueError: the file is missing, unreadable or not a JSON object (named with the option).
+    """
+    if not path:
+        return None
+    try:
+        record = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as err:
+        raise ValueError(f"--keep {path}: not a readable JSON record ({err})") from None
+    if not isinstance(record, dict):
+        raise ValueError(f"--keep {path}: not a record (a JSON {type(record).__name__}, not an object)")
+    return record
 
 
 def finish_study(prog: str, argv: list[str] | None, record: dict) -> None:

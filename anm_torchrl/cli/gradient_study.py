@@ -1,7 +1,7 @@
 """Command line of the time-to-threshold study (:mod:`anm_torchrl.experiments.gradient_study`): one campaign per
 network, every cell a recipe's default command with its seed; finished cells are reused, so a stopped campaign
-resumes. Writes ``<out>/<network>.json`` and ``.md``; ``--docs`` re-renders the page's gradients block from every
-record in ``<out>``.
+resumes; ``--keep`` keeps an earlier record's rows of the methods not re-made. Writes ``<out>/<network>.json`` and
+``.md``; ``--docs`` re-renders the page's gradients block from every record in ``<out>``.
 
     python -m anm_torchrl.cli.gradient_study --network anm6_easy --seeds 0 1 2 --jobs 2 \\
         --runs-dir outputs/gradient_study --out results/gradient_study --docs docs/RESULTS.md
@@ -14,7 +14,7 @@ import json
 import logging
 from pathlib import Path
 
-from anm_torchrl.cli.args import add_study_arguments, finish_study
+from anm_torchrl.cli.args import add_study_arguments, finish_study, read_kept
 from anm_torchrl.experiments import gradient_study
 
 log = logging.getLogger(__name__)
@@ -29,10 +29,13 @@ def main(argv: list[str] | None = None) -> dict:
     add_study_arguments(parser, seeds=[0, 1, 2], runs_dir="outputs/gradient_study",
                         out="folder of <network>.json / .md (e.g. results/gradient_study)")
     parser.add_argument("--docs", default=None, help="a page whose gradients block is re-rendered from <out>")
+    parser.add_argument("--keep", default=None, help="an earlier record of this campaign: the rows of the methods "
+                        "not in --methods are kept (one method's cells re-made)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     record = gradient_study.campaign(args.network, args.methods, args.seeds, Path(args.runs_dir), jobs=args.jobs,
-                                     overrides=tuple(args.override))
+                                     overrides=tuple(args.override), keep=read_kept(args.keep),
+                                     keep_source=args.keep or "")
     finish_study("gradient_study", argv, record)
     text = gradient_study.markdown(record)
     if args.out:

@@ -10,11 +10,10 @@ Finished baselines and cells are reused, so a stopped study resumes. Writes ``<o
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
-from anm_torchrl.cli.args import add_study_arguments, finish_study
+from anm_torchrl.cli.args import add_study_arguments, finish_study, read_kept
 from anm_torchrl.experiments import unseen
 
 log = logging.getLogger(__name__)
@@ -42,12 +41,7 @@ def main(argv: list[str] | None = None) -> dict:
                         "of the algorithms not in --algorithms, are kept (one column re-made, no optimum solved)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    keep = None
-    if args.keep:
-        try:
-            keep = json.loads(Path(args.keep).read_text())
-        except (OSError, ValueError) as err:
-            raise ValueError(f"--keep {args.keep}: not a readable JSON record ({err})") from None
+    keep = read_kept(args.keep)
     record = unseen.study(args.networks, args.algorithms, args.seeds, Path(args.runs_dir), jobs=args.jobs,
                           overrides=tuple(args.override), keep=keep, keep_source=args.keep or "")
     finish_study("unseen_networks", argv, record)

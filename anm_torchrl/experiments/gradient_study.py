@@ -130,14 +130,41 @@ def summarize(runs: list[dict], levels: list[dict], offset_s: float) -> list[dic
     return out
 
 
+def kept_rows(keep: dict[str, Any] | None, network: str, protocol: dict, seeds: list[int], methods: list[str],
+              overrides: tuple[str, ...], source: str) -> list[dict[str, Any]]:
+    """The method rows of an earlier record ``keep`` (read from ``source``) that this campaign does not re-make
+    (methods not in ``methods``), each marked ``kept_from``; none without ``keep``.
+
+    Raises:
+        ValueError: ``keep`` is not a record of this study, or of another network, test states, seeds or shared
+            overrides (a kept row would then not compare with the re-made ones).
+    """
+    if keep is None:
+        return []
+    if not isinstance(keep.get("methods"), list):
+        raise ValueError(f"{source}: not a record of the gradient study (no 'methods' list)")
+    for key, want in (("network", network), ("protocol", protocol), ("seeds", seeds), ("overrides", list(overrides))):
+        if keep.get(key) != want:
+            raise ValueError(f"{source}: its {key} {keep.get(key)!r} is not this campaign's {want!r}; "
+                             f"its rows cannot be kept")
+    return [{**row, "kept_from": source} for row in keep["methods"] if row.get("method") not in methods]
+
+
 def campaign(network: str, methods: list[str], seeds: list[int], runs_dir: Path, jobs: int = 2,
-             overrides: tuple[str, ...] = ()) -> dict[str, Any]:
-    """Run (or reuse) every cell, then the record: thresholds, per method its runs and time-to-threshold."""
+             overrides: tuple[str, ...] = (), keep: dict[str, Any] | None = None,
+             keep_source: str = "the kept record") -> dict[str, Any]:
+    """Run (or reuse) every cell, then the record: thresholds, per method its runs and time-to-threshold.
+
+    ``keep``: an earlier record of this campaign (read from ``keep_source``); its rows of the methods not in
+    ``methods`` are kept (marked ``kept_from``), so one method's cells are re-made after its defaults change without
+    running the others again.
+    """
     unknown = sorted(set(methods) - set(METHODS))
     if unknown:
         raise ValueError(f"unknown methods {unknown}; choose from {sorted(METHODS)}")
     gap = json.loads(gap_table_path(network).read_text())
     protocol, levels = gap["protocol"], thresholds(network, gap)
+    kept = kept_rows(keep, network, protocol, seeds, methods, tuple(overrides), keep_source)
     runs_dir = Path(runs_dir).resolve()
     pinn_dir = runs_dir / f"pinn_{network}"
     pinn_s = train_pinn(network, pinn_dir) if "shac_pinn" in methods else 0.0
@@ -153,10 +180,12 @@ def campaign(network: str, methods: list[str], seeds: list[int], runs_dir: Path,
         first = next(commands[d] for mm, _, d in cells if mm == m)
         rows.append({"method": m, "label": METHODS[m][2], "command": shown(first), "pinn_training_s": offset or None,
                      "runs": runs, "thresholds": summarize(runs, levels, offset)})
+    rows = sorted(rows + kept, key=lambda r: list(METHODS).index(r["method"]))
     return {"what": __doc__.split("\n\n")[0].replace("\n", " "), "network": network, "protocol": protocol,
             "optimum": reference_returns(network, gap)[0],
             "thresholds": levels, "seeds": seeds, "jobs": jobs, "overrides": list(overrides),
             "invocation_wall_s": time.perf_counter() - t0, "failed": failed, "methods": rows,
+            **({"kept_from": keep_source} if keep is not None else {}),
             "machine": {"cpus": os.cpu_count(), "threads_per_run": 1, "concurrent_runs": jobs}}
 
 
