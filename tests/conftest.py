@@ -1,6 +1,7 @@
 """Test-session set-up: single-threaded torch and a private artifact folder (no cached models leak in)."""
 
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -9,6 +10,11 @@ import torch
 
 torch.set_num_threads(1)
 os.environ["ANM_TORCHRL_HOME"] = tempfile.mkdtemp(prefix="anm_torchrl_test_home_")
+
+
+def pytest_unconfigure(config):
+    """The private artifact folder goes with the session (tests leave nothing behind in the temp dir)."""
+    shutil.rmtree(os.environ["ANM_TORCHRL_HOME"], ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

@@ -55,17 +55,19 @@ def _box_quantiles(pb, sim, seed, ks):
     return out
 
 
-def test_rule_picks_the_smallest_k_that_meets_it():
+def test_rule_picks_the_smallest_k_that_meets_it(monkeypatch):
     """On the 115-bus SimBench feeder (1 MVA base, stiff lines) one chord step from an untrained network leaves a
     residual far above the terminal threshold: the rule picks k > 1, the smallest whose 0.99 quantile is within
-    half the threshold (the one before it is not), and sets the module to it."""
+    half the threshold (the one before it is not), and sets the module to it. On 512 of the rule's Sobol points
+    (its 4,096 take minutes of batched 228 x 228 solves here; the rule reads the count where it draws them)."""
+    monkeypatch.setattr(refine, "POINTS", 512)
     sim = network_simulator("simbench_mv_semiurb")
     torch.manual_seed(0)
     pb = PowerBalanceNet(sim, hidden=16, depth=2)
     rec = refine.choose_refine_steps(pb, sim, seed=5)
     k = rec["k"]
     assert rec["met"] and rec["rule"] == refine.RULE and 1 < k <= refine.K_MAX and pb.refine_steps == k
-    assert len(rec["residual_q_pu"]) == k and rec["seed"] == 5 + refine.SEED_OFFSET
+    assert len(rec["residual_q_pu"]) == k and rec["seed"] == 5 + refine.SEED_OFFSET and rec["points"] == 512
     before, at = _box_quantiles(pb, sim, rec["seed"], [k - 1, k])
     bar = refine.MARGIN * rec["threshold_pu"]
     assert at <= bar < before, (before, at, bar)
@@ -77,6 +79,7 @@ def test_rule_unmet_is_an_acceptance_failure(monkeypatch):
     """No k <= K_MAX meets the bar: the record says so at K_MAX steps and the training fails its acceptance bar."""
     sim = network_simulator("simbench_mv_semiurb")
     monkeypatch.setattr(refine, "K_MAX", 1)
+    monkeypatch.setattr(refine, "POINTS", 512)  # as above: the rule's outcome at one step, not its sample size
     torch.manual_seed(0)
     pb = PowerBalanceNet(sim, hidden=16, depth=2)
     rec = refine.choose_refine_steps(pb, sim, seed=0)
