@@ -290,3 +290,26 @@ def test_a_failed_cell_is_reported_with_its_error(tmp_path):
     (out,) = gs.run_cells({run_dir: command}, jobs=1)
     assert "loss.horizon must be an integer >= 1, got 0" in out["error"]
     assert not (run_dir / "study_cell.json").exists() and not (run_dir / "logs" / "stale").exists()
+
+
+def test_a_cell_stopped_by_a_signal_is_a_failure_not_a_finished_cell(tmp_path, monkeypatch):
+    """A cell whose run ended as interrupted (a Ctrl-C, or the SIGTERM it sends itself when its study has gone)
+    raises instead of returning its marker: the study reports it, and the next run trains it again."""
+    import os
+    import signal
+
+    from anm_torchrl.training import protocol
+    from anm_torchrl.training.signals import graceful
+
+    def interrupted_run(cfg, run_dir, network_defaults=None):
+        with graceful():
+            os.kill(os.getpid(), signal.SIGTERM)  # asks: the loop would finish its iteration, then end
+            for _ in range(1000):  # Python runs the handler between bytecodes
+                pass
+        return None
+
+    monkeypatch.setattr(cells, "cell_config", lambda command: (None, None))
+    monkeypatch.setattr(cells, "network_key", lambda cfg: "key")
+    monkeypatch.setattr(protocol, "train", interrupted_run)
+    with pytest.raises(RuntimeError, match="stopped by SIGTERM \\(interrupted, not a finished cell\\)"):
+        cells.train_cell(["python", "ppo.py"], tmp_path / "cell")

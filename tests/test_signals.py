@@ -58,3 +58,38 @@ def test_collector_workers_ignore_both_signals_and_the_training_process_does_not
     proc.join(timeout=60)
     before = signal.getsignal(signal.SIGINT)
     assert in_worker(os.getpid(), lambda: signal.getsignal(signal.SIGINT)) is before is not signal.SIG_IGN
+
+
+def test_a_process_whose_parent_has_gone_gets_sigterm(tmp_path):
+    """A study's cell outlives a study stopped with ``kill`` (its pool's workers are not in the signal's way):
+    :func:`stop_when_orphaned` sends the cell SIGTERM once its parent has gone, so it stops as a run does."""
+    import subprocess
+    import sys
+    import textwrap
+    import time
+
+    got = tmp_path / "got"
+    child = textwrap.dedent(f"""
+        import signal, sys, time
+        from anm_torchrl.training.signals import stop_when_orphaned
+        def on_term(signum, frame):
+            open({str(got)!r}, "w").write(signal.Signals(signum).name)
+            sys.exit(0)
+        signal.signal(signal.SIGTERM, on_term)
+        stop_when_orphaned(poll_s=0.05)
+        print("ready", flush=True)
+        time.sleep(60)
+    """)
+    parent = (f"import subprocess, sys, time; subprocess.Popen([sys.executable, '-c', {child!r}]); "
+              "time.sleep(60)")
+    proc = subprocess.Popen([sys.executable, "-c", parent], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"  # the child's (inherited stdout): its watch has started
+        assert not got.exists()  # its parent is alive: no signal yet
+    finally:
+        proc.kill()
+        proc.wait()
+    deadline = time.monotonic() + 30
+    while not got.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert got.read_text() == "SIGTERM"

@@ -58,15 +58,29 @@ def network_key(cfg) -> str:
 
 def train_cell(command: list[str], run_dir: Path) -> dict[str, Any]:
     """Train one cell into ``run_dir`` in this (worker) process: its config (:func:`cell_config`) through the
-    shared protocol (which checks the config first). Returns what its marker keeps besides the command: wall
-    time, load average, the network's key."""
+    shared protocol (which checks the config first), stopping as a recipe run does on Ctrl-C or SIGTERM, and on its
+    own once the study's process has gone. Returns what its marker keeps besides the command: wall time, load
+    average, the network's key.
+
+    Raises:
+        RuntimeError: the run was stopped by a signal (an interrupted cell is not a finished one).
+    """
     from anm_torchrl.training import protocol
+    from anm_torchrl.training.signals import stop_requested, stop_signals, stop_when_orphaned
 
     shutil.rmtree(run_dir, ignore_errors=True)  # an unfinished earlier attempt: its logs would mix with these
     t0, load = time.perf_counter(), os.getloadavg()[0]
     cfg, defaults = cell_config(command)
     key = network_key(cfg)
-    protocol.train(cfg, run_dir, network_defaults=defaults)
+    with stop_signals():
+        stop_when_orphaned()
+        try:
+            protocol.train(cfg, run_dir, network_defaults=defaults)
+        except KeyboardInterrupt:
+            if not stop_requested():
+                raise
+        if stop_requested():  # a study's failure, not the pool's KeyboardInterrupt
+            raise RuntimeError(f"{run_dir}: stopped by {stop_requested()} (interrupted, not a finished cell)")
     return {"process_wall_s": time.perf_counter() - t0, "load_avg_1min": [load, os.getloadavg()[0]],
             "network_key": key}
 

@@ -11,6 +11,8 @@ interrupts at once, as before.
 
 Helper processes (the background validation, collector workers) ignore both signals (:func:`ignore_stop_signals`):
 a Ctrl-C in a terminal reaches the whole process group, and the training process closes its helpers when it stops.
+A study's cell, trained in a worker process of the study, sends itself SIGTERM when the study has gone
+(:func:`stop_when_orphaned`): a study stopped with ``kill`` would otherwise leave its cells training for nobody.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import contextlib
 import os
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -72,6 +75,21 @@ def ignore_stop_signals() -> None:
     """Ignore SIGINT and SIGTERM in this (helper) process: its training process stops it."""
     for s in _STOP_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
+
+
+def stop_when_orphaned(poll_s: float = 1.0) -> threading.Thread:
+    """Send this process SIGTERM once its parent process has gone (checked every ``poll_s`` seconds in a daemon
+    thread, which is returned); under :func:`stop_signals` it then stops as a run does on SIGTERM."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_s)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    thread = threading.Thread(target=watch, name="stop-when-orphaned", daemon=True)
+    thread.start()
+    return thread
 
 
 def in_worker(owner: int, factory: Callable[..., Any], *args, **kwargs) -> Any:
