@@ -100,3 +100,16 @@ def test_cpu_time_counts_live_worker_processes():
         child.terminate()
         child.join()
     assert 0.2 <= spent <= 0.6, spent  # clock ticks of 10 ms, and the child's start-up
+
+
+@pytest.mark.parametrize("module, cli", [("training", "bench_training"), ("sb3", "bench_sb3"),
+                                         ("surrogates", "bench_surrogates")])
+def test_a_benchmark_module_run_by_name_points_to_its_command_line(module, cli):
+    """Issue 27 names ``python -m anm_torchrl.benchmarks.training``; the library module alone would exit 0 having
+    done nothing."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", f"anm_torchrl.benchmarks.{module}"], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 1 and f"python -m anm_torchrl.cli.{cli} (--help" in out.stderr

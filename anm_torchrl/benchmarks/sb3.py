@@ -105,3 +105,8 @@ def table(record: dict) -> str:
     lines.append(f"\nratio: {record['ratio_frames_per_s']:.1f}x (PPO), {record['ratio_collect_frames_per_s']:.1f}x "
                  "(collection)")
     return "\n".join(lines)
+
+
+if __name__ == "__main__":  # run by name, this library module would otherwise exit 0 having done nothing
+    raise SystemExit("the Stable-Baselines3 comparison's command line is python -m anm_torchrl.cli.bench_sb3 "
+                     "(--help lists its options)")

@@ -86,3 +86,8 @@ def measure(batches: list[int], kinds, datasets, min_time: float, min_steps: int
     results = {key: {b: {"rate": statistics.median(samples[key][b]), "warm": statistics.median(warm[key][b])}
                      for b in batches} for key in samples}
     return results, missing
+
+
+if __name__ == "__main__":  # run by name, this library module would otherwise exit 0 having done nothing
+    raise SystemExit("the surrogate benchmark's command line is python -m anm_torchrl.cli.bench_surrogates "
+                     "(--help lists its options)")

@@ -164,3 +164,8 @@ def write(record: dict, out: str | Path) -> None:
     out = Path(out)
     atomic_write(out.with_suffix(".json"), json.dumps(record, indent=2).encode())
     atomic_write(out.with_suffix(".md"), markdown(record).encode())
+
+
+if __name__ == "__main__":  # run by name, this library module would otherwise exit 0 having done nothing
+    raise SystemExit("the training-loop benchmark's command line is python -m anm_torchrl.cli.bench_training "
+                     "(--help lists its options)")
