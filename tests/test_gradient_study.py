@@ -208,6 +208,8 @@ def test_a_kept_record_keeps_the_rows_not_re_made(campaign, monkeypatch):
     assert [r["method"] for r in again["methods"]] == ["shac_exact", "ppo"] and again["kept_from"] == "k.json"
     assert again["methods"][1] == {**ppo, "kept_from": "k.json"} and "kept_from" not in again["methods"][0]
     assert again["methods"][0]["runs"] == record["methods"][0]["runs"]  # re-made (here: read back), not kept
+    assert "not re-run with the others): PPO on the true env." in gs.markdown(again)
+    assert "Kept from" not in gs.markdown(record)
     for key, value in (("seeds", [0, 1]), ("overrides", []), ("protocol", {**PROTOCOL, "steps": 6})):
         with pytest.raises(ValueError, match=f"k.json: its {key} .* cannot be kept"):
             gs.campaign("anm6_easy", ["shac_exact"], [0], runs, jobs=1, overrides=TINY, keep={**keep, key: value},

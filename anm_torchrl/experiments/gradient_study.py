@@ -220,6 +220,10 @@ def markdown(record: dict) -> str:
                      "of SHAC through the PINN.")
     if loads:
         notes.append(f"1-minute load average at the cells' starts and ends: {min(loads):.1f}–{max(loads):.1f}.")
+    kept = [row["label"] for row in record["methods"] if row.get("kept_from")]
+    if kept:
+        notes.append(f"Kept from an earlier campaign of this record (`--keep`, not re-run with the others): "
+                     f"{'; '.join(kept)}.")
     lines += ["", " ".join(notes)] if notes else []
     return "\n".join(lines) + "\n"
 
