@@ -72,8 +72,16 @@ def test_keep_takes_the_other_groups_runs_of_an_earlier_record_of_the_same_proto
     assert [r["seed"] for r in leaderboard.kept_runs(json.loads(earlier.read_text()), protocol, {("sac", "none")},
                                                      "e")] == [0] and len(rec["runs"]) == 2
     other = {**protocol, "steps": 6}
-    with pytest.raises(ValueError, match="cannot be kept"):
-        leaderboard.build("anm6_easy", [], gap_table={**table, "protocol": other}, keep=earlier)
+    with pytest.raises(ValueError, match="cannot be kept"):  # before any run is evaluated (this one does not exist)
+        leaderboard.build("anm6_easy", [tmp_path / "no_run"], gap_table={**table, "protocol": other}, keep=earlier)
+
+
+def test_the_cli_names_a_kept_file_it_cannot_read(tmp_path):
+    from anm_torchrl.cli import leaderboard as cli
+
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(ValueError, match="--keep .*bad.json: not a readable JSON record"):
+        cli.main(["--network", "anm6_easy", "--keep", str(tmp_path / "bad.json")])
 
 
 def test_a_run_through_a_models_gradients_says_so_and_shows_its_model_frames():

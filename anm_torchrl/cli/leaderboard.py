@@ -14,7 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
-from anm_torchrl.cli.args import count
+from anm_torchrl.cli.args import count, read_kept
 from anm_torchrl.experiments import leaderboard
 
 log = logging.getLogger(__name__)
@@ -35,6 +35,7 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     torch.set_num_threads(args.threads)
+    read_kept(args.keep)  # a missing or unreadable file is named by its option, before any evaluation
     record = leaderboard.build(args.network, args.runs, keep=args.keep)
     record["command"] = "python -m anm_torchrl.cli.leaderboard " + " ".join(argv if argv is not None else sys.argv[1:])
     text = leaderboard.markdown(record)

@@ -137,10 +137,11 @@ def build(network: str, run_dirs: list[str | Path], gap_table: dict | None = Non
     whose runs of the groups not in ``run_dirs`` are kept (:func:`kept_runs`)."""
     gap_table = gap_table if gap_table is not None else json.loads(gap_table_path(network).read_text())
     protocol = gap_table["protocol"]
+    # the earlier record first: a wrong one fails before the runs' evaluations (minutes), not after them
+    earlier = kept_runs(json.loads(Path(keep).read_text()), protocol, set(), str(keep)) if keep is not None else []
     runs = [evaluate_run(d, protocol) for d in run_dirs]
-    if keep is not None:
-        replaced = {(r["algorithm"], r["surrogate"]) for r in runs}
-        runs = kept_runs(json.loads(Path(keep).read_text()), protocol, replaced, str(keep)) + runs
+    replaced = {(r["algorithm"], r["surrogate"]) for r in runs}
+    runs = [r for r in earlier if (r["algorithm"], r["surrogate"]) not in replaced] + runs
     opt, dn = reference_returns(network, gap_table)
     rows = baseline_rows(gap_table) + trained_rows(runs)
     for r in rows:
