@@ -297,19 +297,17 @@ def test_a_failed_cell_is_reported_with_its_error(tmp_path):
 def test_a_cell_stopped_by_a_signal_is_a_failure_not_a_finished_cell(tmp_path, monkeypatch):
     """A cell whose run ended as interrupted (a Ctrl-C, or the SIGTERM it sends itself when its study has gone)
     raises instead of returning its marker: the study reports it, and the next run trains it again."""
-    import os
     import signal
 
-    from anm_torchrl.training import protocol
-    from anm_torchrl.training.signals import graceful
+    from anm_torchrl.training import protocol, signals
+    from tests.test_signals import _deliver
 
     def interrupted_run(cfg, run_dir, network_defaults=None):
-        with graceful():
-            os.kill(os.getpid(), signal.SIGTERM)  # asks: the loop would finish its iteration, then end
-            for _ in range(1000):  # Python runs the handler between bytecodes
-                pass
+        with signals.graceful():
+            _deliver(signal.SIGTERM)  # asks: the loop would finish its iteration, then end
         return None
 
+    monkeypatch.setattr(signals, "stop_when_orphaned", lambda: None)  # no watch thread left in the test process
     monkeypatch.setattr(cells, "cell_config", lambda command: (None, None))
     monkeypatch.setattr(cells, "network_key", lambda cfg: "key")
     monkeypatch.setattr(protocol, "train", interrupted_run)

@@ -54,7 +54,7 @@ def test_a_run_of_another_network_is_refused(ppo_checkpoint, tmp_path):
         leaderboard.build("case33bw", [_run_dir(tmp_path, ppo_checkpoint, "a")], gap_table=table)
 
 
-def test_keep_takes_the_other_groups_runs_of_an_earlier_record_of_the_same_protocol(tmp_path):
+def test_keep_takes_the_other_groups_runs_of_an_earlier_record_of_the_same_protocol(tmp_path, monkeypatch):
     protocol = {"network": "anm6_easy", "episodes": 2, "seed": 0, "steps": 5, "gamma": 0.995}
     table = {"protocol": protocol, "rows": [
         {"policy": "optimum", "row": "optimal", "discounted_return": -1.0, "states": 2, "source": "gap"},
@@ -65,15 +65,20 @@ def test_keep_takes_the_other_groups_runs_of_an_earlier_record_of_the_same_proto
     earlier.write_text(json.dumps({"protocol": protocol, "runs": [
         {"algorithm": "ppo", "surrogate": "none", "seed": 0, "discounted_return": -2.0, "true_env_frames": 10,
          "wall_s": 1.0}, old]}))
-    rec = leaderboard.build("anm6_easy", [], gap_table=table, keep=earlier)
+    kept = {"keep": json.loads(earlier.read_text()), "keep_source": str(earlier)}
+    rec = leaderboard.build("anm6_easy", [], gap_table=table, **kept)
     assert {r["row"] for r in rec["rows"]} == {"optimal", "do_nothing", "ppo_none", "sac_none"}
     assert all(r["kept_from"] == str(earlier) for r in rec["runs"])
+    assert len(rec["runs"]) == 2
     # a group given again is replaced, not merged with its earlier runs
-    assert [r["seed"] for r in leaderboard.kept_runs(json.loads(earlier.read_text()), protocol, {("sac", "none")},
-                                                     "e")] == [0] and len(rec["runs"]) == 2
+    monkeypatch.setattr(leaderboard, "evaluate_run", lambda d, p: {**old, "seed": 5})
+    again = leaderboard.build("anm6_easy", [tmp_path / "sac_run"], gap_table=table, **kept)
+    assert [(r["algorithm"], r["seed"]) for r in again["runs"]] == [("ppo", 0), ("sac", 5)]
+    assert "kept_from" in again["runs"][0] and "kept_from" not in again["runs"][1]
+    monkeypatch.undo()
     other = {**protocol, "steps": 6}
     with pytest.raises(ValueError, match="cannot be kept"):  # before any run is evaluated (this one does not exist)
-        leaderboard.build("anm6_easy", [tmp_path / "no_run"], gap_table={**table, "protocol": other}, keep=earlier)
+        leaderboard.build("anm6_easy", [tmp_path / "no_run"], gap_table={**table, "protocol": other}, **kept)
 
 
 def test_the_cli_names_a_kept_file_it_cannot_read(tmp_path):

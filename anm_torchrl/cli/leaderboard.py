@@ -35,8 +35,7 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     torch.set_num_threads(args.threads)
-    read_kept(args.keep)  # a missing or unreadable file is named by its option, before any evaluation
-    record = leaderboard.build(args.network, args.runs, keep=args.keep)
+    record = leaderboard.build(args.network, args.runs, keep=read_kept(args.keep), keep_source=args.keep or "")
     record["command"] = "python -m anm_torchrl.cli.leaderboard " + " ".join(argv if argv is not None else sys.argv[1:])
     text = leaderboard.markdown(record)
     if args.out:

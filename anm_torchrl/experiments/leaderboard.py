@@ -116,10 +116,9 @@ def trained_rows(runs: list[dict]) -> list[dict]:
     return rows
 
 
-def kept_runs(record: dict, protocol: dict, replaced: set[tuple[str, str]], source: str) -> list[dict]:
-    """The evaluated runs of an earlier leaderboard ``record`` (read from ``source``) of the same protocol, except
-    those of the (algorithm, training env) groups in ``replaced`` (re-run now): a row re-made without re-training
-    the others. Each kept run names ``kept_from``.
+def kept_runs(record: dict, protocol: dict, source: str) -> list[dict]:
+    """The evaluated runs of an earlier leaderboard ``record`` (read from ``source``) of the same protocol, each
+    naming ``kept_from`` (:func:`build` drops those of the groups it re-runs).
 
     Raises:
         ValueError: ``record`` was measured on another protocol (network, states, T, γ) than ``protocol``.
@@ -127,18 +126,18 @@ def kept_runs(record: dict, protocol: dict, replaced: set[tuple[str, str]], sour
     if record.get("protocol") != protocol:
         raise ValueError(f"{source} was measured on protocol {record.get('protocol')}, not the gap table's "
                          f"{protocol}: its runs cannot be kept")
-    return [{**r, "kept_from": r.get("kept_from", source)} for r in record.get("runs", [])
-            if (r["algorithm"], r["surrogate"]) not in replaced]
+    return [{**r, "kept_from": r.get("kept_from", source)} for r in record.get("runs", [])]
 
 
 def build(network: str, run_dirs: list[str | Path], gap_table: dict | None = None,
-          keep: str | Path | None = None) -> dict:
-    """The leaderboard record of ``network``: baseline rows, trained rows, ratios. ``keep``: an earlier record
-    whose runs of the groups not in ``run_dirs`` are kept (:func:`kept_runs`)."""
+          keep: dict | None = None, keep_source: str = "the kept record") -> dict:
+    """The leaderboard record of ``network``: baseline rows, trained rows, ratios. ``keep``: an earlier record (read
+    from ``keep_source``) whose runs of the (algorithm, training env) groups not in ``run_dirs`` are kept
+    (:func:`kept_runs`): a row re-made without re-training the others; a group given again is replaced, not merged."""
     gap_table = gap_table if gap_table is not None else json.loads(gap_table_path(network).read_text())
     protocol = gap_table["protocol"]
     # the earlier record first: a wrong one fails before the runs' evaluations (minutes), not after them
-    earlier = kept_runs(json.loads(Path(keep).read_text()), protocol, set(), str(keep)) if keep is not None else []
+    earlier = kept_runs(keep, protocol, keep_source) if keep is not None else []
     runs = [evaluate_run(d, protocol) for d in run_dirs]
     replaced = {(r["algorithm"], r["surrogate"]) for r in runs}
     runs = [r for r in earlier if (r["algorithm"], r["surrogate"]) not in replaced] + runs
