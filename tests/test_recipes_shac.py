@@ -59,6 +59,8 @@ def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
     ("env.short_rows=0.5 env.max_steps=null", "env.short_rows > 0 needs a time limit (env.max_steps)"),
     ("loss.critic_worker=1", "loss.critic_worker must be true or false, got 1"),
     ("env.power_flow=gpu", "env.power_flow must be one of torch, numba; got 'gpu'"),
+    ("env.device=cuda", "env.power_flow=numba (the default) runs the exact model's power flow on the CPU; with "
+                        "env.device=cuda add env.power_flow=torch"),
 ])
 def test_shac_config_errors_name_the_key(override, message):
     from recipe_utils import compose
@@ -240,10 +242,12 @@ def test_the_critic_worker_is_repeatable():
     assert all(torch.equal(a, b) for a, b in zip(*runs))
 
 
-def test_shac_with_the_critic_worker_and_the_compiled_forward_runs_the_recipe(tmp_path):
-    """The recipe end to end with both speed keys: the run directory and finite critic losses under their tag."""
+def test_shac_with_the_critic_worker_and_the_torch_power_flow_runs_the_recipe(tmp_path):
+    """The recipe end to end with the critic worker and the exact model's power flow in torch ops (the reference
+    path; the compiled one is the default the other recipe tests run): the run directory and finite critic losses
+    under their tag."""
     run_dir = tmp_path / "run"
-    run(SHAC, "model=exact", *TINY_SHAC, "loss.critic_worker=true", "env.power_flow=numba",
+    run(SHAC, "model=exact", *TINY_SHAC, "loss.critic_worker=true", "env.power_flow=torch",
         "collector.total_frames=96", f"hydra.run.dir={run_dir}", cwd=tmp_path)
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["model_frames"] == 96 and summary["updates"] == 3 and not summary["interrupted"]

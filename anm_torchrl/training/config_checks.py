@@ -276,6 +276,10 @@ def check_shac_config(cfg: Mapping) -> None:
     _choice(cfg, "model.state_dependent_scale", (False, True))
     _choice(cfg, "model.dynamics", ("exact", "pinn"))
     _choice(cfg, "env.power_flow", ("torch", "numba"))
+    device = str(_get(cfg, "env.device") or "cpu")
+    if _get(cfg, "model.dynamics") == "exact" and _get(cfg, "env.power_flow") == "numba" and not device.startswith("cpu"):
+        raise ValueError(f"env.power_flow=numba (the default) runs the exact model's power flow on the CPU; with "
+                         f"env.device={device} add env.power_flow=torch")
     _in_range(cfg, "env.short_rows", 0, 1, False, True)
     _int(cfg, "env.short_steps")
     if _get(cfg, "env.short_rows") and _get(cfg, "env.max_steps") is None:
