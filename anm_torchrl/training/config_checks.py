@@ -277,7 +277,8 @@ def check_shac_config(cfg: Mapping) -> None:
     _choice(cfg, "model.dynamics", ("exact", "pinn"))
     _choice(cfg, "env.power_flow", ("torch", "numba"))
     device = str(_get(cfg, "env.device") or "cpu")
-    if _get(cfg, "model.dynamics") == "exact" and _get(cfg, "env.power_flow") == "numba" and not device.startswith("cpu"):
+    compiled = _get(cfg, "model.dynamics") == "exact" and _get(cfg, "env.power_flow") == "numba"
+    if compiled and not device.startswith("cpu"):
         raise ValueError(f"env.power_flow=numba (the default) runs the exact model's power flow on the CPU; with "
                          f"env.device={device} add env.power_flow=torch")
     _in_range(cfg, "env.short_rows", 0, 1, False, True)
