@@ -24,6 +24,7 @@ def test_compare_measures_every_row_twice_in_one_run():
     assert "rows marked `compare` add loss.ppo_epochs=1" in text
     assert record["machine"]["cpu"] and record["machine"]["cpu"] in text  # a rate says on what machine
     assert "| ppo | 8 | base |" in text and "| ppo | 8 | compare |" in text
+    assert f"(PPO {training.STEPS} steps per env per iteration," in text
 
 
 def test_markdown_without_compare_keeps_the_plain_table():
@@ -43,6 +44,8 @@ def test_shac_is_measured_on_its_model_with_its_network_entry():
     assert row["algorithm"] == "shac" and row["frames"] == 8 * 4, "one iteration: N rows x horizon model frames"
     for key in ("env_fps", "collect_fps", "update_fps", "loop_fps", "loop_cpu_fps"):
         assert math.isfinite(row[key]) and row[key] > 0, (key, row[key])
+    text = training.markdown(record)  # SHAC's iteration is its horizon, not the PPO/SAC batch's steps
+    assert "(SHAC its rollout horizon (loss.horizon), 1 thread" in text and "steps per env" not in text
     with pytest.raises(ValueError, match="unknown algorithm 'td3'; choose from"):
         training._config("td3", "anm6_easy", 8, [])
 

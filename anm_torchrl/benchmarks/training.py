@@ -140,8 +140,13 @@ def markdown(record: dict) -> str:
     """The table of :func:`measure`'s record."""
     compare = record.get("compare")
     cpu = (record.get("machine") or {}).get("cpu")  # records before 2026-12-06 do not name their CPU
-    lines = [f"Training loop throughput on {record['network']} ({record['steps_per_env']} steps per env per "
-             f"iteration, 1 thread, load {record['load_avg_1min']:.1f}" + (f", {cpu}" if cpu else "")
+    algorithms = {r["algorithm"] for r in record["rows"]}
+    per_iteration = ", ".join(
+        ([f"{' and '.join(a.upper() for a in ('ppo', 'sac') if a in algorithms)} {record['steps_per_env']} steps "
+          "per env per iteration"] if algorithms & {"ppo", "sac"} else [])
+        + (["SHAC its rollout horizon (loss.horizon)"] if "shac" in algorithms else []))
+    lines = [f"Training loop throughput on {record['network']} ({per_iteration}, 1 thread, load "
+             f"{record['load_avg_1min']:.1f}" + (f", {cpu}" if cpu else "")
              + (f"; overrides: {' '.join(record['overrides'])}" if record.get("overrides") else "")
              + (f"; rows marked `compare` add {' '.join(compare)}" if compare else "")
              + "); frames/s of wall time (CPU time)" + ("; warm-up: the first iteration's seconds" if compare else ""),
