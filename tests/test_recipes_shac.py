@@ -284,3 +284,14 @@ def test_the_critic_worker_says_where_it_cannot_run(monkeypatch):
     monkeypatch.setattr(multiprocessing, "get_all_start_methods", lambda: ["spawn"])
     with pytest.raises(ValueError, match="loss.critic_worker=true needs the 'fork' start method"):
         _tiny_shac("loss.critic_worker=true")
+
+
+@pytest.mark.parametrize("network", ["anm6_easy", "case33bw", "cigre_mv", "simbench_mv_semiurb", "my_feeder.npz"])
+def test_the_exact_model_solves_in_the_compiled_kernel_by_default_on_every_network(network):
+    """The leaderboards' SHAC rows and the unseen-networks column were made with the compiled power flow
+    (``env.power_flow: numba``, recipes/conf/env/shac.yaml); no network's entry may switch it back silently. A
+    network file that is not a registered name gets the ``default`` entry (its name is only read, not loaded)."""
+    from anm_torchrl.training.network_defaults import compose_recipe_config
+
+    cfg, _ = compose_recipe_config([f"network={network}"], "shac")
+    assert cfg.model.dynamics == "exact" and cfg.env.power_flow == "numba"

@@ -58,7 +58,7 @@ class ExactModel:
     reward (N,), terminated (N,) bool, observation (N, n_obs) float32)``. ``power_flow`` runs the forward's
     Newton–Raphson: ``torch`` (ops) or ``numba`` (the compiled kernel; the same numbers to float64 round-off)."""
 
-    def __init__(self, env, power_flow: str = "torch"):
+    def __init__(self, env, power_flow: str):
         from anm_torchrl.grid import differentiable
 
         solver = None
