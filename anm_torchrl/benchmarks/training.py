@@ -141,10 +141,11 @@ def markdown(record: dict) -> str:
     compare = record.get("compare")
     cpu = (record.get("machine") or {}).get("cpu")  # records before 2026-12-06 do not name their CPU
     algorithms = {r["algorithm"] for r in record["rows"]}
-    per_iteration = ", ".join(
-        ([f"{' and '.join(a.upper() for a in ('ppo', 'sac') if a in algorithms)} {record['steps_per_env']} steps "
-          "per env per iteration"] if algorithms & {"ppo", "sac"} else [])
-        + (["SHAC its rollout horizon (loss.horizon)"] if "shac" in algorithms else []))
+    batched = [a.upper() for a in ("ppo", "sac") if a in algorithms]  # collect steps_per_env steps per env
+    iterations = [f"{' and '.join(batched)} {record['steps_per_env']} steps per env per iteration"] if batched else []
+    if "shac" in algorithms:
+        iterations.append("SHAC its rollout horizon (loss.horizon)")
+    per_iteration = ", ".join(iterations)
     lines = [f"Training loop throughput on {record['network']} ({per_iteration}, 1 thread, load "
              f"{record['load_avg_1min']:.1f}" + (f", {cpu}" if cpu else "")
              + (f"; overrides: {' '.join(record['overrides'])}" if record.get("overrides") else "")
