@@ -179,3 +179,48 @@ def test_training_refuses_an_action_whose_range_is_a_single_value(tmp_path):
         message = f"the action range of Q of device {int(device[0])} (0 MW/MVAr) is a single value"
         assert proc.returncode != 0 and message in proc.stderr, proc.stderr[-2000:]
         assert "Traceback" not in proc.stderr and not (tmp_path / recipe / "checkpoints").exists()
+
+
+def _one_kind(kind: str) -> tuple[dict, np.ndarray, np.ndarray]:
+    """:func:`feeder` with one kind of controllable device: its storage unit alone, its PV unit alone, or that unit
+    as a classical generator (type 1) alone."""
+    net, load_p, gen_p_max = feeder()
+    keep = {"storage": (3,), "renewable": (2,), "classical": (2,)}[kind]
+    dev = [list(d) for d in net["device"] if d[2] in (0, -1, *keep)]
+    if kind == "classical":
+        dev = [d[:2] + [1] + d[3:] if d[2] == 2 else d for d in dev]
+    return {**net, "device": dev}, load_p, gen_p_max[:, :0] if kind == "storage" else gen_p_max
+
+
+@pytest.mark.parametrize("kind", ["storage", "renewable", "classical"])
+def test_every_recipe_trains_on_a_network_with_one_kind_of_controllable_device(kind, tmp_path):
+    """A user's network need not have every device kind. With only a storage unit, only a renewable or only a
+    classical generator, one iteration of PPO, SAC and SHAC (tiny sizes, the per-network defaults of a user's file)
+    collects and updates with finite losses, and the smoke PINN trains and steps as that network's surrogate env
+    with finite rewards."""
+    import torch
+
+    from anm_torchrl.envs import SurrogateEnv
+    from anm_torchrl.surrogates.pinn import train as tr
+    from anm_torchrl.surrogates.pinn.load import load_pinn
+    from anm_torchrl.training.algorithms import get_algorithm
+    from anm_torchrl.training.network_defaults import compose_recipe_config
+    from tests.test_recipes_ppo import TINY
+    from tests.test_recipes_sac import TINY_SAC
+    from tests.test_recipes_shac import TINY_SHAC
+
+    file = N.save_network(tmp_path / f"{kind}_only.npz", *_one_kind(kind))
+    for name, config, tiny in (("ppo", "config", TINY), ("sac", "sac", TINY_SAC), ("shac", "shac", TINY_SHAC)):
+        cfg = compose_recipe_config([*tiny, f"network={file}"], config)[0]
+        algo = get_algorithm(name)(cfg, device=torch.device("cpu"), seed=0, budget=64, reward_scale=1.0, resume=None)
+        try:
+            frames, metrics = algo.iterate(64)
+        finally:
+            algo.close()
+        losses = {k: float(v) for k, v in metrics.items() if k.startswith("train/loss")}
+        assert frames > 0 and losses and all(math.isfinite(v) for v in losses.values()), (name, metrics)
+    sim = N.simulator(str(file))
+    modules, report = tr.train_pinn(tr.preset("smoke"), sim)
+    path = tr.save_pinn(tmp_path / "pinn.safetensors", modules, tr.preset("smoke"), report, sim)
+    td = SurrogateEnv(load_pinn(sim, path=path), num_envs=3, seed=0, sim=sim).rollout(4, break_when_any_done=False)
+    assert td["next", "reward"].shape == (3, 4, 1) and torch.isfinite(td["next", "reward"]).all()
