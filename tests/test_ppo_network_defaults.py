@@ -19,7 +19,7 @@ from recipe_utils import ROOT, compose
 from anm_torchrl.baselines.simple import DoNothingPolicy
 from anm_torchrl.training.config_checks import check_ppo_config
 from anm_torchrl.training.factory import make_train_env
-from anm_torchrl.training.models import initial_mean_bias, make_ppo_models
+from anm_torchrl.training.models import initial_mean_bias, make_ppo_models, time_of_day_feature
 
 CLIP = 0.98
 
@@ -160,6 +160,15 @@ def test_time_features_are_continuous_across_midnight():
     assert critic(env.reset())["state_value"].shape == (2, 1)
     with pytest.raises(ValueError, match="model.time_features must be one of False, True; got 'yes'"):
         check_ppo_config(compose("config", ["model.time_features=yes"]))
+    # an observation without the time index: the error names the key that asked for it, not an observation entry
+    base = env.base_env
+    entries = base.obs_map.entries
+    try:
+        base.obs_map.entries = [e for e in entries if e[0] != "aux"]
+        with pytest.raises(ValueError, match=r"^model.forecast_steps needs the time index \('aux'\)"):
+            time_of_day_feature(env, "model.forecast_steps")
+    finally:
+        base.obs_map.entries = entries
 
 
 @pytest.mark.parametrize("network", ["case33bw", "anm6_easy", "random"])

@@ -192,8 +192,8 @@ def time_of_day_feature(env: EnvBase, key: str = "model.time_features") -> tuple
         raise ValueError(f"{key} needs an env with an observation map (.obs_map), got "
                          f"{type(base).__name__}")
     offset = 0
-    for key, rows, _ in obs_map.entries:
-        if key == "aux":
+    for name, rows, _ in obs_map.entries:
+        if name == "aux":
             return offset, int(round(24 / float(base.sim.net.delta_t)))
         offset += int(rows.numel())
     raise ValueError(f"{key} needs the time index ('aux') in the observation")
