@@ -148,6 +148,33 @@ def test_render_episode_on_case33bw(tmp_path):
     assert Image.open(paths["png"]).size[0] > 1000
 
 
+
+@pytest.mark.parametrize("kind, empty", [("storage", "no generator but the slack in this network"),
+                                         ("renewable", "no storage in this network")])
+def test_episode_figure_of_a_network_without_generators_or_without_storage(kind, empty, tmp_path):
+    """A user's network with a storage unit only (no generator but the slack) or a renewable only (no storage, as
+    SimBench's feeder): the page is drawn and written, its empty panel says what is missing, and no warning is
+    raised (an empty panel's legend had warned)."""
+    import warnings
+
+    from anm_torchrl.envs import ANMEnv
+    from tests.test_user_network import _one_kind
+
+    torch.set_num_threads(1)
+    net, load_p, gen_p_max = _one_kind(kind)
+    env = ANMEnv(network=net, load_p=load_p, gen_p_max=gen_p_max, num_envs=1, seed=0)
+
+    def idle(td):
+        return td.set("action", torch.zeros(*td.batch_size, env.sim.action_dim))
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rollout = env.rollout(6, idle, tensordict=env.reset(), auto_reset=False)
+        fig = episode_figure(episode_from_rollout(rollout, env.sim.net.base_mva), network_tables(env.sim.net))
+        paths = render_episode(idle, env, env.reset()["state"][0], 6, tmp_path, gif=False)
+    assert empty in [a.get_title() for a in fig.axes]
+    assert Image.open(paths["png"]).size[0] > 1000
+
 def _long_episode(tb, steps: int, start_index: int) -> Episode:
     """A synthetic ANM6 episode of ``steps`` 15-min steps from time index ``start_index``: one costly step (300),
     a load peak (310), curtailment (320) and a penalty (305), all else quiet."""

@@ -310,7 +310,8 @@ def _time_series(axes: list[Axes], ep: Episode, tb: NetworkTables, offset: int =
         ax.fill_between(x, applied[:, i], pot[:, i], color=f"C{i}", alpha=0.15, lw=0,
                         label="curtailed" if i == 0 else None)
     ax.set_ylabel("MW")
-    ax.set_title("generator active power: applied, potential, set-point")
+    ax.set_title("generator active power: applied, potential, set-point" if ng else
+                 "no generator but the slack in this network")
 
     ax = axes[1]
     _series(ax, x, np.c_[q[:, tb.gen_ids], q[:, tb.des_ids]], gen_names + des_names, "all devices", lw=1.5)
@@ -384,7 +385,8 @@ def _time_series(axes: list[Axes], ep: Episode, tb: NetworkTables, offset: int =
     ax.set_title("reward")
     ax.legend(handles=ax.get_lines() + twin.get_lines(), fontsize=7, loc="lower left")
     for a in axes[:4]:
-        a.legend(fontsize=7, loc="upper left", ncol=2)
+        if a.get_legend_handles_labels()[0]:  # a network without generators or storage leaves a panel empty
+            a.legend(fontsize=7, loc="upper left", ncol=2)
         a.grid(alpha=0.3)
     for a in axes[4:]:
         a.grid(alpha=0.3)
