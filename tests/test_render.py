@@ -148,7 +148,6 @@ def test_render_episode_on_case33bw(tmp_path):
     assert Image.open(paths["png"]).size[0] > 1000
 
 
-
 @pytest.mark.parametrize("kind, empty", [("storage", "no generator but the slack in this network"),
                                          ("renewable", "no storage in this network")])
 def test_episode_figure_of_a_network_without_generators_or_without_storage(kind, empty, tmp_path):
@@ -174,6 +173,7 @@ def test_episode_figure_of_a_network_without_generators_or_without_storage(kind,
         paths = render_episode(idle, env, env.reset()["state"][0], 6, tmp_path, gif=False)
     assert empty in [a.get_title() for a in fig.axes]
     assert Image.open(paths["png"]).size[0] > 1000
+
 
 def _long_episode(tb, steps: int, start_index: int) -> Episode:
     """A synthetic ANM6 episode of ``steps`` 15-min steps from time index ``start_index``: one costly step (300),
