@@ -193,11 +193,13 @@ def _one_kind(kind: str) -> tuple[dict, np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("kind", ["storage", "renewable", "classical"])
-def test_every_recipe_trains_on_a_network_with_one_kind_of_controllable_device(kind, tmp_path):
+def test_every_recipe_trains_on_a_network_with_one_kind_of_controllable_device(kind, tmp_path, caplog):
     """A user's network need not have every device kind. With only a storage unit, only a renewable or only a
     classical generator, one iteration of PPO, SAC and SHAC (tiny sizes, the per-network defaults of a user's file)
     collects and updates with finite losses, and the smoke PINN trains and steps as that network's surrogate env
-    with finite rewards."""
+    with finite rewards; its log says which module had no device to train (and extrapolates no time from it)."""
+    import logging
+
     import torch
 
     from anm_torchrl.envs import SurrogateEnv
@@ -220,7 +222,12 @@ def test_every_recipe_trains_on_a_network_with_one_kind_of_controllable_device(k
         losses = {k: float(v) for k, v in metrics.items() if k.startswith("train/loss")}
         assert frames > 0 and losses and all(math.isfinite(v) for v in losses.values()), (name, metrics)
     sim = N.simulator(str(file))
-    modules, report = tr.train_pinn(tr.preset("smoke"), sim)
+    with caplog.at_level(logging.INFO, logger="anm_torchrl.surrogates.pinn.loop"):
+        modules, report = tr.train_pinn(tr.preset("smoke"), sim)
+    absent = "generator" if kind == "storage" else "storage"
+    done = [r.getMessage() for r in caplog.records if " done: " in r.getMessage()]
+    line = next(m for m in done if f" done: {absent}" in m)
+    assert f"{absent}, no such device on this network, 0 steps" in line and "left" not in line, done
     path = tr.save_pinn(tmp_path / "pinn.safetensors", modules, tr.preset("smoke"), report, sim)
     td = SurrogateEnv(load_pinn(sim, path=path), num_envs=3, seed=0, sim=sim).rollout(4, break_when_any_done=False)
     assert td["next", "reward"].shape == (3, 4, 1) and torch.isfinite(td["next", "reward"]).all()

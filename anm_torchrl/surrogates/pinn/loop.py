@@ -350,9 +350,11 @@ def _train_pinn(cfg: PINNTrainConfig, sim: GridSimulator, log_dir: str | Path | 
                 _save_stage(Path(stage_dir), name, modules[name], cfg, sim, report[name])
             elapsed, left = time.perf_counter() - t0, sum(budget[m] for m in MODULES[i:] if m != aside)
             rate = report[name]["steps"] / max(report[name]["adam_time_s"], 1e-9)  # this stage's steps/s
-            log.info("PINN stage %d/%d done: %s, %d steps in %.0f s (%.0f s so far%s)", i, len(MODULES), name,
-                     report[name]["steps"], report[name]["time_s"], elapsed,
-                     f"; at this stage's {rate:.0f} steps/s, up to ~{left / max(rate, 1e-9):.0f} s left" if left else "")
+            # a module without devices on this network trains no step: no rate to extrapolate the others' time from
+            eta = f"; at this stage's {rate:.0f} steps/s, up to ~{left / rate:.0f} s left" if left and rate > 0 else ""
+            none = ", no such device on this network" if report[name].get("devices") == 0 else ""
+            log.info("PINN stage %d/%d done: %s%s, %d steps in %.0f s (%.0f s so far%s)", i, len(MODULES), name,
+                     none, report[name]["steps"], report[name]["time_s"], elapsed, eta)
             log.debug("%s report: %s", name, report[name])
     finally:
         if stage is not None:
