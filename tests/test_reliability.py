@@ -404,6 +404,29 @@ def test_clipped_profiles_are_reported_once(caplog, monkeypatch):
     assert len(records) == 1 and records[0].startswith("the next_vars hook 'hot' hold values"), records
 
 
+def test_clipping_line_names_its_network_and_no_other_network_is_reported(caplog, monkeypatch):
+    """Bug found on a user's file (main job on a 30-bus random network): the run's log carried "the profiles hold
+    values outside the devices' limits ... device 2 above PMAX (30 MW)", ANM6-Easy's wind, because asking whether a
+    network is ANM6-Easy built ANM6-Easy's simulator; the line also did not say whose profiles it meant."""
+    import logging
+
+    import anm_torchrl.grid.simulator as simulator_module
+    from anm_torchrl.networks import simulator
+    from anm_torchrl.networks.random import generate
+    from anm_torchrl.networks.resolve import _anm6_key, is_anm6
+
+    monkeypatch.setattr(simulator_module, "_REPORTED", set())
+    _anm6_key.cache_clear()
+    case = generate(7003, n_bus=9)
+    with caplog.at_level(logging.INFO, logger="anm_torchrl.grid.simulator"):
+        assert not is_anm6(simulator(case.network, case.load_p, case.gen_p_max))
+    assert not [r for r in caplog.records if "anm6_easy" in r.getMessage() or "PMAX (30 MW)" in r.getMessage()]
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="anm_torchrl.grid.simulator"):
+        assert is_anm6(simulator("anm6_easy"))
+    assert [r.getMessage() for r in caplog.records][0].startswith("the profiles of network 'anm6_easy' hold values")
+
+
 def test_reset_mask_must_be_bool():
     """Extra: a float '_reset' mask raises a clear error naming dtype and shape (before: a raw TypeError)."""
     from tensordict import TensorDict

@@ -71,7 +71,7 @@ class GridSimulator:
     def __init__(self, net: Network, load_series: torch.Tensor, p_max_series: torch.Tensor, gamma: float,
                  lamb: float, costs_clipping: tuple[float, float], backend: str = "auto",
                  next_vars_hook: Callable | None = None, linear_solver: str = "auto",
-                 profile_clip_level: int = logging.WARNING):
+                 profile_clip_level: int = logging.WARNING, profile_source: str = "the profiles"):
         self.net = net
         self.linear_solver = linear_solver
         kind = net.dev_type.tolist()
@@ -104,7 +104,7 @@ class GridSimulator:
         self.gen_idx, self.des_idx, self.load_idx = (torch.tensor(ix, dtype=torch.long, device=net.dev.device)
                                                      for ix in (self.gen_ids, self.des_ids, self.load_ids))
         self._clipping_reported = False
-        self.report_clipping(self.load_series.T * net.base_mva, self.p_max_series.T * net.base_mva, "the profiles",
+        self.report_clipping(self.load_series.T * net.base_mva, self.p_max_series.T * net.base_mva, profile_source,
                              profile_clip_level)
         self.counted = (net.dev_type != STORAGE).to(net.dev.dtype)  # ΔE counts gens, slack and loads
         self.terminal_reward = terminal_reward(gamma, costs_clipping)
@@ -132,10 +132,11 @@ class GridSimulator:
     def from_tables(cls, network: dict, load_p, gen_p_max, delta_t: float, gamma: float, lamb: float,
                     costs_clipping: tuple[float, float], device=None, backend: str = "auto",
                     next_vars_hook: Callable | None = None, linear_solver: str = "auto",
-                    profile_clip_level: int = logging.WARNING) -> "GridSimulator":
+                    profile_clip_level: int = logging.WARNING,
+                    profile_source: str = "the profiles") -> "GridSimulator":
         """A simulator from a validated network dict (:func:`anm_torchrl.networks.validation.validate_network`)
         and profiles ``load_p`` (T, n_load), ``gen_p_max`` (T, n_gen) MW in device-id order; what the profiles
-        hold outside the devices' limits is logged at ``profile_clip_level``."""
+        hold outside the devices' limits is logged at ``profile_clip_level``, naming them ``profile_source``."""
         from anm_torchrl.grid.network import make_network
 
         net = make_network(network["bus"], network["branch"], network["device"], float(network["baseMVA"]),
@@ -143,7 +144,7 @@ class GridSimulator:
         as_t = lambda x: torch.as_tensor(x, dtype=torch.float64, device=device).T  # noqa: E731  (T, n) -> (n, T)
         return cls(net, as_t(load_p), as_t(gen_p_max), gamma=gamma, lamb=lamb, costs_clipping=costs_clipping,
                    backend=backend, next_vars_hook=next_vars_hook, linear_solver=linear_solver,
-                   profile_clip_level=profile_clip_level)
+                   profile_clip_level=profile_clip_level, profile_source=profile_source)
 
     @property
     def n_load(self) -> int:

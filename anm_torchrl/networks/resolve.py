@@ -49,8 +49,11 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
     if isinstance(network, str):
         network = get_network(network)
     shipped = False  # a shipped network's own profiles: their known clipping is logged at INFO, not WARNING
+    # the clipping line names whose profiles it means: a run may build another network's simulator (is_anm6)
+    source = "the network's profiles"
     if isinstance(network, NetworkCase):
         case = network
+        source = f"the profiles of network {case.name!r}"
         shipped = case.name in builtin_networks() and load_p is None and gen_p_max is None
         defaults = {"delta_t": case.delta_t, "gamma": case.gamma, "lamb": case.lamb,
                     "costs_clipping": case.costs_clipping}
@@ -74,7 +77,8 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
     return GridSimulator.from_tables(net, load_p, gen_p_max, float(c["delta_t"]), float(c["gamma"]),
                                      float(c["lamb"]), clip, device=device, backend=backend,
                                      next_vars_hook=next_vars, linear_solver=linear_solver,
-                                     profile_clip_level=logging.INFO if shipped else logging.WARNING)
+                                     profile_clip_level=logging.INFO if shipped else logging.WARNING,
+                                     profile_source=source)
 
 
 def check_controllable(network: str | NetworkCase) -> None:
@@ -112,4 +116,7 @@ def is_anm6(sim: GridSimulator) -> bool:
     profiles may differ)."""
     if sim is None:
         raise ValueError("sim is required: pass anm_torchrl.networks.simulator(<network>)")
-    return network_key(sim) == _anm6_key()
+    from anm_torchrl.networks.registry import ANM6_EASY
+
+    # another bus count is not ANM6-Easy: its simulator (and its profiles' clipping line) is not built for it
+    return sim.net.y_bus.shape[0] == get_network(ANM6_EASY).n_bus and network_key(sim) == _anm6_key()
