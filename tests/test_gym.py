@@ -162,6 +162,36 @@ def test_next_step_autoreset_follows_gymnasium():
     assert [f[1] for f in flags] == [False, False, True, False]
 
 
+def test_next_step_autoreset_after_termination_with_a_positive_soc_min():
+    """Bug: a terminated env holds gym-anm's all-zero state; NEXT_STEP stepped it with the batch before resetting it,
+    and the env refused the batch (SoC 0 below the storage's SOC_MIN = 2 MWh). A 2-bus network whose load jumps to
+    -2000 MW at t = 1 ends every episode by divergence."""
+    nan = np.nan
+    network = {"baseMVA": 100, "bus": [[0, 0, 33, 1.0, 1.0], [1, 1, 33, 1.1, 0.9]],
+               "branch": [[0, 1, 0.01, 0.1, 0.0, nan, nan, nan]],
+               "device": [[0, 0, 0] + [nan] * 12, [1, 1, -1, 0.2, 0, -2000] + [nan] * 9,
+                          [2, 1, 3, nan, 5, -5, 5, -5] + [nan] * 4 + [10, 2, 0.9]]}
+    env = ANMEnv(network=network, load_p=np.array([[-1.0], [-2000.0]]), gen_p_max=np.zeros((2, 0)), num_envs=2,
+                 seed=0)
+    venv = ANMVectorEnv(2, env=env)
+    venv.reset(seed=0)
+    zeros = np.zeros((2, 2))
+    _, _, term, _, _ = venv.step(zeros)
+    assert term.all()
+    obs, reward, term, trunc, _ = venv.step(zeros)  # both reset (raised ValueError "SoC (MWh) must lie in" before)
+    assert not term.any() and not trunc.any() and (reward == 0).all()
+    assert all(venv.single_observation_space.contains(o) for o in obs) and (obs[:, 6] >= 2).all()  # SoC >= SOC_MIN
+
+
+def test_single_env_action_shape_error_names_its_own_shape():
+    env = ANMGymEnv()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action must have shape \(6,\), got \(5,\)"):
+        env.step(np.zeros(5))
+    with pytest.raises(ValueError, match=r"action must have shape \(6,\), got \(1, 6\)"):
+        env.step(np.zeros((1, 6)))
+
+
 def test_same_step_autoreset_reports_final_obs():
     venv = ANMVectorEnv(3, seed=2, autoreset_mode="SameStep")
     venv.reset()

@@ -149,8 +149,13 @@ class NumpyBatch:
             self._keep_grid(td, mask_t)
         return self.observe(self._state)
 
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def step(self, action: np.ndarray, discard: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray,
+                                                                                  np.ndarray]:
         """One transition of every env for ``action`` (N, A) MW/MVAr.
+
+        ``discard`` (N,) bool: rows whose transition the caller throws away (they are reset next): stepped from
+        their state clipped to its bounds, so a terminated row's all-zero state (SoC below a SOC_MIN > 0) is not
+        refused by the env's state check.
 
         Returns observations (N, D) float64, rewards (N,) float64 and ``terminated`` (N,) bool.
 
@@ -165,7 +170,12 @@ class NumpyBatch:
         expected = (self.num_envs, self.action_space.shape[0])
         if action.shape != expected:
             raise ValueError(f"action must have shape {expected}, got {action.shape}")
-        td = TensorDict({"state": self._state,
+        state = self._state
+        if discard is not None and discard.any():
+            rows = torch.as_tensor(self._check_mask(discard), device=state.device).unsqueeze(-1)
+            state = torch.where(rows, torch.as_tensor(self.observe(state), dtype=state.dtype, device=state.device),
+                                state)
+        td = TensorDict({"state": state,
                          "action": torch.as_tensor(self._to_float32(action), device=self.env.device)},
                         self.env.batch_size, device=self.env.device)
         nxt = self.env.step(td).get("next")

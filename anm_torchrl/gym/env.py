@@ -65,7 +65,10 @@ class ANMGymEnv(gymnasium.Env):
         """One transition for ``action`` (A,) MW/MVAr; returns obs, reward, terminated, truncated, ``{}``."""
         if self._terminated:  # gym-anm stays in its terminal state
             return np.zeros(self.observation_space.shape), 0.0, True, False, {}
-        obs, reward, terminated = self._batch.step(np.asarray(action)[None])  # dtype checked there
+        action = np.asarray(action)
+        if action.shape != self.action_space.shape:  # before the batch axis, so the error names this env's shape
+            raise ValueError(f"action must have shape {self.action_space.shape}, got {action.shape}")
+        obs, reward, terminated = self._batch.step(action[None])  # dtype checked there
         self._terminated = bool(terminated[0])
         self._steps, self._reward = self._steps + 1, float(reward[0])
         return obs[0], self._reward, self._terminated, False, {}

@@ -104,7 +104,7 @@ class ANMVectorEnv(VectorEnv):
         resetting = self._needs_reset.copy()
         if resetting.any():  # NEXT_STEP: these envs ignore their action and start a new episode
             actions[resetting] = self.single_action_space.low
-        obs, reward, terminated = self._batch.step(actions)
+        obs, reward, terminated = self._batch.step(actions, discard=resetting)
         self._steps += 1
         truncated = np.zeros(self.num_envs, dtype=bool)
         if self.max_episode_steps is not None:
