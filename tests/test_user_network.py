@@ -116,12 +116,66 @@ def test_network_file_errors_name_the_file_and_the_fault(tmp_path):
     assert not (tmp_path / "bad.npz").exists()  # a refused network writes nothing
 
 
+def test_corrupted_network_file_entries_are_named(tmp_path):
+    """Bug: a network file with a 2-number baseMVA, a meta whose env is a list or a non-integer format_version
+    escaped as a raw TypeError / AttributeError / int() error not naming the file (recipes show ValueErrors only)."""
+    net, load_p, gen_p_max = feeder()
+    good = N.save_network(tmp_path / "good.npz", net, load_p, gen_p_max)
+    with np.load(good) as z:
+        entries = dict(z)
+    for key, value, message in [("baseMVA", np.array([10.0, 20.0]), "baseMVA must be one number"),
+                                ("meta", np.array('{"env": [0.25]}'), "unreadable meta entry"),
+                                ("format_version", np.array("one"), "unreadable format_version entry")]:
+        path = tmp_path / f"bad_{key}.npz"
+        np.savez(path, **{**entries, key: value})
+        with pytest.raises(ValueError, match=rf"bad_{key}.npz: {message}"):
+            N.get_network(str(path))
+
+
+def test_device_ids_and_types_must_be_integers():
+    """Bug: DEV_TYPE 1.5 passed as a generator (int() truncates) and then belonged to no device kind (a contradictory
+    profile-shape error); DEV_ID 2.5 beside an id 2 mapped both devices to id 2 in the observation."""
+    net, load_p, gen_p_max = feeder()
+    for col, value in ((2, 1.5), (0, 2.5)):
+        bad = {**net, "device": [list(r) for r in net["device"]]}
+        bad["device"][2][col] = value
+        with pytest.raises(ValueError, match=rf"'device', row 2, column {('DEV_ID', '', 'DEV_TYPE')[col]}: "
+                                             rf"must be an integer, got {value}"):
+            N.simulator(bad, load_p, gen_p_max)
+
+
+def test_reward_constants_numpy_scalars_and_infinities():
+    """Bug: numpy scalars (np.float32 delta_t) were refused with "must be > 0, got np.float32(0.25)", while +inf
+    delta_t / lamb and a bool passed (NaN rewards, or a failure at reset)."""
+    net, load_p, gen_p_max = feeder()
+    sim = N.simulator(net, load_p, gen_p_max, delta_t=np.float32(0.25), gamma=np.float32(0.99), lamb=np.int64(100))
+    assert sim.gamma == pytest.approx(0.99) and sim.lamb == 100
+    for kwargs, message in [({"delta_t": float("inf")}, "delta_t must be a finite number > 0"),
+                            ({"delta_t": True}, "delta_t must be a finite number > 0"),
+                            ({"lamb": float("inf")}, "lamb must be a finite number >= 0")]:
+        with pytest.raises(ValueError, match=message):
+            N.simulator(net, load_p, gen_p_max, **kwargs)
+
+
 def test_check_network_name():
     N.check_network_name("case33bw")
     with pytest.raises(ValueError, match="unknown network 'case34bw'; registered: .*anm6_easy"):
         N.check_network_name("case34bw")
     with pytest.raises(ValueError, match="no such network file 'nowhere/feeder.npz'"):
         N.check_network_name("nowhere/feeder.npz")
+
+
+def test_a_pathlib_path_names_a_network_file(tmp_path):
+    """Bug: gymnasium.make(..., network=Path(file)) said "unknown network PosixPath(...)" for an existing file."""
+    import gymnasium
+
+    import anm_torchrl.gym  # noqa: F401  registers the ids
+
+    net, load_p, gen_p_max = feeder()
+    path = N.save_network(tmp_path / "feeder.npz", net, load_p, gen_p_max)
+    N.check_network_name(path)
+    env = gymnasium.make("anm_torchrl/ANM-v0", network=path)
+    assert env.reset(seed=0)[0].shape == env.observation_space.shape
 
 
 def test_ppo_recipe_takes_a_network_file(tmp_path):

@@ -7,6 +7,8 @@ its bounds, ``observation="state"``), float64 actions in MW/MVAr, float rewards 
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import torch
 from gymnasium import error, spaces
@@ -18,7 +20,7 @@ from anm_torchrl.envs.specs import check_action_dtype
 RENDER_KEYS = ("v_magn", "branch_s")  # the ("grid", ...) entries a rendered frame shows
 
 
-def make_torchrl_env(network: str, num_envs: int, seed: int | None = None, **kwargs) -> EnvBase:
+def make_torchrl_env(network: str | os.PathLike, num_envs: int, seed: int | None = None, **kwargs) -> EnvBase:
     """The true-simulator TorchRL env of a registered network, batched over ``num_envs``.
 
     ``anm6_easy`` is :class:`~anm_torchrl.envs.ANM6Env` (gym-anm's ``ANM6Easy``, its reset distribution); any
@@ -38,6 +40,7 @@ def make_torchrl_env(network: str, num_envs: int, seed: int | None = None, **kwa
     from anm_torchrl.networks import check_network_name, get_network
 
     check_network_name(network)
+    network = os.fspath(network)  # a name, a path string or a pathlib.Path of a network file
     if network == "anm6_easy":
         return ANM6Env(num_envs=num_envs, seed=seed, **kwargs)
     case = get_network(network)

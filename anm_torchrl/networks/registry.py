@@ -79,6 +79,8 @@ def check_network_name(value) -> None:
     Raises:
         ValueError: naming the value, the registered names and the file form.
     """
+    if isinstance(value, os.PathLike):  # a pathlib.Path of a network file, as get_network takes it
+        value = os.fspath(value)
     if isinstance(value, str) and (value in list_networks() or (user.is_network_file(value)
                                                                and os.path.isfile(value))):
         return

@@ -128,7 +128,10 @@ def load_network_file(path: str | os.PathLike):
     if "format" not in entries or str(entries["format"]) != FORMAT:
         raise ValueError(f"{path} is not an anm_torchrl network file (no format={FORMAT!r} entry; write one with "
                          f"anm_torchrl.networks.save_network)")
-    version = int(entries.get("format_version", -1))
+    try:
+        version = int(entries.get("format_version", -1))
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: unreadable format_version entry ({type(err).__name__}: {err})") from None
     if version != FORMAT_VERSION:
         raise ValueError(f"{path}: network file format version {version}, this package reads {FORMAT_VERSION}")
     missing = [k for k in ("baseMVA", *TABLES, "load_p", "gen_p_max", "meta") if k not in entries]
@@ -137,9 +140,14 @@ def load_network_file(path: str | os.PathLike):
     try:
         meta = json.loads(str(entries["meta"]))
         env = meta["env"]
+        if not isinstance(meta, dict) or not isinstance(env, dict):
+            raise TypeError(f"meta must be a JSON object with an 'env' object, got {str(entries['meta'])[:80]}")
     except (json.JSONDecodeError, KeyError, TypeError) as err:
         raise ValueError(f"{path}: unreadable meta entry ({type(err).__name__}: {err})") from None
-    network = {"baseMVA": float(entries["baseMVA"]), **{k: entries[k] for k in TABLES}}
+    try:
+        network = {"baseMVA": float(entries["baseMVA"]), **{k: entries[k] for k in TABLES}}
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{path}: baseMVA must be one number, got {entries['baseMVA']!r} ({err})") from None
     try:
         return checked_case(path.stem, network, entries["load_p"], entries["gen_p_max"],
                             delta_t=env.get("delta_t"), gamma=env.get("gamma"), lamb=env.get("lamb"),

@@ -25,6 +25,7 @@ Columns that a device type does not use (Q/P of non-loads, SoC columns of non-st
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping
 
 import numpy as np
@@ -176,6 +177,10 @@ def _check_devices(dev: np.ndarray, n_bus: int) -> np.ndarray:
         bad = np.flatnonzero(~np.isfinite(dev[:, j]))
         if bad.size:
             raise _fail("device", f"row {bad[0]}", DEV_COLS[j], f"must be a finite number, got {dev[bad[0], j]}")
+    for j in (0, 2):  # a fractional id or type would be truncated by int() here and compared exactly elsewhere
+        bad = np.flatnonzero(dev[:, j] != np.round(dev[:, j]))
+        if bad.size:
+            raise _fail("device", f"row {bad[0]}", DEV_COLS[j], f"must be an integer, got {dev[bad[0], j]}")
     ids = dev[:, 0]
     if np.unique(ids).size != ids.size:
         raise _fail("device", "rows", "DEV_ID", f"device ids must be unique, got {ids.tolist()}")
@@ -345,13 +350,16 @@ def check_reward_args(delta_t, gamma, lamb, costs_clipping) -> tuple[float, floa
     Raises:
         ValueError: a constant gym-anm would reject (naming it and the value received).
     """
-    if not (isinstance(delta_t, (int, float)) and delta_t > 0):
-        raise ValueError(f"delta_t must be > 0 (h), got {delta_t!r}")
+    def real(x) -> bool:  # numpy scalars too; a bool is not a constant; +inf would make the rewards NaN
+        return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_)) and math.isfinite(x)
+
+    if not (real(delta_t) and delta_t > 0):
+        raise ValueError(f"delta_t must be a finite number > 0 (h), got {delta_t!r}")
     # gamma = 1 makes the terminal reward -c1 / (1 - gamma) a division by zero
-    if not (isinstance(gamma, (int, float)) and 0 <= gamma < 1):
+    if not (real(gamma) and 0 <= gamma < 1):
         raise ValueError(f"gamma must lie in [0, 1), got {gamma!r}")
-    if not (isinstance(lamb, (int, float)) and lamb >= 0):
-        raise ValueError(f"lamb must be >= 0, got {lamb!r}")
+    if not (real(lamb) and lamb >= 0):
+        raise ValueError(f"lamb must be a finite number >= 0, got {lamb!r}")
     if costs_clipping is None:
         return math.inf, math.inf
     if len(costs_clipping) != 2:
