@@ -113,7 +113,8 @@ def main(argv: list[str] | None = None) -> dict:
     env = make_true_env(episodes, network=network, seed=int(cfg.seed))  # states from its reset distribution
     states = draw_initial_states(episodes, int(cfg.seed), env.sim, env.init)
     if ckpt is not None:
-        policy, name = load_actor(ckpt, env=make_true_env(1, network=network)), ckpt["algorithm"]
+        with user_errors("evaluate.py"):  # a checkpoint of a network file rewritten since: one line
+            policy, name = load_actor(ckpt, env=make_true_env(1, network=network)), ckpt["algorithm"]
     else:
         kwargs = OmegaConf.to_container(cfg.policy_kwargs, resolve=True)
         if cfg.policy == "random":
@@ -152,8 +153,13 @@ def main(argv: list[str] | None = None) -> dict:
 def network_of(cfg, ckpt: dict | None) -> str:
     """The network to evaluate on: ``network=``, else the checkpoint's (ANM6-Easy for checkpoints that predate the
     key and for baselines); a checkpoint trained on another network than ``network=`` is refused."""
+    from anm_torchrl.networks.user import is_network_file
+
+    def same(a: str, b: str) -> bool:  # a network file may be spelled relative here, absolute in the checkpoint
+        return a == b or (is_network_file(a) and is_network_file(b) and Path(a).resolve() == Path(b).resolve())
+
     trained = (ckpt["config"].get("network") or "anm6_easy") if ckpt is not None else None
-    if cfg.network is not None and trained is not None and cfg.network != trained:
+    if cfg.network is not None and trained is not None and not same(cfg.network, trained):
         raise SystemExit(f"evaluate.py: the checkpoint was trained on network={trained!r}, not {cfg.network!r}")
     return cfg.network or trained or "anm6_easy"
 

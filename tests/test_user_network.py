@@ -195,6 +195,23 @@ def test_ppo_recipe_takes_a_network_file(tmp_path):
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["config"]["network"] == str(tmp_path / "my_feeder.npz") and summary["frames"] == 64
     assert all(math.isfinite(summary["test"][c]["discounted_return"]) for c in ("best", "last"))
+    # evaluate.py: the file spelled relative to where it is typed is the checkpoint's network (refused before)
+    ckpt = run_dir / "checkpoints" / "best.pt"
+    evaluate = [sys.executable, str(ROOT / "recipes" / "evaluate.py"), f"checkpoint={ckpt}", "episodes=1", "steps=4"]
+    ok = subprocess.run([*evaluate, "network=my_feeder.npz"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                        timeout=300)
+    assert ok.returncode == 0 and math.isfinite(json.loads(ok.stdout.splitlines()[-1])["return"]), ok.stderr[-2000:]
+    # the file rewritten with other lines under the same name: its checkpoint is refused, naming why
+    other = {**net, "branch": [list(r) for r in net["branch"]]}
+    other["branch"][0][3] *= 3
+    N.save_network(tmp_path / "my_feeder.npz", other, load_p, gen_p_max)
+    changed = subprocess.run(evaluate, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert changed.returncode != 0 and "was trained on another network" in changed.stderr, changed.stderr[-2000:]
+    assert "Traceback" not in changed.stderr
+    resumed = subprocess.run([sys.executable, str(ROOT / "recipes" / "ppo.py"), *tiny, "network=my_feeder.npz",
+                              f"checkpoint.resume={ckpt}", f"hydra.run.dir={tmp_path / 'runs' / 'resumed'}"],
+                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode != 0 and "was trained on another network" in resumed.stderr, resumed.stderr[-2000:]
     bad = subprocess.run([sys.executable, str(ROOT / "recipes" / "ppo.py"), "network=nothing.npz",
                           f"hydra.run.dir={tmp_path / 'runs' / 'bad'}"], cwd=tmp_path, env=env, capture_output=True,
                          text=True, timeout=120)

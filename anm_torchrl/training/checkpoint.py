@@ -11,7 +11,8 @@ Layout (format version 3)::
      "state": {...},                       # the algorithm's other networks and optimisers (to resume)
      "frames": int, "update": int, "logger_step": int,
      "best_eval": {metric: float, "frames": int, "update": int} | None,
-     "evals_since_best": int, "wall_time": float}
+     "evals_since_best": int, "wall_time": float,
+     "network_key": str}                   # the trained network's identity (anm_torchrl.grid.identity.network_key)
 
 Version 2 files (``kind: anm_torchrl.ppo``, PPO's ``critic`` and ``optimizer`` at the top level) are read as PPO
 checkpoints of this layout, after the same checks.
@@ -181,9 +182,27 @@ def load_actor(checkpoint: str | os.PathLike | dict[str, Any], env=None, map_loc
         from anm_torchrl.training.factory import make_true_env
 
         env = make_true_env(1, seed=0, network=ckpt["config"].get("network"))
+    check_network(ckpt, env.sim, "the checkpoint" if isinstance(checkpoint, dict) else str(checkpoint))
     actor = get_algorithm(ckpt["algorithm"]).build_actor(env, ckpt["config"], ckpt["obs_norm"])
     actor.load_state_dict(ckpt["actor"])
     return actor.eval()
+
+
+def check_network(ckpt: dict[str, Any], sim, source: str = "the checkpoint") -> None:
+    """Refuse a checkpoint trained on another network than ``sim``'s (a :class:`GridSimulator`): its
+    ``network_key`` (tables and reward constants, not the profiles) against ``sim``'s. A network file rewritten under
+    the same name is caught here; checkpoints that predate the key pass.
+
+    Raises:
+        ValueError: naming both keys and the network the checkpoint's config names.
+    """
+    from anm_torchrl.grid.identity import network_key
+
+    saved = ckpt.get("network_key")
+    if saved is not None and saved != network_key(sim):
+        raise ValueError(f"{source} was trained on another network (key {saved}) than this one (key "
+                         f"{network_key(sim)}), though its config names network={ckpt['config'].get('network')!r}: "
+                         "the network's tables or reward constants changed since (a rewritten network file?)")
 
 
 def config_diff(old: dict, new: dict, prefix: str = "") -> list[str]:

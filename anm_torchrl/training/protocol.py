@@ -77,7 +77,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     from torchrl.record.loggers import generate_exp_name, get_logger
     from tqdm import tqdm
 
-    from anm_torchrl.training.checkpoint import check_resume_config, load_checkpoint, save_checkpoint
+    from anm_torchrl.grid.identity import network_key
+    from anm_torchrl.training.checkpoint import check_network, check_resume_config, load_checkpoint, save_checkpoint
     from anm_torchrl.evaluation import draw_initial_states
     from anm_torchrl.training.factory import make_true_env
     from anm_torchrl.training.validation import BackgroundValidation, InlineValidation, evaluate, use_background
@@ -124,6 +125,9 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     test_states = draw_initial_states(int(cfg.eval.test_episodes), int(cfg.eval.test_seed), test_env.sim,
                                       test_env.init)
     reward_scale = reward_scale_of(cfg, eval_env, val_states)
+    trained_network = network_key(eval_env.sim)
+    if resume:
+        check_network(resume, eval_env.sim, str(resume_path))
 
     # ---- the algorithm: its envs, models, loss, optimisers ---------------------------------------------------------
     algo = algorithm_cls(cfg, device=device, seed=seed, budget=max(total_frames - frames, 0),
@@ -164,7 +168,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
         return {"algorithm": algorithm_cls.name, "config": config, "actor": actor.state_dict(),
                 "obs_norm": algo.normalizer.stats(), "state": algo.state_dict(), "frames": frames, "update": update,
                 "logger_step": frames, "best_eval": best, "evals_since_best": evals_since_best,
-                "wall_time": wall_before + time.perf_counter() - t_start, "curve": curve, "track_seconds": track_s}
+                "wall_time": wall_before + time.perf_counter() - t_start, "curve": curve, "track_seconds": track_s,
+                "network_key": trained_network}
 
     test_max_steps = int(cfg.eval.max_steps if cfg.eval.test_max_steps is None else cfg.eval.test_max_steps)
 
