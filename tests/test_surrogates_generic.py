@@ -111,8 +111,9 @@ def test_data_driven_surrogates_on_case33bw(case33, tmp_path, monkeypatch):
     monkeypatch.setenv("ANM_TORCHRL_HOME", str(tmp_path))
     size = 400
     for kind in ("generative", "agent"):
-        cfg = compose("make_dataset", ["network=case33bw", f"dataset={kind}", f"size={size}", "progress=false",
-                                        "agent.num_envs=8"])
+        # the default options: train_surrogate below asks for the default dataset, and a cached dataset made with
+        # other options is refused (it was silently reused before)
+        cfg = compose("make_dataset", ["network=case33bw", f"dataset={kind}", f"size={size}", "progress=false"])
         assert load_recipe("make_dataset").run(cfg) == str(default_dataset_dir(kind, size, 0, case33))
     with pytest.raises(DatasetError, match="different simulator"):
         load_dataset(default_dataset_dir("agent", size, 0, case33), kind="agent", sim=network_simulator(ANM6_EASY))

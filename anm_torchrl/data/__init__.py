@@ -2,7 +2,8 @@
 
 ``python recipes/make_dataset.py dataset=generative|agent size=100000 seed=0 [network=case33bw]`` writes one to
 :func:`default_dataset_dir` (``anm_torchrl.paths.dataset_dir(kind, size, seed)``, suffixed with the network key
-on networks other than ANM6-Easy); :func:`load_dataset` opens and checks it.
+on networks other than ANM6-Easy and with the simulator fingerprint on profiles other than the shipped ones);
+:func:`load_dataset` opens and checks it.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ _HOMES = {
     **dict.fromkeys(["default_dataset_dir", "ensure_dataset", "generate", "make_dataset"], "api"),
     **dict.fromkeys(["WaypointAgent", "generate_agent"], "agent"),
     **dict.fromkeys(["generate_generative"], "generative"),
-    **dict.fromkeys(["for_network"], "generic"),
+    **dict.fromkeys(["for_dataset", "for_network"], "generic"),
     **dict.fromkeys(["available_datasets", "register_dataset"], "registry"),
     **dict.fromkeys(["KINDS", "SPLITS", "DatasetError", "checksum", "load_dataset", "read_meta", "save_dataset",
                      "split"], "storage"),

@@ -23,7 +23,7 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 from anm_torchrl.networks.resolve import is_anm6
-from anm_torchrl.data.options import WAYPOINT_DISTS
+from anm_torchrl.data.options import WAYPOINT_DISTS, check_split_units
 from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
 from anm_torchrl.grid import reset as grid_reset
 from anm_torchrl.grid.simulator import GridSimulator
@@ -114,10 +114,11 @@ def generate_agent(size: int, seed: int = 0, *, sim: GridSimulator, num_envs: in
     """Roll out the waypoint agent until ``size`` transitions are collected.
 
     Args:
-        size: number of transitions (the last env's trajectory is cut to fit).
+        size: number of transitions, >= 3 (the last env's trajectory is cut to fit).
         seed: seed of the resets, waypoints and the env-level split.
         sim: the simulator (``anm_torchrl.networks.simulator(<network>)``).
-        num_envs: envs stepped together (≥ 3 so that every split gets an env).
+        num_envs: envs stepped together, >= 3 so that every split gets an env (as ``size``; a ``ValueError``
+            otherwise).
         waypoint_every: steps between waypoints (8 = 2 h); with ``random_every`` the largest such interval.
         random_every, waypoints: see :class:`WaypointAgent`.
         max_episode_steps: an episode is also ended (reset) after this many steps (480 = 5 days).
@@ -132,6 +133,9 @@ def generate_agent(size: int, seed: int = 0, *, sim: GridSimulator, num_envs: in
     for name, value in (("num_envs", num_envs), ("max_episode_steps", max_episode_steps)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    # the split is by env (and size caps the envs): fewer than 3 leaves the validation or test split empty
+    check_split_units(num_envs, "num_envs")
+    check_split_units(size, "size")
     num_envs = int(min(num_envs, size))
     gen = torch.Generator(device=sim.net.dev.device).manual_seed(int(seed))
     a_low, a_high = sim.action_bounds()

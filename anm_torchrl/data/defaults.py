@@ -12,6 +12,8 @@ from typing import Any
 
 from anm_torchrl.data.options import DEFAULT_FRACTIONS  # its one home (train, validation, test shares)
 
+__all__ = ["DEFAULT_FRACTIONS", "DEFAULT_OPTIONS", "DEFAULT_SEED", "DEFAULT_SIZE"]  # DEFAULT_FRACTIONS: re-exported
+
 DEFAULT_SIZE = 100_000  # rows (train + validation + test)
 DEFAULT_SEED = 0
 #: per-kind generator options (keyword arguments of :func:`anm_torchrl.data.generate`)

@@ -28,6 +28,7 @@ import torch
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
+from anm_torchrl.data.options import check_split_units
 from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.simulator import GridSimulator
@@ -45,7 +46,7 @@ def generate_generative(size: int, seed: int = 0, *, sim: GridSimulator, chunk: 
     """Sample and label ``size`` Sobol transitions.
 
     Args:
-        size: number of transitions.
+        size: number of transitions, >= 3 (one per split; a ``ValueError`` otherwise).
         seed: seed of the scrambled Sobol engine and of the train/val/test split.
         sim: the simulator (``anm_torchrl.networks.simulator(<network>)``; float64).
         chunk: rows simulated per batch (memory/speed only; the rows do not depend on it beyond float64 round-off).
@@ -57,6 +58,7 @@ def generate_generative(size: int, seed: int = 0, *, sim: GridSimulator, chunk: 
     """
     if size < 1:
         raise ValueError(f"size must be >= 1, got {size}")
+    check_split_units(size, "size")  # one row each for train, validation and test
     if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
         raise ValueError(f"chunk must be an integer >= 1, got {chunk!r}")
     dev, b = sim.net.dev, sim.net.base_mva

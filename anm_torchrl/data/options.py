@@ -8,6 +8,17 @@ from collections.abc import Iterable
 
 DEFAULT_FRACTIONS = (0.8, 0.1, 0.1)  # train, validation, test shares of a dataset's units
 WAYPOINT_DISTS = ("arcsine", "uniform")  # the Agent-based dataset's waypoint distributions
+# fewest split units (rows, or the agent's envs) of a dataset: one each for train, validation and test, since an
+# empty validation or test split gives a NaN R² and stops a DNN after one epoch on a validation MSE of 0
+MIN_SPLIT_UNITS = 3
+
+
+def check_split_units(value, name: str) -> None:
+    """Refuse ``value`` (a dataset's ``size`` or ``num_envs``) below :data:`MIN_SPLIT_UNITS`, a ``ValueError``
+    naming ``name`` and the minimum."""
+    if value < MIN_SPLIT_UNITS:
+        raise ValueError(f"{name} must be >= {MIN_SPLIT_UNITS} (at least one unit each for the train, validation and "
+                         f"test splits), got {value!r}")
 
 
 def check_fractions(fractions, name: str = "fractions") -> tuple[float, float, float]:

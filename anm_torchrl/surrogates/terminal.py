@@ -17,7 +17,9 @@ API used elsewhere (the PINN chain): ``fit(state, action, terminated, eval_set=.
 ``load(dir, sim=...)``.
 A saved classifier is an artifact folder (``terminal.json``, ``terminal.ubj``, ``manifest.json``; atomic, hash
 checked before reading, :mod:`anm_torchrl.artifacts`); inside a regressor surrogate's folder the surrogate's
-manifest covers the same two files. The foresight features read the simulator it is loaded on.
+manifest covers the same two files. The foresight features read the simulator it is loaded on; ``terminal.json``
+records the :func:`~anm_torchrl.grid.identity.network_key` of the network it was trained on, and loading it on
+another network raises (as a regressor or PINN file does).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import torch
 from anm_torchrl._version import __version__
 from anm_torchrl._extras import require
 from anm_torchrl.artifacts import ArtifactError, atomic_folder, verify_manifest, write_manifest
+from anm_torchrl.grid.identity import network_key
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
@@ -182,6 +185,7 @@ class TerminalClassifier:
             raise RuntimeError("cannot save an unfitted TerminalClassifier")
         meta = {
             "format": FORMAT, "format_version": FORMAT_VERSION, "package_version": __version__,
+            "network_key": network_key(self.sim),
             "layout": layout_of(self.sim, self.featurizer), "foresight": self.featurizer.foresight,
             "params": self.params, "num_boost_round": self.num_boost_round,
             "early_stopping_rounds": self.early_stopping_rounds, "threshold_rule": self.threshold_rule,
@@ -207,9 +211,17 @@ class TerminalClassifier:
     @classmethod
     def read_files(cls, path: str | os.PathLike, sim: GridSimulator | None = None, n_jobs: int | None = None
                    ) -> "TerminalClassifier":
-        """Rebuild a classifier from the files :meth:`write_files` wrote (the caller verified the folder)."""
+        """Rebuild a classifier from the files :meth:`write_files` wrote (the caller verified the folder) to run on
+        ``sim`` (None: ANM6-Easy).
+
+        Raises:
+            ModelFileError: another kind of file, a model trained on another network than ``sim``'s (or written
+                before the network was recorded), or one made for another state layout.
+        """
         path = Path(path)
         meta = read_meta(path / META_FILE, "terminal classifier", FORMAT, FORMAT_VERSION, "retrain the classifier")
+        sim = sim if sim is not None else network_simulator(ANM6_EASY)
+        check_network(meta, sim, path / META_FILE)
         clf = cls(sim=sim, foresight=meta["foresight"], params=meta["params"],
                   num_boost_round=meta["num_boost_round"], early_stopping_rounds=meta["early_stopping_rounds"],
                   threshold=meta["threshold_rule"], n_jobs=meta["n_jobs"] if n_jobs is None else n_jobs,
@@ -225,6 +237,19 @@ class TerminalClassifier:
             booster.set_param({"nthread": clf.n_jobs})
             clf.booster = booster
         return clf
+
+
+def check_network(meta: dict, sim: GridSimulator, where) -> None:
+    """Raise :class:`ModelFileError` (a ``ValueError``) unless the classifier described by ``meta`` was trained on
+    ``sim``'s network: the same layout on another network would load, then predict that network's terminations."""
+    have, want = meta.get("network_key"), network_key(sim)
+    if have is None:
+        raise ModelFileError(f"{where} records no network key: it predates the network check and cannot be told "
+                             f"apart from a classifier of another network; retrain the classifier (network "
+                             f"{want!r})")
+    if have != want:
+        raise ModelFileError(f"{where} was trained on network {have!r}, the simulator is network {want!r}: train a "
+                             f"terminal classifier for this network")
 
 
 def check_layout(have: dict | None, want: dict, where) -> None:

@@ -243,20 +243,21 @@ def check_make_dataset_config(cfg: Mapping) -> None:
     Raises:
         ValueError: the first offending key, with the expected range and the value received.
     """
-    from anm_torchrl.data.options import WAYPOINT_DISTS, check_fractions
+    from anm_torchrl.data.options import WAYPOINT_DISTS, check_fractions, check_split_units
     from anm_torchrl.data.registry import available_datasets
     from anm_torchrl.networks import check_network_name
 
     check_network_name(_get(cfg, "network"))
     _choice(cfg, "dataset", tuple(available_datasets()))
-    _int(cfg, "size")
+    # below 3 rows (or agent envs) a validation or test split is empty: NaN R², a DNN stopped after one epoch
+    check_split_units(_int(cfg, "size"), "size")
     _int(cfg, "seed", low=0)
     _int(cfg, "threads")
     check_fractions(_get(cfg, "fractions"))
     if _get(cfg, "dataset") == "generative":
         _int(cfg, "generative.chunk")
     if _get(cfg, "dataset") == "agent":
-        _int(cfg, "agent.num_envs")
+        check_split_units(_int(cfg, "agent.num_envs"), "agent.num_envs")
         _int(cfg, "agent.waypoint_every")
         _int(cfg, "agent.max_episode_steps")
         if not isinstance(_get(cfg, "agent.random_every"), bool):

@@ -31,9 +31,11 @@ FILE_NAME = "pinn.safetensors"
 
 
 def resolve_path(path: str | Path) -> Path:
-    """``path`` itself if it names a file (has a suffix), else ``path / "pinn.safetensors"``."""
+    """``path / "pinn.safetensors"`` if ``path`` is an existing folder or has no suffix, else ``path`` itself (a file).
+
+    The folder test comes first: a folder named with a dot (``run.v2``) has a suffix too."""
     p = Path(path).expanduser()
-    return p if p.suffix else p / FILE_NAME
+    return p / FILE_NAME if p.is_dir() or not p.suffix else p
 
 
 def plain(x: Any) -> Any:
