@@ -73,6 +73,8 @@ def test_check_writable_and_artifact_cache(monkeypatch, tmp_path):
     ("train_surrogate", "network=case34bw", "unknown network 'case34bw'"),
     ("reproduce", "preset.experiments=[nope]", "unknown experiment 'nope'"),
     ("sac", "checkpoint.resume=missing.pt", "checkpoint.resume: no file"),
+    # relative to where the command is typed (was: to the run directory, then a FileNotFoundError traceback)
+    ("ppo", "surrogate=pinn surrogate.path=mypinn", r"surrogate.path: nothing at .*/test_recipe_prints\w*/mypinn$"),
     ("evaluate", "policy=mpc_perfect policy_kwargs.horizon=-1 steps=5 episodes=1", "horizon must be >= 1"),
     ("evaluate", "policy=do_nothing render=true render_dir={tmp}/a_file/ep steps=5 episodes=1",
      r"render_dir=.*/a_file/ep: cannot write there \(.*/a_file is not a folder\)"),

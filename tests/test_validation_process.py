@@ -146,3 +146,29 @@ def _reads(path: Path) -> str:
         return path.read_bytes().decode(errors="replace")
     except OSError:  # the process ended meanwhile
         return ""
+
+
+def test_background_curve_points_carry_the_time_of_their_policy(tmp_path, monkeypatch):
+    """Bug: with validation in a second process, a curve point's wall_s was taken when its result was read, at the
+    next validation point (one iteration late), so the last two points of a run were ~0 s apart. Each iteration is
+    stretched by 0.6 s here: consecutive points must be at least that far apart."""
+    import time
+
+    from anm_torchrl.training import protocol
+    from anm_torchrl.training.algorithms import ppo as ppo_module
+    from anm_torchrl.training.network_defaults import compose_recipe_config
+
+    cfg, defaults = compose_recipe_config([*TINY, "collector.total_frames=256", "eval.interval=1",
+                                           "eval.background=true", "logger.backend=null"])
+    iterate = ppo_module.PPO.iterate
+
+    def slow(self, remaining):
+        out = iterate(self, remaining)
+        time.sleep(0.6)
+        return out
+
+    monkeypatch.setattr(ppo_module.PPO, "iterate", slow)
+    curve = protocol.train(cfg, tmp_path / "run", network_defaults=defaults)["curve"]
+    assert len(curve) >= 3
+    gaps = [b["wall_s"] - a["wall_s"] for a, b in zip(curve, curve[1:])]
+    assert min(gaps) > 0.5, gaps

@@ -211,8 +211,10 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
             save_checkpoint(ckpt_dir / "best.pt", {**payload, "best_eval": best, "evals_since_best": 0})
         else:
             evals_since_best += 1
+        # when the pass's result existed: the policy's moment plus the pass's own time, in either mode (a background
+        # pass is read one iteration later; the moment of reading would put its point one iteration late)
         point = {"frames": snapshot["frames"], "true_env_frames": snapshot["true_env_frames"],
-                 "update": snapshot["update"], "wall_s": wall_before + time.perf_counter() - t_start - track_s,
+                 "update": snapshot["update"], "wall_s": snapshot["wall_s"] + float(result["seconds"]),
                  "validation": last_eval["discounted_return"]}
         eval_metrics = {f"eval/{k}": last_eval[k] for k in EVAL_KEYS}
         eval_metrics["time/eval"] = last_eval["seconds"]
@@ -254,6 +256,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                         t_track = time.perf_counter()
                         snapshot["tracked"] = run_eval(actor, test_states, test_env, steps=test_max_steps)
                         track_s += time.perf_counter() - t_track
+                    snapshot["wall_s"] = wall_before + time.perf_counter() - t_start - track_s
                     n_evals += 1
                     if render_interval and n_evals % render_interval == 0:
                         log_episode_figure(logger, actor, val_states[:1], cfg, frames)
@@ -411,6 +414,11 @@ def run_recipe(cfg: DictConfig) -> dict:
             cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
             if not Path(cfg.checkpoint.resume).is_file():
                 raise FileNotFoundError(f"checkpoint.resume: no file {cfg.checkpoint.resume}")
+        for key in ("path", "classifier_path"):  # a trained surrogate's file or folder: likewise
+            if cfg.surrogate.get(key):
+                cfg.surrogate[key] = hydra.utils.to_absolute_path(str(cfg.surrogate[key]))
+                if not Path(cfg.surrogate[key]).exists():
+                    raise FileNotFoundError(f"surrogate.{key}: nothing at {cfg.surrogate[key]}")
         # last: it builds the network's simulator (torch), after every check that needs nothing heavy; before a
         # surrogate is trained for it or a model is built
         from anm_torchrl.networks.resolve import check_controllable
