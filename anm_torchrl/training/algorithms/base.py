@@ -20,6 +20,15 @@ def anneal_lr(optimizer, lr: float, frames: int, total_frames: int, start: float
         group["lr"] = float(lr) * min(max(left / (1.0 - start), 0.0), 1.0)
 
 
+def set_optimizer_options(optimizer, **options: float) -> None:
+    """Set every param group of ``optimizer`` to ``options`` (``lr``, ``eps``, ``weight_decay``: the config's).
+
+    Called after ``optimizer.load_state_dict`` on resume, which restores the checkpoint's values: a resumed run takes
+    the ones it was given (an ``anneal_lr`` schedule then decays from the new ``lr``, as it reads the config's)."""
+    for group in optimizer.param_groups:
+        group.update({key: float(value) for key, value in options.items()})
+
+
 class Algorithm:
     """One training algorithm. Subclasses set the class attributes and implement every method.
 

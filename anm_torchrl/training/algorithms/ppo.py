@@ -20,7 +20,7 @@ import torch
 from omegaconf import DictConfig
 from tensordict import TensorDict
 
-from anm_torchrl.training.algorithms.base import Algorithm, anneal_lr
+from anm_torchrl.training.algorithms.base import Algorithm, anneal_lr, set_optimizer_options
 
 
 # what ClipPPOLoss reads once GAE has written the advantage and value target
@@ -151,6 +151,7 @@ class PPO(Algorithm):
             self.actor.load_state_dict(resume["actor"])
             self.critic.load_state_dict(resume["state"]["critic"])
             self.optim.load_state_dict(resume["state"]["optimizer"])
+            set_optimizer_options(self.optim, lr=cfg.optim.lr, eps=cfg.optim.eps, weight_decay=cfg.optim.weight_decay)
             if self.return_norm is not None and resume["state"].get("return_norm") is not None:
                 self.return_norm.load_state_dict(resume["state"]["return_norm"])
         self.total_frames = int(cfg.collector.total_frames)

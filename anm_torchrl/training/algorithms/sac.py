@@ -22,7 +22,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
-from anm_torchrl.training.algorithms.base import Algorithm
+from anm_torchrl.training.algorithms.base import Algorithm, set_optimizer_options
 from anm_torchrl.training.algorithms.ppo import budget_mask, episode_metrics, model_options
 
 
@@ -82,14 +82,16 @@ class SAC(Algorithm):
         critic_params = list(self.loss_module.qvalue_network_params.flatten_keys().values())
         actor_params = list(self.loss_module.actor_network_params.flatten_keys().values())
         adam = dict(lr=float(cfg.optim.lr), eps=float(cfg.optim.eps), weight_decay=float(cfg.optim.weight_decay))
-        self.optims = {"actor": torch.optim.Adam(actor_params, **adam),
-                       "qvalue": torch.optim.Adam(critic_params, **adam),
-                       "alpha": torch.optim.Adam([self.loss_module.log_alpha], lr=float(cfg.optim.lr))}
+        # the temperature's Adam takes only the rate (its eps and weight decay stay torch's defaults)
+        options = {"actor": adam, "qvalue": adam, "alpha": dict(lr=float(cfg.optim.lr))}
+        params = {"actor": actor_params, "qvalue": critic_params, "alpha": [self.loss_module.log_alpha]}
+        self.optims = {name: torch.optim.Adam(params[name], **options[name]) for name in options}
         if resume:
             self.actor.load_state_dict(resume["actor"])
             self.loss_module.load_state_dict(resume["state"]["loss"])
             for name, optim in self.optims.items():
                 optim.load_state_dict(resume["state"]["optimizers"][name])
+                set_optimizer_options(optim, **options[name])
         self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(int(cfg.replay.size), device=device),
                                              batch_size=int(cfg.replay.batch_size))
         frames_per_batch = int(cfg.collector.frames_per_batch)

@@ -15,7 +15,8 @@ distribution (resets are not transitions: no true-env frames).
 
 Budget: ``collector.total_frames`` counts **model** transitions (``budget_unit = "model_frames"``); the summary
 reports them as ``model_frames`` and ``frames`` = true-env transitions used for training (0; the protocol's
-evaluation episodes aside). One iteration = ``env.num_envs`` x ``loss.horizon`` model frames.
+evaluation episodes aside). One iteration = ``env.num_envs`` x ``loss.horizon`` model frames; the last ones run
+fewer steps, and fewer rows when less than ``env.num_envs`` frames remain, so the budget is exact.
 
 The critic (:mod:`~anm_torchrl.training.algorithms.shac_critic`) regresses after each rollout, in this process or,
 with ``loss.critic_worker``, in a worker process beside the actor's backward pass (the same updates).
@@ -38,7 +39,7 @@ import torch
 from omegaconf import DictConfig
 from tensordict import TensorDict
 
-from anm_torchrl.training.algorithms.base import Algorithm, anneal_lr
+from anm_torchrl.training.algorithms.base import Algorithm, anneal_lr, set_optimizer_options
 from anm_torchrl.training.algorithms.ppo import model_options
 from anm_torchrl.training.algorithms.shac_critic import (CriticSettings, CriticWorker, Rollout, move_towards,
                                                         update_critic, value)
@@ -82,13 +83,19 @@ class PINNModel:
     """The PINN chain as a model (same call as :class:`ExactModel`); its observation must come from the state."""
 
     def __init__(self, env, cfg):
+        from omegaconf import OmegaConf
+
         from anm_torchrl.surrogates.pinn.chain import run_chain
-        from anm_torchrl.surrogates.pinn.load import load_pinn
+        from anm_torchrl.training.factory import load_surrogate_in_home
 
         surrogate = cfg.get("surrogate", {})
-        path = surrogate.get("path") if surrogate.get("name") == "pinn" else None
+        # ``surrogate=pinn``'s options (path, terminal, classifier_path, residual_threshold) reach the loader as in
+        # PPO's surrogate env (factory.make_env); another surrogate group is not this model's: the defaults
+        options = {}
+        if surrogate.get("name") == "pinn":
+            options = {k: v for k, v in OmegaConf.to_container(surrogate, resolve=True).items() if k != "name"}
         # the default cache trains on first use (as ``ppo.py surrogate=pinn``); an explicit path must exist
-        self.chain = load_pinn(env.sim, path=path, progress=False)
+        self.chain = load_surrogate_in_home("pinn", sim=env.sim, progress=False, **options)
         self._run = run_chain  # the chain's modules on plain tensors: no TensorDict per step
         for p in self.chain.parameters():
             p.requires_grad_(False)
@@ -158,6 +165,9 @@ class SHAC(Algorithm):
             self.critic.load_state_dict(resume["state"]["critic"])
             self.actor_optim.load_state_dict(resume["state"]["actor_optimizer"])
             self.critic_optim.load_state_dict(resume["state"]["critic_optimizer"])
+            options = dict(eps=cfg.optim.eps, weight_decay=cfg.optim.weight_decay)
+            set_optimizer_options(self.actor_optim, lr=cfg.optim.actor_lr, **options)
+            set_optimizer_options(self.critic_optim, lr=cfg.optim.critic_lr, **options)
         self.target_critic = copy.deepcopy(self.critic)
         if resume and "target_critic" in resume["state"]:
             self.target_critic.load_state_dict(resume["state"]["target_critic"])
@@ -173,8 +183,9 @@ class SHAC(Algorithm):
         # short rows reset about every step, and a reset batch solves a power flow per row: they draw from a pool of
         # whole batches; otherwise each reset step draws one batch (as the entries' recorded runs did)
         self._pool = (self.state[:0], self.obs[:0]) if _short_row_count(cfg.env, n) else None
-        if cfg.env.get("stagger") and not resume:
-            # the rows' first episodes are cut after 1..max_steps steps, so later resets spread over the iterations
+        if cfg.env.get("stagger"):
+            # the rows' first episodes are cut after 1..max_steps steps, so later resets spread over the iterations;
+            # on resume too: the rows start from fresh states (their counters are not saved)
             self.steps = torch.randint(0, int(cfg.env.max_steps), (n,), device=self.steps.device) % self.max_steps
         loss, optim = cfg.loss, cfg.optim
         self.critic_settings = CriticSettings(
@@ -200,9 +211,13 @@ class SHAC(Algorithm):
         return state, obs
 
     def iterate(self, remaining: int) -> tuple[int, dict[str, float]]:
+        """One rollout of ``min(loss.horizon, remaining // env.num_envs)`` steps of every row, or, when fewer than
+        ``env.num_envs`` model frames remain, one step of the first ``remaining`` rows (the others keep their
+        state): the frames never exceed ``remaining``, so ``collector.total_frames`` is exact."""
         cfg = self.cfg
-        n = self.state.shape[0]
-        horizon = max(1, min(int(cfg.loss.horizon), -(-remaining // n)))
+        n_rows = self.state.shape[0]
+        n = min(n_rows, remaining)
+        horizon = max(1, min(int(cfg.loss.horizon), remaining // n))
         gamma = float(cfg.loss.gamma)
         t0 = time.perf_counter()
         if cfg.optim.anneal_lr:
@@ -210,7 +225,8 @@ class SHAC(Algorithm):
             start = float(cfg.optim.anneal_start)
             anneal_lr(self.actor_optim, cfg.optim.actor_lr, self.model_frames, total, start)
             anneal_lr(self.critic_optim, cfg.optim.critic_lr, self.model_frames, total, start)
-        state, obs, steps = self.state, self.obs, self.steps
+        state, obs, steps = self.state[:n], self.obs[:n], self.steps[:n]
+        max_steps = self.max_steps[:n] if self.max_steps is not None else None
         ret = torch.zeros(n, device=state.device)
         disc = torch.ones(n, device=state.device)
         loss = torch.zeros((), device=state.device)
@@ -225,7 +241,7 @@ class SHAC(Algorithm):
             r = torch.where(term, r.detach(), r)  # the terminal reward is a constant
             ret = ret + disc * r
             steps = steps + 1
-            trunc = (steps >= self.max_steps) if self.max_steps is not None else torch.zeros_like(term)
+            trunc = (steps >= max_steps) if max_steps is not None else torch.zeros_like(term)
             last = t == horizon - 1
             boot = (trunc | last) & ~term  # bootstrap with the value at the cut
             if bool(boot.any()):
@@ -259,7 +275,11 @@ class SHAC(Algorithm):
             if self.ema > 0:
                 move_towards(self.actor, self.learner, self.ema)
         t_rollout = time.perf_counter() - t0
-        self.state, self.obs, self.steps = state.detach(), obs.detach(), steps
+        state, obs = state.detach(), obs.detach()
+        if n < n_rows:  # a last, partial iteration: the rows past the budget did not step
+            state, obs, steps = (torch.cat([a, b[n:]]) for a, b in
+                                 ((state, self.state), (obs, self.obs), (steps, self.steps)))
+        self.state, self.obs, self.steps = state, obs, steps
 
         # critic: TD(λ) targets from the target critic, regression (here, or the worker's, waited for)
         t0 = time.perf_counter()
