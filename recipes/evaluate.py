@@ -109,7 +109,10 @@ def main(argv: list[str] | None = None) -> dict:
     network = network_of(cfg, ckpt)
     if cfg.env == "gym_anm" and network != "anm6_easy":
         raise SystemExit(f"evaluate.py: env=gym_anm runs gym-anm's ANM6Easy only; this policy is for {network!r}")
-    episodes = int(cfg.episodes) if cfg.episodes is not None else (16 if cfg.env == "exact" else 2)
+    test_episodes, test_seed, test_steps = test_protocol(ckpt, network)
+    cfg.seed = test_seed if cfg.seed is None else cfg.seed
+    cfg.steps = test_steps if cfg.steps is None else cfg.steps
+    episodes = int(cfg.episodes) if cfg.episodes is not None else (test_episodes if cfg.env == "exact" else 2)
     env = make_true_env(episodes, network=network, seed=int(cfg.seed))  # states from its reset distribution
     states = draw_initial_states(episodes, int(cfg.seed), env.sim, env.init)
     if ckpt is not None:
@@ -162,6 +165,20 @@ def network_of(cfg, ckpt: dict | None) -> str:
     if cfg.network is not None and trained is not None and not same(cfg.network, trained):
         raise SystemExit(f"evaluate.py: the checkpoint was trained on network={trained!r}, not {cfg.network!r}")
     return cfg.network or trained or "anm6_easy"
+
+
+def test_protocol(ckpt: dict | None, network: str) -> tuple[int, int, int]:
+    """``(episodes, seed, steps)`` of the test episodes figures are reported on: the checkpoint's run's
+    (``eval.test_episodes``, ``eval.test_seed``, ``eval.test_max_steps``), or for a baseline the network's protocol
+    (``recipes/conf/per_network_eval.yaml``, as a training run on ``network`` would get it)."""
+    if ckpt is not None:
+        ev = ckpt["config"].get("eval", {})
+    else:
+        from anm_torchrl.training.network_defaults import compose_recipe_config
+
+        ev = OmegaConf.to_container(compose_recipe_config([f"network={network}"])[0].eval, resolve=True)
+    steps = ev.get("test_max_steps") or ev.get("max_steps", 3000)
+    return int(ev.get("test_episodes", 16)), int(ev.get("test_seed", 0)), int(steps)
 
 
 def write_output(path: Path, line: str) -> None:

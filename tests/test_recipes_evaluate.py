@@ -102,7 +102,7 @@ def test_bad_options_and_files_fail_clearly(evaluate, tmp_path):
     assert "checkpoint not found" in fails(evaluate, f"checkpoint={tmp_path / 'missing.pt'}")
     assert "unknown option" in fails(evaluate, "policy=do_nothing", "no_such_option=1")
     assert "gamma must be in (0, 1], got 1.5" in fails(evaluate, "policy=do_nothing", "gamma=1.5")
-    assert "steps must be an integer >= 1, got 0" in fails(evaluate, "policy=do_nothing", "steps=0")
+    assert "steps must be an integer >= 1 or null, got 0" in fails(evaluate, "policy=do_nothing", "steps=0")
     from anm_torchrl.baselines import available_baselines
 
     message = fails(evaluate, "policy=nope")  # the registry's names, not a list typed in the recipe
@@ -189,3 +189,24 @@ def test_load_checkpoint_rejects_other_files(tmp_path):
         load_checkpoint(tmp_path / "future.pt")
 
 
+
+
+def test_defaults_are_the_test_states_the_recipes_report_on(evaluate, capsys):
+    """Bug: evaluate.py always drew 16 states of seed 0, while a feeder's or a user's network reports on 4
+    (per_network_eval.yaml), and draw_initial_states(16, 0) holds none of draw_initial_states(4, 0): its figures
+    were on other states than summary.json["test"]'s."""
+    from anm_torchrl.baselines import make_baseline
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.training.factory import make_true_env
+
+    assert evaluate.test_protocol(None, "anm6_easy") == (16, 0, 3000)
+    assert evaluate.test_protocol(None, "case33bw") == (4, 0, 3000)
+    ckpt = {"config": {"eval": {"test_episodes": 3, "test_seed": 7, "max_steps": 50, "test_max_steps": None}}}
+    assert evaluate.test_protocol(ckpt, "case33bw") == (3, 7, 50)
+    out = evaluate.main(["policy=do_nothing", "network=case33bw", "steps=2"])
+    env = make_true_env(4, network="case33bw", seed=0)
+    assert out["episodes"] == 4 and out["seed"] == 0
+    states = draw_initial_states(4, 0, env.sim, env.init)
+    want = evaluate_policy(make_baseline("do_nothing", env.sim), states, max_steps=2, gamma=0.995, env=env)
+    assert out["per_episode"]["discounted_return"] == pytest.approx(want.discounted_returns.tolist(), rel=1e-12)
+    capsys.readouterr()

@@ -315,8 +315,8 @@ def check_evaluate_config(cfg: Mapping) -> None:
         check_network_name(_get(cfg, "network"))
     if _get(cfg, "env") == "gym_anm" and _get(cfg, "network") not in (None, "anm6_easy"):
         raise ValueError(f"env=gym_anm runs gym-anm's ANM6Easy only; got network={_get(cfg, 'network')!r}")
-    _int(cfg, "seed", low=0)
-    _int(cfg, "steps")
+    _int(cfg, "seed", low=0, optional=True)
+    _int(cfg, "steps", optional=True)
     _int(cfg, "episodes", optional=True)
     _in_range(cfg, "gamma", 0, 1, True, False)
     _int(cfg, "threads")
