@@ -73,6 +73,9 @@ def test_check_writable_and_artifact_cache(monkeypatch, tmp_path):
     ("train_surrogate", "network=case34bw", "unknown network 'case34bw'"),
     ("reproduce", "preset.experiments=[nope]", "unknown experiment 'nope'"),
     ("sac", "checkpoint.resume=missing.pt", "checkpoint.resume: no file"),
+    # another recipe's model group: a TypeError traceback after the run had started, before
+    ("ppo", "model=pinn", r"model.dynamics is not a setting of ppo.py's models: ppo.py takes model=default"),
+    ("sac", "model=default", r"model.state_dependent_scale is not a setting of sac.py.s models: .* model=sac"),
     # relative to where the command is typed (was: to the run directory, then a FileNotFoundError traceback)
     ("ppo", "surrogate=pinn surrogate.path=mypinn", r"surrogate.path: nothing at .*/test_recipe_prints\w*/mypinn$"),
     ("evaluate", "policy=mpc_perfect policy_kwargs.horizon=-1 steps=5 episodes=1", "horizon must be >= 1"),

@@ -176,6 +176,16 @@ def _check_adam(cfg: Mapping) -> None:
     _in_range(cfg, "optim.max_grad_norm", 0, math.inf, True, True, optional=True)
 
 
+def _model_group(cfg: Mapping, recipe: str, group: str, foreign: tuple[str, ...]) -> None:
+    """Refuse another recipe's model group (its keys would reach this recipe's model factory as unknown arguments,
+    a TypeError after the run has started): ``foreign`` are keys only the other groups have."""
+    model = _get(cfg, "model")
+    extra = [k for k in foreign if isinstance(model, Mapping) and k in model]
+    if extra:
+        raise ValueError(f"model.{extra[0]} is not a setting of {recipe}'s models: {recipe} takes model={group} "
+                         "(model=exact|pinn are recipes/shac.py's, model=sac recipes/sac.py's)")
+
+
 def check_ppo_config(cfg: Mapping) -> None:
     """Check every numeric range and choice of ``recipes/conf/config.yaml`` (``recipes/ppo.py``): the shared keys
     (:func:`check_protocol_config`) and PPO's model, collector, loss and optimiser.
@@ -184,6 +194,7 @@ def check_ppo_config(cfg: Mapping) -> None:
         ValueError: the first offending key, with the expected range and the value received.
     """
     check_protocol_config(cfg)
+    _model_group(cfg, "ppo.py", "default", ("dynamics",))
     _check_model(cfg)
     _choice(cfg, "model.state_dependent_scale", (False, True))
     fpb = _check_collector(cfg)
@@ -210,6 +221,7 @@ def check_sac_config(cfg: Mapping) -> None:
         ValueError: the first offending key, with the expected range and the value received.
     """
     check_protocol_config(cfg)
+    _model_group(cfg, "sac.py", "sac", ("dynamics", "state_dependent_scale"))
     _check_model(cfg)
     fpb = _check_collector(cfg)
     if _get(cfg, "collector.num_workers") != 1:
