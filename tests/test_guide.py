@@ -113,3 +113,16 @@ def test_help_lists_only_the_recipes_groups(recipe):
     assert listed == RECIPE_GROUPS[recipe], text
     if recipe == "ppo":
         assert "surrogate: dnn, dt, gym_anm, lr, none, pinn, rf, xgb (now: none)" in text
+
+
+def test_run_directory_names_a_network_file_by_its_stem():
+    """Bug: train_pinn.py's run directory embedded ``network=`` as given, so a network file's path nested folders
+    (``outputs/train_pinn/<date>/<time>_/tmp/x/feeder.npz_default``)."""
+    from omegaconf import OmegaConf
+
+    from anm_torchrl.training.recipe_help import register
+
+    register()
+    assert OmegaConf.create({"n": "/tmp/x/feeder.npz", "d": "${network_label:${n}}"}).d == "feeder"
+    assert OmegaConf.create({"n": "case33bw", "d": "${network_label:${n}}"}).d == "case33bw"
+    assert "${network_label:${network}}" in (Path(__file__).parents[1] / "recipes/conf/train_pinn.yaml").read_text()

@@ -3,6 +3,7 @@
 Hydra's default help lists every group found under ``recipes/conf/`` (other recipes' too). A recipe whose config
 selects ``hydra/help: recipe`` (``recipes/conf/hydra/help/recipe.yaml``) and calls :func:`register` before
 ``hydra.main`` shows, for each group of its defaults list, the options available and the one chosen.
+:func:`register` also registers ``${network_label:...}``, a run directory's name part for ``network=``.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 RESOLVER = "recipe_groups"
+LABEL_RESOLVER = "network_label"
 
 
 def _source_dir(schema: str, path: str) -> Path | None:
@@ -40,7 +42,15 @@ def recipe_groups(_root_: DictConfig) -> str:
     return "\n".join(sorted(lines)) or "(none: every option is a key of the config below)"
 
 
+def network_label(value) -> str:
+    """A run directory's name part for ``network=``: a network file's stem (its path would nest folders), a
+    registered name as it is."""
+    text = str(value)
+    return Path(text).stem if text.endswith(".npz") else text
+
+
 def register() -> None:
-    """Register the ``${recipe_groups:}`` resolver (idempotent)."""
-    if not OmegaConf.has_resolver(RESOLVER):
-        OmegaConf.register_new_resolver(RESOLVER, recipe_groups)
+    """Register the ``${recipe_groups:}`` and ``${network_label:...}`` resolvers (idempotent)."""
+    for name, resolver in ((RESOLVER, recipe_groups), (LABEL_RESOLVER, network_label)):
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, resolver)
