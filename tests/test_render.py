@@ -175,6 +175,26 @@ def test_episode_figure_of_a_network_without_generators_or_without_storage(kind,
     assert Image.open(paths["png"]).size[0] > 1000
 
 
+def test_episode_figure_labels_devices_by_their_ids():
+    """Bug: the legends named devices by their row ("gen 9"), not their DEV_ID, which differ when the ids are not
+    0..n-1 (gym-anm accepts any unique ids): the storage unit with id 50 of this network was labelled "DES 9"."""
+    from anm_torchrl.envs import ANMEnv
+    from anm_torchrl.networks.random import generate
+
+    torch.set_num_threads(1)
+    case = generate(7003, n_bus=9)
+    net = {**case.network, "device": [list(r) for r in case.network["device"]]}
+    assert net["device"][-1][2] == 3  # the last row is a storage unit
+    net["device"][-1][0] = 50
+    env = ANMEnv(network=net, load_p=case.load_p, gen_p_max=case.gen_p_max, num_envs=1, seed=0)
+    rollout = env.rollout(2, lambda td: td.set("action", torch.zeros(1, env.sim.action_dim)), tensordict=env.reset(),
+                          auto_reset=False)
+    fig = episode_figure(episode_from_rollout(rollout, env.sim.net.base_mva), network_tables(env.sim.net))
+    labels = {t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()}
+    assert any(t.startswith("DES 50 (bus") for t in labels), labels
+    assert not any(t.startswith("DES 9 ") for t in labels), labels
+
+
 def _long_episode(tb, steps: int, start_index: int) -> Episode:
     """A synthetic ANM6 episode of ``steps`` 15-min steps from time index ``start_index``: one costly step (300),
     a load peak (310), curtailment (320) and a penalty (305), all else quiet."""

@@ -296,8 +296,8 @@ def _time_series(axes: list[Axes], ep: Episode, tb: NetworkTables, offset: int =
     x = np.arange(1, ep.steps + 1) + offset
     ng, nd = len(tb.gen_ids), len(tb.des_ids)
     p, q = nxt[:, sl["dev_p"]], nxt[:, sl["dev_q"]]
-    gen_names = [f"gen {d} (bus {tb.dev_bus[d]})" for d in tb.gen_ids]
-    des_names = [f"DES {d} (bus {tb.dev_bus[d]})" for d in tb.des_ids]
+    gen_names = [f"gen {tb.dev_id[d]} (bus {tb.dev_bus[d]})" for d in tb.gen_ids]
+    des_names = [f"DES {tb.dev_id[d]} (bus {tb.dev_bus[d]})" for d in tb.des_ids]
 
     ax = axes[0]
     pot, applied = nxt[:, sl["gen_p_max"]], p[:, tb.gen_ids]
@@ -335,7 +335,7 @@ def _time_series(axes: list[Axes], ep: Episode, tb: NetworkTables, offset: int =
         ax.set_title("no storage in this network")
 
     ax = axes[3]
-    _series(ax, x, -p[:, tb.load_ids], [f"load {d} (bus {tb.dev_bus[d]})" for d in tb.load_ids],
+    _series(ax, x, -p[:, tb.load_ids], [f"load {tb.dev_id[d]} (bus {tb.dev_bus[d]})" for d in tb.load_ids],
             "total load", lw=1.5)
     ax.set_ylabel("MW consumed")
     ax.set_title("loads")

@@ -19,8 +19,9 @@ class NetworkTables:
         f_bus, t_bus: (n_branch,) int, branch end buses.
         rate_mva: (n_branch,) branch ratings, MVA (inf where none is given).
         v_min, v_max: (n_bus,) voltage limits, p.u.
-        dev_bus, dev_type: (n_dev,) int, bus and gym-anm type code of each device.
-        gen_ids, des_ids, load_ids: device ids of non-slack generators, storage units and loads (ascending).
+        dev_bus, dev_type, dev_id: (n_dev,) int, bus, gym-anm type code and DEV_ID of each device row.
+        gen_ids, des_ids, load_ids: device rows (ascending DEV_ID) of non-slack generators, storage units and loads;
+            ``dev_id[row]`` is the id a label shows (ids need not be 0..n_dev-1).
         soc_max: (n_des,) storage capacity, MWh.
         delta_t: hours per step.
     """
@@ -33,6 +34,7 @@ class NetworkTables:
     v_max: np.ndarray
     dev_bus: np.ndarray
     dev_type: np.ndarray
+    dev_id: np.ndarray
     gen_ids: np.ndarray
     des_ids: np.ndarray
     load_ids: np.ndarray
@@ -68,6 +70,7 @@ def network_tables(net: Network) -> NetworkTables:
     return NetworkTables(
         n_bus=net.n_bus, f_bus=np_(net.branches.f_bus).astype(int), t_bus=np_(net.branches.t_bus).astype(int),
         rate_mva=np_(net.branches.rate) * net.base_mva, v_min=np_(net.v_min), v_max=np_(net.v_max),
-        dev_bus=np_(net.dev_bus).astype(int), dev_type=dev_type, gen_ids=ids(CLASSICAL_GEN, RENEWABLE),
+        dev_bus=np_(net.dev_bus).astype(int), dev_type=dev_type, dev_id=np_(net.dev[:, 0]).astype(int),
+        gen_ids=ids(CLASSICAL_GEN, RENEWABLE),
         des_ids=des_ids, load_ids=ids(LOAD), soc_max=np_(net.dev)[des_ids, SOC_MAX] * net.base_mva,
         delta_t=float(net.delta_t))
