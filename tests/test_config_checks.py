@@ -62,6 +62,9 @@ def test_default_configs_pass():
     ("eval.test_seed=1", "eval.seed (validation states) and eval.test_seed (test states) must differ"),
     ("eval.render_interval=-1", "eval.render_interval must be an integer >= 0, got -1"),
     ("eval.background=1", "eval.background must be auto, true or false; got 1"),
+    # 1 == True in Python: a flag given as 1 or 0 passed the choice (true, false) before
+    ("model.state_dependent_scale=1", "model.state_dependent_scale must be one of false, true; got 1"),
+    ("eval.track_test=0", "eval.track_test must be one of false, true; got 0"),
     ("collector.frames_per_batch=16383", "must be a positive multiple of env.num_envs (256)"),
     ("network=nowhere", "network: unknown network 'nowhere'; registered: ['anm6_easy', 'case33bw'"),
     ("eval.render_interval=2 logger.backend=csv", "eval.render_interval > 0 logs figures to TensorBoard"),

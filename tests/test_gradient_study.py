@@ -65,7 +65,7 @@ def test_tracking_is_checked_like_every_key():
 
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
         cfg = compose(config_name="shac", overrides=[*TINY_SHAC, "eval.track_test=sometimes"])
-    with pytest.raises(ValueError, match="eval.track_test must be one of False, True; got 'sometimes'"):
+    with pytest.raises(ValueError, match="eval.track_test must be one of false, true; got 'sometimes'"):
         check_algorithm_config(cfg)
 
 

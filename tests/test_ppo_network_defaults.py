@@ -158,7 +158,7 @@ def test_time_features_are_continuous_across_midnight():
     assert torch.allclose(z[0, -2:], z[1, -2:], atol=2 * torch.pi / 96 + 1e-6)
     assert not torch.allclose(z[0, 17], z[1, 17], atol=1.0)  # the plain index jumps by its whole range
     assert critic(env.reset())["state_value"].shape == (2, 1)
-    with pytest.raises(ValueError, match="model.time_features must be one of False, True; got 'yes'"):
+    with pytest.raises(ValueError, match="model.time_features must be one of false, true; got 'yes'"):
         check_ppo_config(compose("config", ["model.time_features=yes"]))
     # an observation without the time index: the error names the key that asked for it, not an observation entry
     base = env.base_env
@@ -242,5 +242,5 @@ def test_state_dependent_scale_is_a_head_of_the_actor():
     # the last layer's orthogonal gain 0.01 moves the softplus input by ~1e-2: the scale stays within 5 % of e^-2
     assert torch.allclose(scale, torch.full_like(scale, math.exp(-2.0)), rtol=0.05)
     assert not torch.equal(scale, scale[:1].expand_as(scale))
-    with pytest.raises(ValueError, match="model.state_dependent_scale must be one of False, True; got 'yes'"):
+    with pytest.raises(ValueError, match="model.state_dependent_scale must be one of false, true; got 'yes'"):
         check_ppo_config(compose("config", ["model.state_dependent_scale=yes"]))

@@ -68,8 +68,9 @@ def _in_range(cfg: Mapping, key: str, low: float, high: float, low_open: bool, h
 
 def _choice(cfg: Mapping, key: str, choices: tuple) -> Any:
     value = _get(cfg, key)
-    if value not in choices:
-        shown = ", ".join("null" if c is None else str(c) for c in choices)
+    # by type as well: 1 == True and 0 == False in Python, and "1" is no choice of a flag
+    if not any(value == c and isinstance(value, bool) == isinstance(c, bool) for c in choices):
+        shown = ", ".join("null" if c is None else str(c).lower() if isinstance(c, bool) else str(c) for c in choices)
         raise ValueError(f"{key} must be one of {shown}; got {value!r}")
     return value
 
