@@ -4,8 +4,9 @@ target networks by Polyak averaging, a learned temperature) -> Adam, as TorchRL'
 The batched env makes many frames per collection step, so the update count is set per frame: every iteration
 collects ``collector.frames_per_batch`` frames (``env.num_envs`` x steps) and draws ``replay.samples_per_frame`` x
 that many samples, in minibatches of ``replay.batch_size``. The first ``collector.init_random_frames`` frames are
-collected by a uniformly random policy (they count in the budget). Until ``optim.actor_delay_frames`` frames are
-collected only the Q networks step: the actor (and the temperature) keep their start while the critic learns it.
+collected by a uniformly random policy (they count in the budget). Only the Q networks step in the updates made
+while at most ``optim.actor_delay_frames`` frames have been collected: the actor (and the temperature) keep their
+start while the critic learns it, and first step in the update after a batch that takes the count past it.
 
 Config groups it reads (``recipes/conf/sac.yaml``): ``model`` (actor/Q widths), ``collector``, ``replay``, ``loss``
 (γ, τ, temperature), ``optim``. Logged: ``train/{reward, episode_return, episode_length, loss_actor, loss_qvalue,
