@@ -40,9 +40,10 @@ def main(argv: list[str] | None = None) -> dict:
     text = gradient_study.markdown(record)
     if args.out:
         from anm_torchrl.experiments.io import write_record
+        from anm_torchrl.networks.user import network_label  # a network file's stem, not its path
 
         out = Path(args.out)
-        write_record(out, args.network, record, text)
+        write_record(out, network_label(args.network), record, text)
         if args.docs:
             records = [json.loads(p.read_text()) for p in sorted(out.glob("*.json"))]
             gradient_study.update_page(args.docs, records)

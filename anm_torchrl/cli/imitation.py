@@ -39,8 +39,9 @@ def main(argv: list[str] | None = None) -> dict:
     text = imitation.markdown(record)
     if args.out:
         from anm_torchrl.experiments.io import write_record
+        from anm_torchrl.networks.user import network_label  # a network file's stem, not its path
 
-        write_record(args.out, f"imitation_{args.network}", record, text)
+        write_record(args.out, f"imitation_{network_label(args.network)}", record, text)
     print(text)
     return record
 

@@ -41,6 +41,12 @@ def is_network_file(name: str) -> bool:
     return isinstance(name, (str, os.PathLike)) and str(name).endswith(SUFFIX)
 
 
+def network_label(value) -> str:
+    """A file or folder name part for ``network=``: a network file's stem (its path would nest folders), a
+    registered name as it is."""
+    return Path(str(value)).stem if is_network_file(value) else str(value)
+
+
 def network_argument(value, base_dir: str | os.PathLike):
     """A recipe's ``network=`` value with a relative network-file path made absolute against ``base_dir`` (where
     the command was typed: Hydra changes the working directory to the run directory); names pass unchanged."""

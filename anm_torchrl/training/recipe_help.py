@@ -13,6 +13,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from anm_torchrl.networks.user import network_label
+
 RESOLVER = "recipe_groups"
 LABEL_RESOLVER = "network_label"
 
@@ -40,13 +42,6 @@ def recipe_groups(_root_: DictConfig) -> str:
         options = sorted({p.stem for d in folders for p in (d / group).glob("*.yaml")})
         lines.append(f"{group}: {', '.join(options) or chosen} (now: {chosen})")
     return "\n".join(sorted(lines)) or "(none: every option is a key of the config below)"
-
-
-def network_label(value) -> str:
-    """A run directory's name part for ``network=``: a network file's stem (its path would nest folders), a
-    registered name as it is."""
-    text = str(value)
-    return Path(text).stem if text.endswith(".npz") else text
 
 
 def register() -> None:
