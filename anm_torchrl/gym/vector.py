@@ -55,8 +55,9 @@ class ANMVectorEnv(VectorEnv):
         mode = AutoresetMode(autoreset_mode)
         if mode not in AUTORESET_MODES:
             raise ValueError(f"autoreset_mode must be one of {[m.value for m in AUTORESET_MODES]}, got {mode.value!r}")
-        if max_episode_steps is not None and int(max_episode_steps) < 1:
-            raise ValueError(f"max_episode_steps must be >= 1 or None, got {max_episode_steps}")
+        if max_episode_steps is not None and (isinstance(max_episode_steps, bool) or max_episode_steps != int(
+                max_episode_steps) or int(max_episode_steps) < 1):  # 2.5 was cut to 2
+            raise ValueError(f"max_episode_steps must be an integer >= 1 or None, got {max_episode_steps!r}")
         if env is not None and int(env.batch_size[0]) != int(num_envs):
             raise ValueError(f"env has batch size {tuple(env.batch_size)}, num_envs is {num_envs}")
         self._batch = NumpyBatch(env if env is not None else make_torchrl_env(network, int(num_envs), seed,
