@@ -184,3 +184,15 @@ def test_make_dataset_config_refuses_datasets_with_an_empty_split(overrides, mes
     with pytest.raises(ValueError, match=message):
         check_make_dataset_config(cfg)
     check_make_dataset_config(OmegaConf.merge(cfg, {"size": 3, "agent": {"num_envs": 3}}))  # the minimum passes
+
+
+def test_agent_split_covers_only_envs_that_hold_rows():
+    """Bug: with fewer steps than envs and a size that is not a multiple of the envs, the cut to ``size`` left the
+    last envs without rows, yet they took part in the env-level split: validation or test could come out empty."""
+    from anm_torchrl.data.agent import generate_agent
+    from anm_torchrl.networks import simulator
+
+    sim = simulator("anm6_easy")
+    for seed in range(6):
+        _, meta = generate_agent(10, seed, sim=sim, num_envs=8)  # 2 steps per env: 5 envs hold the 10 rows
+        assert meta["splits"]["val"] > 0 and meta["splits"]["test"] > 0, (seed, meta["splits"])

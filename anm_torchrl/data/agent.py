@@ -171,7 +171,9 @@ def generate_agent(size: int, seed: int = 0, *, sim: GridSimulator, num_envs: in
             n_reset += int(term.sum())
             n_trunc += int((trunc & ~term).sum())
     td = torch.stack(steps, 1).reshape(-1)[:size]  # (num_envs, n_steps) env-major, flattened
-    env_split = split_codes(num_envs, fractions, gen)
+    # the split is over the envs that hold rows: the cut to ``size`` leaves the last envs empty when size is not a
+    # multiple of num_envs and n_steps < num_envs (an empty env drawn for validation or test would shrink it)
+    env_split = split_codes(-(-size // n_steps), fractions, gen)
     env_id = torch.arange(num_envs).repeat_interleave(n_steps)[:size]
     td.set("split", env_split[env_id])
     n_term = int(td.get("terminated").sum())
