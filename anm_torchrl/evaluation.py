@@ -202,22 +202,27 @@ def _acting(policy: TensorDictModuleBase, exploration_type: ExplorationType):
     sampled key (the recipes' actors) writes its distribution's deterministic sample alone — the action
     ``policy(td)`` writes in that mode, without the log-probability and the distribution's other outputs (~40 % of
     an evaluation step)."""
-    keys = getattr(policy.module[-1], "dist_sample_keys", ()) if isinstance(
-        policy, ProbabilisticTensorDictSequential) else ()
-    if exploration_type == ExplorationType.DETERMINISTIC and len(keys) == 1:
-        key = keys[0]
-
-        def act(td):
-            td.set(key, policy.get_dist(td).deterministic_sample)
-            return td
-
-        return act
-
     def call(td):
         td.update(policy(td))  # as ``env.rollout``: a policy may return a new TensorDict
         return td
 
-    return call
+    module = policy.module[-1] if isinstance(policy, ProbabilisticTensorDictSequential) else None
+    keys = getattr(module, "dist_sample_keys", ()) if module is not None else ()
+    if exploration_type != ExplorationType.DETERMINISTIC or len(keys) != 1:
+        return call
+    key = keys[0]
+    # a safe actor projects its sample onto its spec, as policy(td) does
+    spec = getattr(module, "spec", None) if getattr(module, "safe", False) else None
+    spec = spec[key] if spec is not None and key in spec.keys(True) else None
+
+    def act(td):
+        sample = getattr(policy.get_dist(td), "deterministic_sample", None)
+        if sample is None:  # a torch.distributions class (Normal, Beta, ...) has none: the module's own call
+            return call(td)
+        td.set(key, sample if spec is None else spec.project(sample))
+        return td
+
+    return act
 
 
 @torch.no_grad()

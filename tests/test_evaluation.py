@@ -19,7 +19,7 @@ CONF = Path(__file__).resolve().parents[1] / "recipes" / "conf"
 
 @pytest.mark.parametrize("file, gamma_key, steps_key", [
     ("eval/default.yaml", "gamma", "max_steps"),
-    ("../conf_evaluate/evaluate.yaml", "gamma", "steps"),
+    ("../conf_evaluate/evaluate.yaml", "gamma", None),  # steps: the run's or the network's test protocol
     ("preset/full.yaml", "test_returns.gamma", "test_returns.max_steps"),
     ("preset/quick.yaml", "test_returns.gamma", None),
     ("preset/tiny.yaml", "test_returns.gamma", None),
@@ -47,7 +47,7 @@ def _rollout_reference(policy, states, steps, env):
                            nxt[("grid", "penalty")].squeeze(-1), nxt["terminated"].squeeze(-1))
 
 
-@pytest.mark.parametrize("kind", ["actor", "plain"])
+@pytest.mark.parametrize("kind", ["actor", "plain", "normal", "safe_normal"])
 def test_evaluation_equals_the_env_rollout(kind):
     """The recipes' actor (its deterministic sample written directly) and a plain policy give, bit for bit, the
     metrics of ``env.rollout``; the plain policy drives the first grid to voltage collapse (every device absorbing
@@ -64,6 +64,19 @@ def test_evaluation_equals_the_env_rollout(kind):
     if kind == "actor":
         torch.manual_seed(0)
         policy = make_ppo_models(env)[0]
+    elif kind in ("normal", "safe_normal"):
+        # bug: the fast path read ``deterministic_sample``, which torch.distributions.Normal lacks (AttributeError),
+        # and skipped a safe actor's projection onto its spec (an action of 1e3 MW refused by the env)
+        from torch.distributions import Normal
+        from torchrl.modules import ProbabilisticActor
+
+        loc = 1e3 if kind == "safe_normal" else 1.0
+
+        def net(obs):
+            return torch.full((*obs.shape[:-1], 6), loc), torch.ones(*obs.shape[:-1], 6)
+
+        policy = ProbabilisticActor(TensorDictModule(net, ["observation"], ["loc", "scale"]), in_keys=["loc", "scale"],
+                                    distribution_class=Normal, spec=env.action_spec, safe=kind == "safe_normal")
     else:
         low, high = env.action_spec.space.low[0], env.action_spec.space.high[0]
         collapse = torch.stack([high[0], high[1], low[2], low[3], high[4], low[5]])
