@@ -211,3 +211,28 @@ def test_rollout_in_env(name):
     a = td["action"]
     assert a.dtype == torch.float32 and torch.isfinite(a).all()
     assert torch.isfinite(td["next", "reward"]).all()
+
+
+def test_mpc_falls_back_when_the_lp_is_infeasible():
+    """Bug: Clarabel's last iterate of an infeasible LP was applied as the MPC's action (fallback False). Here the PV
+    of ANM6-Easy gets PMIN = 5 MW while its raw perfect forecast is 0 MW at night: no feasible plan exists."""
+    import copy
+    import warnings
+
+    from anm_torchrl.envs import ANMEnv
+    from anm_torchrl.networks import anm6_easy as a
+
+    net = copy.deepcopy(a.network())
+    net["device"] = [list(d) for d in net["device"]]
+    net["device"][2][5] = 5.0  # PMIN of the PV
+    sim = network_simulator(net, a.load_p(), a.gen_p_max())
+    env = ANMEnv(sim=sim, num_envs=1, seed=0)
+    state = env.reset()["state"].clone()
+    state[0, -1] = 0  # midnight
+    td = env.reset(TensorDict({"state": state}, [1]), set_state=True)
+    mpc = MPCPolicy(sim, horizon=4)
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        action = mpc(td)["action"]
+    assert mpc.last_info[0]["fallback"] and not mpc.last_info[0]["found"]
+    torch.testing.assert_close(action, DoNothingPolicy(sim)(td.clone())["action"])

@@ -285,7 +285,8 @@ class MPCPolicy(TensorDictModuleBase):
         b_eq, h = self._rhs(state)
         prob = qpsolvers.Problem(self._p_zero, self._c, self._g, h, self._a_eq, b_eq)
         sol = qpsolvers.solve_problem(prob, solver=self.solver, **self.solver_settings)
-        x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else None
+        # a solver that reports no solution (e.g. Clarabel's PrimalInfeasible) still hands back its last iterate
+        x = sol.x if sol.found and sol.x is not None and np.all(np.isfinite(sol.x)) else None
         info = {"found": bool(sol.found), "solver": self.solver,
                 "objective": float(self._c @ x) if x is not None else float("nan")}
         return x, info
