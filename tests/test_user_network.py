@@ -302,3 +302,24 @@ def test_every_recipe_trains_on_a_network_with_one_kind_of_controllable_device(k
     path = tr.save_pinn(tmp_path / "pinn.safetensors", modules, tr.preset("smoke"), report, sim)
     td = SurrogateEnv(load_pinn(sim, path=path), num_envs=3, seed=0, sim=sim).rollout(4, break_when_any_done=False)
     assert td["next", "reward"].shape == (3, 4, 1) and torch.isfinite(td["next", "reward"]).all()
+
+
+def test_an_unbounded_action_is_refused_for_training_and_by_the_random_baseline():
+    """A valid network whose storage unit leaves PMAX / PMIN unset (gym-anm's ±inf; its corners P+ / P- bound it):
+    the random baseline drew NaN actions and a trained policy's TanhNormal would too; both now refuse it by name."""
+    import copy
+
+    from anm_torchrl.baselines import RandomPolicy
+    from anm_torchrl.networks import anm6_easy as a
+    from anm_torchrl.networks.resolve import check_controllable
+    from anm_torchrl.networks.user import checked_case
+
+    net = copy.deepcopy(a.network())
+    net["device"] = [list(d) for d in net["device"]]
+    net["device"][6][4] = net["device"][6][5] = NAN  # PMAX, PMIN of the storage unit
+    case = checked_case("unbounded", net, a.load_p(), a.gen_p_max())
+    with pytest.raises(ValueError, match=r"'unbounded': the action range of P of device 6 \(\[-inf, inf\] MW/MVAr\) "
+                                         "is unbounded"):
+        check_controllable(case)
+    with pytest.raises(ValueError, match=r"unbounded at entries \[4\]"):
+        RandomPolicy(seed=0, sim=N.simulator(case))

@@ -83,12 +83,15 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
 
 def check_controllable(network: str | NetworkCase) -> None:
     """Refuse a network a policy cannot be trained for, before a controller is trained for it: nothing to control
-    (the slack and loads only), or an action whose range is a single value (e.g. QMAX = QMIN: every trained policy's
-    bounded ``TanhNormal`` needs low < high, and TorchRL stops with a traceback otherwise).
+    (the slack and loads only), an action whose range is a single value (e.g. QMAX = QMIN: every trained policy's
+    bounded ``TanhNormal`` needs low < high, and TorchRL stops with a traceback otherwise) or is unbounded (an unset
+    PMAX: the ``TanhNormal`` would give NaN actions).
 
     Raises:
         ValueError: naming the network and what it lacks (or :func:`simulator`'s error for an invalid one).
     """
+    import torch
+
     sim = simulator(network)
     name = network.name if isinstance(network, NetworkCase) else network
     if sim.action_dim == 0:
@@ -98,6 +101,11 @@ def check_controllable(network: str | NetworkCase) -> None:
     ids = sim.net.dev[:, 0].long().tolist()
     labels = [f"{q} of device {ids[i]}" for q, rows in (("P", sim.gen_idx), ("Q", sim.gen_idx), ("P", sim.des_idx),
                                                       ("Q", sim.des_idx)) for i in rows.tolist()]
+    unbounded = [f"{labels[j]} ([{low[j].item():g}, {high[j].item():g}] MW/MVAr)"
+                 for j in (~torch.isfinite(low) | ~torch.isfinite(high)).nonzero().flatten().tolist()]
+    if unbounded:  # a TanhNormal between infinite bounds gives NaN actions
+        raise ValueError(f"network {name!r}: the action range of {', '.join(unbounded)} is unbounded; a trained "
+                         "policy acts in a bounded box (give the device finite PMIN/PMAX and QMIN/QMAX)")
     flat = [f"{labels[j]} ({low[j].item():g} MW/MVAr)" for j in (high <= low).nonzero().flatten().tolist()]
     if flat:
         raise ValueError(f"network {name!r}: the action range of {', '.join(flat)} is a single value; a trained "
