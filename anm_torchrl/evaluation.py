@@ -41,6 +41,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from anm_torchrl._extras import require
+from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.grid import reset as grid_reset
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
@@ -102,7 +103,8 @@ def draw_initial_states(num_episodes: int, seed: int, sim: GridSimulator | None 
             default of ``ANMEnv`` on other networks).
     """
     sim = network_simulator(ANM6_EASY) if sim is None else sim
-    generator = torch.Generator(device=sim.net.dev.device).manual_seed(int(seed))
+    num_episodes = check_integer("num_episodes", num_episodes, low=1)  # 2.5 gave 2 states, seed 0.9 seed 0's
+    generator = torch.Generator(device=sim.net.dev.device).manual_seed(check_integer("seed", seed, low=0))
     if init == "uniform":
         states, _ = grid_reset.random_state(sim, int(num_episodes), generator)
     elif init in ("gym_anm", "intended"):
@@ -164,6 +166,7 @@ def evaluate_policy(policy: TensorDictModuleBase, initial_states: torch.Tensor, 
     from anm_torchrl.envs import ANM6Env
 
     n = int(initial_states.shape[0])
+    max_steps = check_integer("max_steps", max_steps, low=1)  # 0 raised an IndexError, 2.5 ran 2 steps
     if env is None:
         env = ANM6Env(n, seed=0)
     if tuple(env.batch_size) != (n,):

@@ -236,3 +236,24 @@ def test_mpc_falls_back_when_the_lp_is_infeasible():
         action = mpc(td)["action"]
     assert mpc.last_info[0]["fallback"] and not mpc.last_info[0]["found"]
     torch.testing.assert_close(action, DoNothingPolicy(sim)(td.clone())["action"])
+
+
+def test_counts_must_be_integers():
+    """Bug: fractional counts were cut (horizon 2.5 -> 2, num_episodes 2.5 -> 2 states, seed 0.9 -> seed 0's states,
+    max_steps 2.5 -> 2 steps), max_steps 0 raised an IndexError and max_rounds 1 an UnboundLocalError."""
+    from anm_torchrl.baselines.optimal import solve_optimal
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+
+    sim = network_simulator(ANM6_EASY)
+    with pytest.raises(ValueError, match="horizon must be an integer >= 1, got 2.5"):
+        MPCPolicy(sim, horizon=2.5)
+    with pytest.raises(ValueError, match="num_episodes must be an integer >= 1, got 2.5"):
+        draw_initial_states(2.5, 0)
+    with pytest.raises(ValueError, match="seed must be an integer >= 0, got 0.9"):
+        draw_initial_states(2, 0.9)
+    states = draw_initial_states(2, 0)
+    for steps in (0, 2.5):
+        with pytest.raises(ValueError, match=f"max_steps must be an integer >= 1, got {steps}"):
+            evaluate_policy(DoNothingPolicy(sim), states, max_steps=steps)
+    with pytest.raises(ValueError, match="max_rounds must be an integer >= 2, got 1"):
+        solve_optimal(sim, states[0].numpy(), horizon=2, warm_start="do_nothing", max_rounds=1)

@@ -58,6 +58,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from anm_torchrl._extras import require
+from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.evaluation import EVAL_GAMMA
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.network import CLASSICAL_GEN, SLACK
@@ -127,11 +128,10 @@ class MPCPolicy(TensorDictModuleBase):
         super().__init__()
         if forecast not in ("perfect", "constant"):
             raise ValueError(f"forecast must be 'perfect' or 'constant', got {forecast!r}")
-        if horizon < 1:
-            raise ValueError("horizon must be >= 1")
+        horizon = check_integer("horizon", horizon, low=1)  # 2.5 was cut to 2
         self.in_keys = [in_key]
         self.out_keys = ["action"]
-        self.sim, self.horizon, self.forecast = sim, int(horizon), forecast
+        self.sim, self.horizon, self.forecast = sim, horizon, forecast
         self.safety_margin, self.gamma = float(safety_margin), float(gamma)
         self.solver = default_solver() if solver is None else solver
         self.solver_settings = {**SOLVER_SETTINGS.get(self.solver, {}), **solver_settings}

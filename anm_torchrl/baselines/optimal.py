@@ -32,6 +32,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from anm_torchrl.baselines.nlp_model import (ACHorizonNLP, NLPResult, PowerFlowOffsets, exogenous, rollout,
                                              storage_direction, time_indices)
+from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.evaluation import EVAL_GAMMA, EVAL_MAX_STEPS, reset_to
 from anm_torchrl.grid.simulator import GridSimulator
 
@@ -156,6 +157,7 @@ def solve_optimal(sim: GridSimulator, state: np.ndarray, horizon: int = EVAL_MAX
     if state.shape != (sim.state_dim,):
         raise ValueError(f"state must have shape ({sim.state_dim},), got {state.shape}")
     n = solve_horizon(sim, horizon)
+    check_integer("max_rounds", max_rounds, low=2)  # rounds 1 and 2 are the method; a replay needs round 2
     if nlp is None:
         nlp = ACHorizonNLP(sim, n, gamma, formulation, ipopt)
     elif (nlp.horizon, nlp.gamma) != (n, float(gamma)):
