@@ -342,3 +342,26 @@ def test_surrogate_env_on_this_network_checks_the_content_key():
     with pytest.raises(ValueError, match="observation must come from the state alone"):
         SurrogateEnv(TensorDictModule(Persist(), ["state", "action"], ["next_state", "reward", "terminated"]),
                      num_envs=2, observation=OBSERVATION, **kw)
+
+
+def test_surrogate_env_refuses_a_models_non_finite_output():
+    """Bug: a model's NaN reward went into the data unnoticed (and its next state failed only a step later, blamed
+    on "the state"); the step now names the model and the rows."""
+    from tensordict.nn import TensorDictModuleBase
+
+    from anm_torchrl.envs import SurrogateEnv
+    from anm_torchrl.networks import ANM6_EASY, simulator
+
+    class NaNReward(TensorDictModuleBase):
+        in_keys, out_keys = ["state", "action"], ["next_state", "reward", "terminated"]
+
+        def forward(self, td):
+            n = td["state"].shape[0]
+            return td.update({"next_state": td["state"].clone(), "reward": torch.full((n, 1), float("nan")),
+                              "terminated": torch.zeros(n, 1, dtype=torch.bool)})
+
+    env = SurrogateEnv(NaNReward(), 2, sim=simulator(ANM6_EASY), seed=0)
+    td = env.reset().set("action", torch.zeros(2, 6))
+    with pytest.raises(ValueError, match=r"model NaNReward predicted a non-finite reward or next state for "
+                                         r"non-terminated rows \[0, 1\]"):
+        env.step(td)

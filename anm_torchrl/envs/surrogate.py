@@ -62,6 +62,11 @@ class SurrogateEnv(ANMEnv):
             pred = self.model(TensorDict({"state": state, "action": action}, batch_size=self.batch_size))
         terminated = pred.get("terminated").reshape(-1, 1).to(torch.bool)
         reward = pred.get("reward").reshape(-1).to(torch.float64)
+        finite = torch.isfinite(reward) & torch.isfinite(pred.get("next_state")).all(-1)
+        if not bool((finite | terminated.squeeze(1)).all()):  # a NaN reward would enter the data unnoticed
+            rows = (~finite & ~terminated.squeeze(1)).nonzero().flatten()[:5].tolist()
+            raise ValueError(f"the surrogate model {type(self.model).__name__} predicted a non-finite reward or next "
+                             f"state for non-terminated rows {rows}")
         reward = torch.where(terminated.squeeze(1), torch.full_like(reward, self.sim.terminal_reward), reward)
         next_state = self.sim.with_next_vars(pred.get("next_state").to(torch.float64), *self.sim.next_vars(state))
         next_state = torch.where(terminated, torch.zeros_like(next_state), next_state)
