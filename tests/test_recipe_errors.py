@@ -73,12 +73,15 @@ def test_check_writable_and_artifact_cache(monkeypatch, tmp_path):
     ("train_surrogate", "network=case34bw", "unknown network 'case34bw'"),
     ("reproduce", "preset.experiments=[nope]", "unknown experiment 'nope'"),
     ("sac", "checkpoint.resume=missing.pt", "checkpoint.resume: no file"),
+    # a surrogate choice that failed once the run had started (a traceback, a Hydra-only run directory left)
+    ("ppo", "surrogate=gym_anm network=case33bw", "surrogate=gym_anm runs gym-anm's ANM6Easy only"),
+    ("ppo", "surrogate=xgb surrogate.dataset=nope", "surrogate.dataset must be one of generative, agent; got 'nope'"),
     # another recipe's model group: a TypeError traceback after the run had started, before
     ("ppo", "model=pinn", r"model.dynamics is not a setting of ppo.py's models: ppo.py takes model=default"),
     ("sac", "model=default", r"model.state_dependent_scale is not a setting of sac.py.s models: .* model=sac"),
     # relative to where the command is typed (was: to the run directory, then a FileNotFoundError traceback)
     ("ppo", "surrogate=pinn surrogate.path=mypinn", r"surrogate.path: nothing at .*/test_recipe_prints\w*/mypinn$"),
-    ("evaluate", "policy=mpc_perfect policy_kwargs.horizon=-1 steps=5 episodes=1", "horizon must be >= 1"),
+    ("evaluate", "policy=mpc_perfect policy_kwargs.horizon=-1 steps=5 episodes=1", "horizon must be an integer >= 1"),
     ("evaluate", "policy=do_nothing render=true render_dir={tmp}/a_file/ep steps=5 episodes=1",
      r"render_dir=.*/a_file/ep: cannot write there \(.*/a_file is not a folder\)"),
     ("ppo", "ANM_TORCHRL_HOME={tmp}/a_file/home surrogate=pinn collector.total_frames=1000",

@@ -212,6 +212,7 @@ def test_ppo_recipe_takes_a_network_file(tmp_path):
                               f"checkpoint.resume={ckpt}", f"hydra.run.dir={tmp_path / 'runs' / 'resumed'}"],
                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert resumed.returncode != 0 and "was trained on another network" in resumed.stderr, resumed.stderr[-2000:]
+    assert "Traceback" not in resumed.stderr and not (tmp_path / "runs" / "resumed").exists()  # one line, no run dir
     bad = subprocess.run([sys.executable, str(ROOT / "recipes" / "ppo.py"), "network=nothing.npz",
                           f"hydra.run.dir={tmp_path / 'runs' / 'bad'}"], cwd=tmp_path, env=env, capture_output=True,
                          text=True, timeout=120)

@@ -82,6 +82,19 @@ def _cells(cfg: Mapping, key: str) -> None:
         raise ValueError(f"{key} must be a list of positive layer widths, got {value!r}")
 
 
+def _check_surrogate(cfg: Mapping) -> None:
+    """The surrogate group's choices that would otherwise fail once the run has started (a traceback)."""
+    surrogate = cfg.get("surrogate")
+    if not isinstance(surrogate, Mapping):
+        return
+    if surrogate.get("name") == "gym_anm" and _get(cfg, "network") != "anm6_easy":
+        raise ValueError(f"surrogate=gym_anm runs gym-anm's ANM6Easy only, got network={_get(cfg, 'network')!r}")
+    if "dataset" in surrogate:
+        from anm_torchrl.surrogates.regressors.defaults import DATASETS
+
+        _choice(cfg, "surrogate.dataset", tuple(DATASETS))
+
+
 def check_protocol_config(cfg: Mapping) -> None:
     """Check the keys every algorithm shares (``anm_torchrl.training.protocol``): network, seed, threads, env,
     budget, logger, eval, checkpoint.
@@ -94,6 +107,7 @@ def check_protocol_config(cfg: Mapping) -> None:
     check_network_name(_get(cfg, "network"))
     _int(cfg, "seed", low=0)
     _int(cfg, "threads")
+    _check_surrogate(cfg)
     # env
     _int(cfg, "env.num_envs")
     _int(cfg, "env.max_steps", optional=True)
@@ -141,12 +155,14 @@ def check_protocol_config(cfg: Mapping) -> None:
     _int(cfg, "checkpoint.interval")
 
 
-def _check_model(cfg: Mapping) -> None:
-    from anm_torchrl.training.models import ACTIVATIONS
+# the activations of anm_torchrl.training.models.ACTIVATIONS (which checks that they agree), named here without torch
+ACTIVATION_NAMES = ("elu", "leaky_relu", "relu", "silu", "tanh", "tanh_sigmoid")
 
+
+def _check_model(cfg: Mapping) -> None:
     _cells(cfg, "model.actor_cells")
     _cells(cfg, "model.critic_cells")
-    _choice(cfg, "model.activation", tuple(sorted(ACTIVATIONS)))
+    _choice(cfg, "model.activation", ACTIVATION_NAMES)
     _in_range(cfg, "model.max_obs_scale", 0, math.inf, True, True, optional=True)
     _in_range(cfg, "model.obs_clip", 0, math.inf, True, True)
     _number(cfg, "model.init_log_std")

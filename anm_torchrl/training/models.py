@@ -26,6 +26,8 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 
+from anm_torchrl.training.config_checks import ACTIVATION_NAMES
+
 class _SigmoidTanh(torch.autograd.Function):
     """tanh(x) as 2 sigmoid(2x) - 1 (equal to round-off, ~1e-7), backward (1 - y^2) from the output alone."""
 
@@ -53,6 +55,8 @@ class SigmoidTanh(nn.Module):
 
 ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU, "leaky_relu": nn.LeakyReLU, "silu": nn.SiLU,
                "tanh_sigmoid": SigmoidTanh}
+# the config checks name them without importing torch (a wrong value fails before the heavy imports)
+assert set(ACTIVATIONS) == set(ACTIVATION_NAMES), "config_checks.ACTIVATION_NAMES must list ACTIVATIONS' keys"
 
 
 class ObservationNormalizer(nn.Module):

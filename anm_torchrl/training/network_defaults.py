@@ -99,9 +99,17 @@ def network_entry(cfg: DictConfig) -> tuple[str, dict[str, Any]]:
     return name, values
 
 
-def apply_network_defaults(cfg: DictConfig, explicit: Iterable[str] = ()) -> dict[str, Any]:
+def log_network_defaults(applied: Mapping[str, Any]) -> None:
+    """Log what :func:`apply_network_defaults` applied (its return value), one INFO line."""
+    if applied["applied"]:
+        log.info("per-network defaults of %s (%s.%s): %s", applied["network"], TABLE_KEY, applied["entry"],
+                 ", ".join(f"{k}={v}" for k, v in applied["applied"].items()))
+
+
+def apply_network_defaults(cfg: DictConfig, explicit: Iterable[str] = (), log_now: bool = True) -> dict[str, Any]:
     """Set the network's entry (:func:`network_entry`) on ``cfg`` in place, except every key in ``explicit`` or
-    under one of them (``env`` protects ``env.num_envs``).
+    under one of them (``env`` protects ``env.num_envs``); logged unless ``log_now`` is False (a recipe logs it
+    once its config has passed its checks: :func:`log_network_defaults`).
 
     Returns:
         ``{"network", "entry", "applied": {key: value}, "kept": {key: the user's value}}`` (for summary.json).
@@ -118,10 +126,10 @@ def apply_network_defaults(cfg: DictConfig, explicit: Iterable[str] = ()) -> dic
     with open_dict(cfg):
         for key, value in applied.items():
             OmegaConf.update(cfg, key, value, merge=False)
-    if applied:
-        log.info("per-network defaults of %s (%s.%s): %s", cfg.network, TABLE_KEY, name,
-                 ", ".join(f"{k}={v}" for k, v in applied.items()))
-    return {"network": str(cfg.network), "entry": name, "applied": applied, "kept": kept}
+    out = {"network": str(cfg.network), "entry": name, "applied": applied, "kept": kept}
+    if log_now:
+        log_network_defaults(out)
+    return out
 
 
 def compose_config(overrides: Iterable[str], config_name: str = "config", conf_dir: str | Path = RECIPE_CONF):

@@ -49,6 +49,27 @@ def reward_scale_of(cfg: DictConfig, eval_env, val_states) -> dict:
     return info
 
 
+def read_resume(cfg: DictConfig, algorithm: str, device="cpu") -> tuple[Path, dict, list[str]]:
+    """The checkpoint of ``checkpoint.resume``, checked against the run's config: ``(path, checkpoint, the dotted
+    keys that differ)`` (those the protocol does not compare left out).
+
+    Raises:
+        ValueError: another algorithm's checkpoint, another architecture (naming both values), or an unreadable
+            file (:func:`~anm_torchrl.training.checkpoint.load_checkpoint`).
+    """
+    from anm_torchrl.training.checkpoint import check_resume_config, load_checkpoint
+
+    path = Path(str(cfg.checkpoint.resume)).expanduser().resolve()
+    resume = load_checkpoint(path, map_location=device)
+    if resume["algorithm"] != algorithm:
+        raise ValueError(f"cannot resume from {path}: it was trained by {resume['algorithm']!r}, this run is "
+                         f"{algorithm!r}")
+    changed = [k for k in check_resume_config(resume["config"], OmegaConf.to_container(cfg, resolve=True),
+                                              source=str(path))
+               if not any(k == e or k.startswith(e + ".") for e in EXCLUDED_CONFIG_DIFF)]
+    return path, resume, changed
+
+
 def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop, read top to bottom
           network_defaults: dict | None = None) -> dict:
     """Train ``cfg.algorithm`` as configured by ``cfg`` (a recipe's composed config) into ``run_dir``; returns the
@@ -78,7 +99,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     from tqdm import tqdm
 
     from anm_torchrl.grid.identity import network_key
-    from anm_torchrl.training.checkpoint import check_network, check_resume_config, load_checkpoint, save_checkpoint
+    from anm_torchrl.training.checkpoint import check_network, load_checkpoint, save_checkpoint
     from anm_torchrl.evaluation import draw_initial_states
     from anm_torchrl.training.factory import make_true_env
     from anm_torchrl.training.validation import BackgroundValidation, InlineValidation, evaluate, use_background
@@ -94,13 +115,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     # ---- resume -------------------------------------------------------------------------------------------
     resume = None
     if cfg.checkpoint.resume:
-        resume_path = Path(str(cfg.checkpoint.resume)).expanduser().resolve()
-        resume = load_checkpoint(resume_path, map_location=device)
-        if resume["algorithm"] != algorithm_cls.name:
-            raise ValueError(f"cannot resume from {resume_path}: it was trained by {resume['algorithm']!r}, this run "
-                             f"is {algorithm_cls.name!r}")
-        changed = [k for k in check_resume_config(resume["config"], config, source=str(resume_path))
-                   if not any(k == e or k.startswith(e + ".") for e in EXCLUDED_CONFIG_DIFF)]
+        resume_path, resume, changed = read_resume(cfg, algorithm_cls.name, device)
         if changed:
             log.warning("resuming with a config that differs from the checkpoint's in: %s", ", ".join(changed))
         log.info("resuming from %s at %d frames, update %d", resume_path, resume["frames"], resume["update"])
@@ -396,7 +411,7 @@ def run_recipe(cfg: DictConfig) -> dict:
     from anm_torchrl.networks.user import network_argument
     from anm_torchrl.training.algorithms import check_algorithm_config
     from anm_torchrl.training.recipe_errors import check_artifact_cache, check_device, user_errors
-    from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys
+    from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys, log_network_defaults
 
     run_dir = Path.cwd()
     with user_errors(f"{HydraConfig.get().job.name}.py", run_dir):
@@ -406,7 +421,8 @@ def run_recipe(cfg: DictConfig) -> dict:
         hydra_cfg = HydraConfig.get()
         conf_dir = next((src.path for src in hydra_cfg.runtime.config_sources
                          if src.provider == "main" and src.schema == "file"), None)
-        defaults = apply_network_defaults(cfg, explicit_keys(hydra_cfg.overrides.task, conf_dir))
+        # logged once the config has passed its checks: a wrong value is then the only line printed
+        defaults = apply_network_defaults(cfg, explicit_keys(hydra_cfg.overrides.task, conf_dir), log_now=False)
         check_algorithm_config(cfg)
         check_device(cfg.env.device)
         check_artifact_cache(cfg.surrogate)  # a surrogate trained on first use is saved under ANM_TORCHRL_HOME
@@ -424,6 +440,13 @@ def run_recipe(cfg: DictConfig) -> dict:
         from anm_torchrl.networks.resolve import check_controllable
 
         check_controllable(cfg.network)
+        if cfg.checkpoint.resume:  # the checkpoint's algorithm, architecture and network: one line, not a traceback
+            from anm_torchrl.networks import simulator
+            from anm_torchrl.training.checkpoint import check_network
+
+            _, resume, _ = read_resume(cfg, str(cfg.algorithm))
+            check_network(resume, simulator(cfg.network), str(cfg.checkpoint.resume))
+    log_network_defaults(defaults)
     print(f"run directory: {run_dir}", flush=True)
     with stop_signals():
         try:
