@@ -225,8 +225,8 @@ def check_resume_config(saved: dict, config: dict, source: str = "checkpoint") -
         The dotted keys that differ (the caller decides what to ignore and what to warn about).
 
     Raises:
-        ValueError: one of the algorithm's ``architecture_keys`` (network, layer widths, ...) differs (the saved weights belong to another network); the
-            message gives both values.
+        ValueError: one of the algorithm's ``architecture_keys`` (network, layer widths, ...) differs (the saved
+            weights belong to another network); the message gives both values.
     """
     from anm_torchrl.training.algorithms import get_algorithm
 
