@@ -121,6 +121,8 @@ finally:
 
 @pytest.mark.parametrize("recipe, args", [
     ("ppo", "network=case34bw"), ("sac", "network=case34bw"), ("shac", "network=case34bw"),
+    # out-of-range values (they imported torch through the activation names before)
+    ("ppo", "loss.gamma=2"), ("sac", "replay.size=-5"), ("shac", "loss.horizon=0"),
     ("make_dataset", "generative.chunk=0"), ("train_surrogate", "network=case34bw"),
     ("train_surrogate", "surrogate=pinn"), ("train_pinn", "network=case34bw"),
     ("train_pinn", "pinn_preset.power_balance.max_steps=-1"), ("train_pinn", "pinn_preset=smoke"),
@@ -135,3 +137,4 @@ def test_user_errors_come_before_torch(recipe, args, tmp_path):
                          cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env)
     assert f"{recipe}.py: " in out.stderr, out.stderr
     assert "heavy modules imported: []" in out.stdout, (out.stdout, out.stderr[-2000:])
+    assert "per-network defaults" not in out.stderr  # the error is the only line (the defaults: after the checks)

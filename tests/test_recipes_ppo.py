@@ -137,6 +137,8 @@ def test_the_summary_compares_best_with_doing_nothing_and_says_when_it_is_worse(
     assert val["do_nothing_discounted_return"] == expected and torch.isfinite(torch.tensor(expected))
     worse = summary["best_eval"]["discounted_return"] < expected
     assert ("best.pt is worse than doing nothing on the validation states" in proc.stderr + proc.stdout) == worse
+    # the run's last log line puts the two side by side (README: "it ends by comparing best.pt with doing nothing")
+    assert f"(do-nothing on the same validation states: {expected:.4g})" in proc.stderr + proc.stdout
 
 
 def test_ppo_on_another_network(tmp_path, evaluate_recipe):
@@ -215,7 +217,7 @@ def test_resume_with_another_activation_fails(ppo_checkpoint, tmp_path):
                f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path, check=False)
     assert proc.returncode != 0
     assert "model.activation: checkpoint 'tanh', this run 'relu'" in proc.stderr, proc.stderr[-2000:]
-
+    assert "Traceback" not in proc.stderr and not (tmp_path / "run").exists()  # one line, before the run
 
 def interrupt_run(run_dir: Path, marker: str, *args: str, env: dict | None = None, sig=signal.SIGINT,
                   status: int = 130, group: bool = False) -> str:

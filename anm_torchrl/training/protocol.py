@@ -366,8 +366,10 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     atomic_write(run_dir / "summary.json", json.dumps(summary, indent=2, default=float).encode())
     if logger is not None and hasattr(logger.experiment, "flush"):
         logger.experiment.flush()
-    log.info("done: %d frames in %.0f s, best eval/discounted_return %s, test/best/discounted_return %s", frames,
-             summary["wall_time"], None if best is None else f"{best['discounted_return']:.4g}",
+    log.info("done: %d frames in %.0f s, best eval/discounted_return %s (do-nothing on the same validation states: "
+             "%s), test/best/discounted_return %s", frames, summary["wall_time"],
+             None if best is None else f"{best['discounted_return']:.4g}",
+             None if do_nothing is None else f"{do_nothing:.4g}",
              f"{test['best']['discounted_return']:.4g}" if "best" in test else None)
     if interrupted:
         raise KeyboardInterrupt
