@@ -17,6 +17,8 @@ from __future__ import annotations
 import logging
 import time
 
+from pathlib import Path
+
 import hydra
 from omegaconf import DictConfig
 
@@ -34,9 +36,16 @@ def check(cfg: DictConfig):
     from anm_torchrl.training.config_checks import check_make_dataset_config
 
     check_make_dataset_config(cfg)
+    from anm_torchrl.data import default_dataset_dir
     from anm_torchrl.networks import simulator as network_simulator
+    from anm_torchrl.training.recipe_errors import check_writable
 
-    return network_simulator(cfg.network)
+    sim = network_simulator(cfg.network)
+    out = Path(cfg.out) if cfg.out else default_dataset_dir(cfg.dataset, int(cfg.size), int(cfg.seed), sim)
+    if out.exists() and not cfg.overwrite:  # checked again under the writer's lock
+        raise FileExistsError(f"out={out} exists; pass overwrite=true to replace it")
+    check_writable(out, "out")
+    return sim
 
 
 def run(cfg: DictConfig, sim=None) -> str:

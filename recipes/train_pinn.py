@@ -70,6 +70,9 @@ def main(cfg: DictConfig) -> dict:
                      from_composed(composed, sim, seed=int(cfg.seed)))
         if train_cfg is not None:  # a preset without acceptance bar never replaces the default cache
             check_may_train_into(file, train_cfg, sim, bool(cfg.overwrite_cache))
+            from anm_torchrl.training.recipe_errors import check_writable
+
+            check_writable(file.parent, "path")  # e.g. under a regular file: before minutes of training
     out: dict = {"path": str(file)}
     if train_cfg is not None:
         name = train_cfg.preset

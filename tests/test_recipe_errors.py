@@ -87,6 +87,10 @@ def test_check_writable_and_artifact_cache(monkeypatch, tmp_path):
     ("ppo", "ANM_TORCHRL_HOME={tmp}/a_file/home surrogate=pinn collector.total_frames=1000",
      r"cannot write the artifact cache .*/a_file/home .*set ANM_TORCHRL_HOME to a writable folder"),
     ("train_pinn", "pinn_preset=smoke", "preset 'smoke' has no acceptance bar"),  # into the default cache
+    # a folder under a regular file, an existing dataset: a traceback and a run directory before
+    ("train_pinn", "pinn_preset=smoke path={tmp}/a_file/x", r"path=.*/a_file/x: cannot write there"),
+    ("make_dataset", "dataset=agent size=100 out={tmp}/a_file/ds", r"out=.*/a_file/ds: cannot write there"),
+    ("make_dataset", "dataset=agent size=100 out={tmp}", r"out=.* exists; pass overwrite=true to replace it"),
     ("evaluate", "policy=mpc_perfect policy_kwargs.bogus=1 steps=5 episodes=1",
      r"MPC options \['bogus'\] are not settings of the '\w+' solver"),  # was an AttributeError at the first step
 ])

@@ -24,8 +24,8 @@ class NotWritableError(OSError):
 
 #: what a user's input can raise before the work starts (a bad value, a wrong kind, a missing file or extra, a
 #: folder that cannot be written)
-USER_ERRORS = (ValueError, TypeError, KeyError, FileNotFoundError, NotADirectoryError, PermissionError,
-               MissingExtraError, NotWritableError)
+USER_ERRORS = (ValueError, TypeError, KeyError, FileNotFoundError, FileExistsError, NotADirectoryError,
+               PermissionError, MissingExtraError, NotWritableError)
 
 
 def remove_hydra_only_dir(run_dir: Path) -> None:
