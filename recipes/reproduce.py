@@ -46,10 +46,20 @@ def _md(cfg: DictConfig, out_dir: Path) -> Path | None:
 
 
 def _abs(p: str | None) -> Path | None:
+    """A publish target: relative to the repository (results/, docs/, README.md)."""
     if p is None:
         return None
     p = Path(str(p)).expanduser()
     return p if p.is_absolute() else REPO / p
+
+
+def _run_dir(cfg: DictConfig) -> Path:
+    """The run's folder: ``out_dir`` relative to where the command was typed (as every recipe's paths), which is
+    also Hydra's run directory (its log), else the folder Hydra made under ``outputs/reproduce``."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return (Path(str(cfg.out_dir)).expanduser().resolve() if cfg.out_dir is not None
+            else Path(HydraConfig.get().runtime.output_dir))
 
 
 def prepare_pinn(pcfg: dict, out_dir: Path) -> tuple[dict, list[Path], dict | None]:
@@ -166,7 +176,7 @@ def main(cfg: DictConfig) -> dict:
         if cfg.out_dir is None:
             raise SystemExit("reproduce.py: report_only=true needs out_dir=<a run directory> (or publish=true for "
                              "results/)")
-        out_dir = _abs(cfg.out_dir)
+        out_dir = _run_dir(cfg)
         run_info = json.loads((out_dir / "run.json").read_text())
         figs, md = render(out_dir, _md(cfg, out_dir), run_info)
         log.info("report only: figures %s, page %s", sorted(figs), md)
@@ -190,7 +200,7 @@ def main(cfg: DictConfig) -> dict:
     from anm_torchrl.provenance import machine_info, versions
 
     torch.set_num_threads(int(cfg.threads))
-    out_dir = _abs(cfg.out_dir) if cfg.out_dir is not None else Path(HydraConfig.get().runtime.output_dir)
+    out_dir = _run_dir(cfg)
     out_dir.mkdir(parents=True, exist_ok=True)
     surrogates = [dict(s) for s in p.get("surrogates", [])]
     pinn_spec, pinn_logs, pinn_train_s = prepare_pinn(p.get("pinn", {}) or {}, out_dir)

@@ -20,13 +20,16 @@ EXPERIMENTS = ["pinn_losses", "speed", "accuracy", "rollout_error", "adaptabilit
 
 @pytest.fixture(scope="module")
 def results(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("reproduce")
+    typed_in = tmp_path_factory.mktemp("typed_in")
+    out = typed_in / "reproduce"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "ANM_TORCHRL_HOME": str(out / "home")}
-    hydra_dir = tmp_path_factory.mktemp("hydra")  # Hydra's own run dir (its log), else outputs/ of the checkout
-    proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), "preset=tiny", f"out_dir={out}",
-                           f"results_md={out / 'RESULTS.md'}", f"hydra.run.dir={hydra_dir}"], cwd=REPO, env=env,
+    # out_dir relative to where the command is typed, and the run's only folder: Hydra's log goes there too (it went
+    # to ./outputs/reproduce, and a relative out_dir was taken relative to the repository)
+    proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), "preset=tiny", "out_dir=reproduce",
+                           f"results_md={out / 'RESULTS.md'}"], cwd=typed_in, env=env,
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-4000:]
+    assert (out / "reproduce.log").is_file() and not (typed_in / "outputs").exists()
     return out
 
 

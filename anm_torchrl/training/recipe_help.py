@@ -3,7 +3,8 @@
 Hydra's default help lists every group found under ``recipes/conf/`` (other recipes' too). A recipe whose config
 selects ``hydra/help: recipe`` (``recipes/conf/hydra/help/recipe.yaml``) and calls :func:`register` before
 ``hydra.main`` shows, for each group of its defaults list, the options available and the one chosen.
-:func:`register` also registers ``${network_label:...}``, a run directory's name part for ``network=``.
+:func:`register` also registers ``${network_label:...}``, a run directory's name part for ``network=``, and
+``${or_default:value,default}`` (``value`` unless it is null: a run directory given by a key, else Hydra's).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from anm_torchrl.networks.user import network_label
 
 RESOLVER = "recipe_groups"
 LABEL_RESOLVER = "network_label"
+DEFAULT_RESOLVER = "or_default"
 
 
 def _source_dir(schema: str, path: str) -> Path | None:
@@ -44,8 +46,13 @@ def recipe_groups(_root_: DictConfig) -> str:
     return "\n".join(sorted(lines)) or "(none: every option is a key of the config below)"
 
 
+def or_default(value, default):
+    """``value``, or ``default`` where it is null (OmegaConf's ``oc.select`` keeps a null value)."""
+    return default if value is None else value
+
+
 def register() -> None:
-    """Register the ``${recipe_groups:}`` and ``${network_label:...}`` resolvers (idempotent)."""
-    for name, resolver in ((RESOLVER, recipe_groups), (LABEL_RESOLVER, network_label)):
+    """Register the ``${recipe_groups:}``, ``${network_label:...}`` and ``${or_default:...}`` resolvers (idempotent)."""
+    for name, resolver in ((RESOLVER, recipe_groups), (LABEL_RESOLVER, network_label), (DEFAULT_RESOLVER, or_default)):
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, resolver)
