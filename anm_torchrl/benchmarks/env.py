@@ -113,7 +113,11 @@ def main(argv: list[str] | None = None) -> str:
 
 
 def anm6_main(argv: list[str] | None = None) -> str:
-    parser = argparse.ArgumentParser(description="ANM6Env / GridSimulator throughput vs gym-anm")
+    parser = argparse.ArgumentParser(
+        description="ANM6Env / GridSimulator throughput vs gym-anm",
+        # the other tables take their own options: --network NAME [--out ...] or --solver-sweep, listed by --help
+        epilog="Other networks: python -m anm_torchrl.benchmarks.env --network <name> --help; the linear-solver sweep: "
+               "python -m anm_torchrl.benchmarks.env --solver-sweep --help")
     parser.add_argument("--batch-sizes", default=",".join(map(str, DEFAULT_BATCH_SIZES)),
                         help="comma-separated batch sizes")
     parser.add_argument("--gym-steps", type=int, default=200, help="gym-anm steady-state steps (0: skip)")
