@@ -15,8 +15,10 @@ distribution (resets are not transitions: no true-env frames).
 
 Budget: ``collector.total_frames`` counts **model** transitions (``budget_unit = "model_frames"``); the summary
 reports them as ``model_frames`` and ``frames`` = true-env transitions used for training (0; the protocol's
-evaluation episodes aside). One iteration = ``env.num_envs`` x ``loss.horizon`` model frames; the last ones run
-fewer steps, and fewer rows when less than ``env.num_envs`` frames remain, so the budget is exact.
+evaluation episodes aside). One iteration = ``env.num_envs`` x ``loss.horizon`` model frames; the last one runs
+``ceil(remaining / env.num_envs)`` steps of every row, so a budget that is not a multiple of ``env.num_envs`` is passed
+by fewer than ``env.num_envs`` frames (the recorded runs' counts, e.g. ANM6-Easy's 15,000,064); the summary counts
+every model frame run.
 
 The critic (:mod:`~anm_torchrl.training.algorithms.shac_critic`) regresses after each rollout, in this process or,
 with ``loss.critic_worker``, in a worker process beside the actor's backward pass (the same updates).
@@ -211,13 +213,11 @@ class SHAC(Algorithm):
         return state, obs
 
     def iterate(self, remaining: int) -> tuple[int, dict[str, float]]:
-        """One rollout of ``min(loss.horizon, remaining // env.num_envs)`` steps of every row, or, when fewer than
-        ``env.num_envs`` model frames remain, one step of the first ``remaining`` rows (the others keep their
-        state): the frames never exceed ``remaining``, so ``collector.total_frames`` is exact."""
+        """One rollout of ``min(loss.horizon, ceil(remaining / env.num_envs))`` steps of every row (the last one may
+        pass ``remaining`` by fewer than ``env.num_envs`` frames: the module docstring)."""
         cfg = self.cfg
-        n_rows = self.state.shape[0]
-        n = min(n_rows, remaining)
-        horizon = max(1, min(int(cfg.loss.horizon), remaining // n))
+        n = self.state.shape[0]
+        horizon = max(1, min(int(cfg.loss.horizon), -(-remaining // n)))
         gamma = float(cfg.loss.gamma)
         t0 = time.perf_counter()
         if cfg.optim.anneal_lr:
@@ -225,8 +225,7 @@ class SHAC(Algorithm):
             start = float(cfg.optim.anneal_start)
             anneal_lr(self.actor_optim, cfg.optim.actor_lr, self.model_frames, total, start)
             anneal_lr(self.critic_optim, cfg.optim.critic_lr, self.model_frames, total, start)
-        state, obs, steps = self.state[:n], self.obs[:n], self.steps[:n]
-        max_steps = self.max_steps[:n] if self.max_steps is not None else None
+        state, obs, steps = self.state, self.obs, self.steps
         ret = torch.zeros(n, device=state.device)
         disc = torch.ones(n, device=state.device)
         loss = torch.zeros((), device=state.device)
@@ -241,7 +240,7 @@ class SHAC(Algorithm):
             r = torch.where(term, r.detach(), r)  # the terminal reward is a constant
             ret = ret + disc * r
             steps = steps + 1
-            trunc = (steps >= max_steps) if max_steps is not None else torch.zeros_like(term)
+            trunc = (steps >= self.max_steps) if self.max_steps is not None else torch.zeros_like(term)
             last = t == horizon - 1
             boot = (trunc | last) & ~term  # bootstrap with the value at the cut
             if bool(boot.any()):
@@ -275,11 +274,7 @@ class SHAC(Algorithm):
             if self.ema > 0:
                 move_towards(self.actor, self.learner, self.ema)
         t_rollout = time.perf_counter() - t0
-        state, obs = state.detach(), obs.detach()
-        if n < n_rows:  # a last, partial iteration: the rows past the budget did not step
-            state, obs, steps = (torch.cat([a, b[n:]]) for a, b in
-                                 ((state, self.state), (obs, self.obs), (steps, self.steps)))
-        self.state, self.obs, self.steps = state, obs, steps
+        self.state, self.obs, self.steps = state.detach(), obs.detach(), steps
 
         # critic: TD(λ) targets from the target critic, regression (here, or the worker's, waited for)
         t0 = time.perf_counter()
