@@ -285,8 +285,11 @@ class MPCPolicy(TensorDictModuleBase):
         b_eq, h = self._rhs(state)
         prob = qpsolvers.Problem(self._p_zero, self._c, self._g, h, self._a_eq, b_eq)
         sol = qpsolvers.solve_problem(prob, solver=self.solver, **self.solver_settings)
-        # a solver that reports no solution (e.g. Clarabel's PrimalInfeasible) still hands back its last iterate
-        x = sol.x if sol.found and sol.x is not None and np.all(np.isfinite(sol.x)) else None
+        # an infeasible LP's solver still hands back its last iterate (Clarabel's PrimalInfeasible); a near-optimal
+        # stop (Clarabel's AlmostSolved, which qpsolvers counts as not found) is kept, as gym-anm's cvxpy keeps it
+        status = str(sol.extras.get("status", "")) if isinstance(sol.extras, dict) else ""
+        infeasible = "infeasible" in status.lower()
+        x = sol.x if not infeasible and sol.x is not None and np.all(np.isfinite(sol.x)) else None
         info = {"found": bool(sol.found), "solver": self.solver,
                 "objective": float(self._c @ x) if x is not None else float("nan")}
         return x, info
