@@ -41,15 +41,16 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 @hydra.main(config_path="conf", config_name="train_pinn", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
     from anm_torchrl.networks import ANM6_EASY, check_network_name, list_networks
-    from anm_torchrl.surrogates.pinn.presets import check_default_target, from_composed as check_preset
+    from anm_torchrl.surrogates.pinn.presets import check_default_target, from_composed as check_preset, preset_keys
     from anm_torchrl.training.recipe_errors import user_errors
 
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     composed = OmegaConf.to_container(cfg.pinn_preset, resolve=True)
+    explicit = preset_keys(HydraConfig.get().overrides.task)  # kept even where equal to the named preset's
     with user_errors("train_pinn.py", run_dir):  # an unknown network or a preset value out of range: before torch
         check_network_name(cfg.network)
         if cfg.network in list_networks():  # a network file's kind is known once it is built (below)
-            checked = check_preset(composed, anm6=cfg.network == ANM6_EASY, seed=int(cfg.seed))
+            checked = check_preset(composed, anm6=cfg.network == ANM6_EASY, explicit=explicit, seed=int(cfg.seed))
             if cfg.path is None and not cfg.eval_only:
                 check_default_target(checked, f"of {cfg.network}", bool(cfg.overwrite_cache))
     import torch
@@ -67,7 +68,7 @@ def main(cfg: DictConfig) -> dict:
         # ``default`` stands for the network's own default (the feeder preset off ANM6-Easy), with the command
         # line's changes to the composed preset kept
         train_cfg = (None if cfg.eval_only else
-                     from_composed(composed, sim, seed=int(cfg.seed)))
+                     from_composed(composed, sim, explicit=explicit, seed=int(cfg.seed)))
         if train_cfg is not None:  # a preset without acceptance bar never replaces the default cache
             check_may_train_into(file, train_cfg, sim, bool(cfg.overwrite_cache))
             from anm_torchrl.training.recipe_errors import check_writable

@@ -504,6 +504,15 @@ def test_feeder_preset_selection():
     got = tr.from_composed(composed, feeder, seed=3)
     assert (got.preset, got.seed, got.power_balance.max_steps, got.power_balance.refine_steps) == ("feeder", 3, 7,
                                                                                                     "auto")
+    # bug: a value the command line set equal to default's (refine_steps=0, residual_unit=pu, robust_scale=0.01) was
+    # taken for no change and the feeder preset's used instead; the keys the command line set are kept
+    explicit = tr.preset_keys(["network=case33bw", "+pinn_preset.power_balance.refine_steps=0",
+                               "pinn_preset.power_balance.residual_unit=pu",
+                               "++pinn_preset.power_balance.robust_scale=0.01"])
+    assert explicit == ["power_balance.refine_steps", "power_balance.residual_unit", "power_balance.robust_scale"]
+    got = tr.from_composed({**tr.preset("default").to_dict(), "name": "default"}, feeder, explicit=explicit)
+    assert (got.preset, got.power_balance.refine_steps, got.power_balance.residual_unit,
+            got.power_balance.robust_scale) == ("feeder", 0, "pu", 0.01)
 
 
 @pytest.mark.parametrize("method", ["newton", "chord"])

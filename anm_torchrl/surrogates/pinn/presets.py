@@ -40,6 +40,7 @@ import functools
 import logging
 import math
 from importlib import resources
+from collections.abc import Iterable
 from typing import Any
 
 import yaml
@@ -275,18 +276,34 @@ def overrides_of(d: dict[str, Any], name: str) -> dict[str, Any]:
     return out
 
 
+def preset_keys(task_overrides: Iterable[str]) -> list[str]:
+    """The ``pinn_preset`` keys a Hydra command line sets (``pinn_preset.power_balance.lr=1e-3`` ->
+    ``power_balance.lr``; ``+``/``++``/``~`` prefixes dropped): :func:`from_composed`'s ``explicit``."""
+    keys = (o.lstrip("+~").split("=", 1)[0] for o in task_overrides)
+    return [k.removeprefix("pinn_preset.") for k in keys if k.startswith("pinn_preset.")]
+
+
 def from_composed(composed: dict[str, Any], sim=None, *, anm6: bool | None = None,
-                  **overrides: Any) -> PINNTrainConfig:
+                  explicit: Iterable[str] = (), **overrides: Any) -> PINNTrainConfig:
     """The training configuration a recipe's composed ``pinn_preset`` group (a dict with its ``name``) stands for
     on ``sim``'s network (or on ANM6-Easy's or a feeder's, ``anm6``): the preset it names (``default`` resolved by
-    :func:`network_preset_name`) with the entries the command line changed (:func:`overrides_of`) and
-    ``overrides`` (e.g. ``seed``).
+    :func:`network_preset_name`) with the entries the command line changed (:func:`overrides_of`), the entries it
+    set (``explicit``: dotted keys under ``pinn_preset``, e.g. ``power_balance.refine_steps``; a value equal to the
+    named preset's is kept too, as ``default`` stands for another preset off ANM6-Easy) and ``overrides`` (e.g.
+    ``seed``).
 
     Raises:
         ValueError: a value out of range, naming the option."""
     d = dict(composed)
     given = d.pop("name")
-    return preset(network_preset_name(given, sim, anm6=anm6), **{**overrides_of(d, given), **overrides})
+    changed = overrides_of(d, given)
+    for key in explicit:
+        top, _, sub = key.partition(".")
+        if top in MODULES and sub and isinstance(d.get(top), dict) and sub in d[top]:
+            changed.setdefault(top, {})[sub] = d[top][sub]
+        elif not sub and top in d and top not in ("name", "preset", "base"):
+            changed[top] = d[top]
+    return preset(network_preset_name(given, sim, anm6=anm6), **{**changed, **overrides})
 
 
 def check_default_target(cfg: PINNTrainConfig, target: str, overwrite_cache: bool) -> None:

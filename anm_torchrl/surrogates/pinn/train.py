@@ -10,10 +10,11 @@ from anm_torchrl.surrogates.pinn.loop import train_module, train_pinn
 from anm_torchrl.surrogates.pinn.model import build_modules
 from anm_torchrl.surrogates.pinn.presets import (FEEDER_DEFAULT, MODULES, PRESETS, ModuleTrainConfig,
                                                  PINNTrainConfig, check_acceptance, from_composed, module_seed,
-                                                 network_preset_name, overrides_of, preset, preset_for, preset_names)
+                                                 network_preset_name, overrides_of, preset, preset_for, preset_keys,
+                                                 preset_names)
 from anm_torchrl.surrogates.pinn.tasks import TASKS
 
 __all__ = ["FEEDER_DEFAULT", "FILE_NAME", "KIND", "MODULES", "PRESETS", "TASKS", "ModuleTrainConfig",
            "PINNTrainConfig", "build_modules", "check_acceptance", "from_composed", "load_modules", "module_seed",
-           "network_preset_name", "overrides_of", "preset", "preset_for", "preset_names", "read_pinn_file",
-           "resolve_path", "save_pinn", "train_module", "train_pinn"]
+           "network_preset_name", "overrides_of", "preset", "preset_for", "preset_keys", "preset_names",
+           "read_pinn_file", "resolve_path", "save_pinn", "train_module", "train_pinn"]
