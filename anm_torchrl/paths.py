@@ -13,8 +13,9 @@ from typing import Any
 
 
 def artifact_home() -> Path:
-    """Root folder of cached artifacts (created on demand by writers, not here)."""
-    return Path(os.environ.get("ANM_TORCHRL_HOME", Path.home() / ".cache" / "anm_torchrl")).expanduser()
+    """Root folder of cached artifacts (created on demand by writers, not here): ``$ANM_TORCHRL_HOME``, or
+    ``~/.cache/anm_torchrl`` where it is unset or empty (an empty value would cache into the current folder)."""
+    return Path(os.environ.get("ANM_TORCHRL_HOME") or Path.home() / ".cache" / "anm_torchrl").expanduser()
 
 
 def surrogate_dir(name: str, dataset: str | None = None) -> Path:

@@ -81,6 +81,9 @@ def train_mlp(x: torch.Tensor, y: torch.Tensor, x_val: torch.Tensor, y_val: torc
         TrainingBudgetError: the wall-clock safety cap ``max_minutes`` was reached first.
     """
     p = {**DEFAULT_PARAMS, **(params or {})}
+    for key in ("max_epochs", "patience", "batch_size", "hidden", "depth"):  # 0 epochs saved an untrained model
+        if isinstance(p[key], bool) or not isinstance(p[key], int) or p[key] < 1:
+            raise ValueError(f"dnn option {key} must be an integer >= 1, got {p[key]!r}")
     gen = torch.Generator().manual_seed(int(seed))
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
@@ -140,6 +143,9 @@ def train_mlp(x: torch.Tensor, y: torch.Tensor, x_val: torch.Tensor, y_val: torc
     bar.close()
     if writer is not None:
         writer.close()
+    if not math.isfinite(best):  # restoring best_state would hand back the untrained weights as the fit
+        raise RuntimeError(f"dnn: the validation MSE was not finite at any of its {epoch + 1} epochs (diverged at lr "
+                           f"{float(p['lr']):g}): lower models.dnn.lr")
     model.load_state_dict(best_state)
     model.eval()
     info = {"epochs": epoch + 1, "best_epoch": best_epoch, "best_val_mse": best, "stop": stop_reason,

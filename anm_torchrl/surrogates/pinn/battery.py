@@ -250,13 +250,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--model-dir", default="outputs/pinn_battery", help="where the trained models are saved")
     ap.add_argument("--merge", action="store_true", help="keep the entries of an existing battery.json (others)")
     args = ap.parse_args(argv)
+    for flag, value in (("--pb-steps", args.pb_steps), ("--kkt-steps", args.kkt_steps)):
+        if value is not None and value < 1:  # 0 was taken for "not given": the preset's full step count
+            ap.error(f"{flag} must be >= 1, got {value}")
     torch.set_num_threads(1)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     overrides: dict[str, Any] = {}
-    if args.pb_steps:
+    if args.pb_steps is not None:
         overrides["power_balance"] = {"max_steps": args.pb_steps}
-    if args.kkt_steps:
+    if args.kkt_steps is not None:
         overrides["generator"] = overrides["storage"] = {"max_steps": args.kkt_steps}
     command = "python -m anm_torchrl.surrogates.pinn.battery " + " ".join(argv if argv is not None else sys.argv[1:])
     entries: dict[int, dict] = {}

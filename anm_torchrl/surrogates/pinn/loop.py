@@ -105,7 +105,7 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
 
     best, best_step, best_state = float("inf"), 0, copy.deepcopy(module.state_dict())
     t0 = time.perf_counter()
-    step = 0
+    step = n_evals = 0
     module.train()
     while step < cfg.max_steps:
         inputs = task.sample(engine.draw(batch).double())
@@ -125,6 +125,7 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
             writer.add_scalar(f"{tag}/lr", opt.param_groups[0]["lr"], step)
         if step % cfg.eval_every == 0 or step == cfg.max_steps:
             v = log_eval(step)["val_loss"]
+            n_evals += 1
             if v < best:
                 best, best_step, best_state = v, step, copy.deepcopy(module.state_dict())
             if step - best_step >= cfg.patience:
@@ -134,6 +135,9 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
         if cfg.max_time_s is not None and time.perf_counter() - t0 > cfg.max_time_s:
             log.info("%s: time cap %.0f s reached at step %d", name, cfg.max_time_s, step)
             break
+    if n_evals and not math.isfinite(best):  # restoring best_state would save the untrained weights as trained
+        raise RuntimeError(f"PINN module {name!r} diverged: its held-out loss was not finite at any of its {n_evals} "
+                           f"evaluations ({step} Adam steps at lr {cfg.lr:g}); lower {name}.lr or check the preset")
     module.load_state_dict(best_state)
     adam_time = time.perf_counter() - t0
     if cfg.lbfgs_iters > 0:

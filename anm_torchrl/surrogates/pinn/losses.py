@@ -24,8 +24,7 @@ from anm_torchrl.grid.residuals import (
     power_flow_residual,
 )
 
-KKT_TERMS = ("stationarity", "primal", "complementarity")
-PB_TERMS = ("residual_p", "residual_q")
+from anm_torchrl.surrogates.pinn.presets import KKT_TERMS, PB_TERMS  # noqa: F401 (their home: the presets check them)
 
 
 def kkt_losses(x: torch.Tensor, target: torch.Tensor, lam: torch.Tensor, g: torch.Tensor, h: torch.Tensor,

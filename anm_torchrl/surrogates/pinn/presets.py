@@ -48,6 +48,9 @@ import yaml
 log = logging.getLogger(__name__)
 
 MODULES = ("generator", "storage", "power_balance")
+# the loss terms of each module (losses.py computes them): what a preset's ``weights`` may name
+KKT_TERMS = ("stationarity", "primal", "complementarity")
+PB_TERMS = ("residual_p", "residual_q")
 PRESET_PACKAGE = "anm_torchrl.surrogates.conf"
 #: the preset that ``default`` stands for on every network other than ANM6-Easy (:func:`network_preset_name`)
 FEEDER_DEFAULT = "feeder"
@@ -171,6 +174,19 @@ class PINNTrainConfig:
     seed: int = 0
     preset: str = "custom"
     acceptance: dict[str, dict[str, float]] | None = None
+
+    def __post_init__(self):
+        """Reject a ``weights`` entry that names no loss term of its module (it was ignored) or is not finite >= 0."""
+        for name in MODULES:
+            terms = PB_TERMS if name == "power_balance" else KKT_TERMS
+            weights = getattr(self, name).weights if isinstance(getattr(self, name), ModuleTrainConfig) else {}
+            for term, w in (weights or {}).items():
+                if term not in terms:
+                    raise ValueError(f"PINN training option {name}.weights names {term!r}, not a loss term of the "
+                                     f"{name} module; its terms: {list(terms)}")
+                if isinstance(w, bool) or not isinstance(w, (int, float)) or not math.isfinite(w) or w < 0:
+                    raise ValueError(f"PINN training option {name}.weights.{term} must be a finite number >= 0, "
+                                     f"got {w!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
