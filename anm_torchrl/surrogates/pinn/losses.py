@@ -24,8 +24,6 @@ from anm_torchrl.grid.residuals import (
     power_flow_residual,
 )
 
-from anm_torchrl.surrogates.pinn.presets import KKT_TERMS, PB_TERMS  # noqa: F401 (their home: the presets check them)
-
 
 def kkt_losses(x: torch.Tensor, target: torch.Tensor, lam: torch.Tensor, g: torch.Tensor, h: torch.Tensor,
                norm: str = "squared") -> dict[str, torch.Tensor]:

@@ -15,9 +15,8 @@ from torch import nn
 from anm_torchrl.grid.powerflow import newton_raphson
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.surrogates.pinn.kkt import clamp_to_polygon
-from anm_torchrl.surrogates.pinn.losses import (KKT_TERMS, PB_TERMS, kkt_losses, power_balance_losses,
-                                                power_balance_residuals)
-from anm_torchrl.surrogates.pinn.presets import ModuleTrainConfig
+from anm_torchrl.surrogates.pinn.losses import kkt_losses, power_balance_losses, power_balance_residuals
+from anm_torchrl.surrogates.pinn.presets import KKT_TERMS, PB_TERMS, ModuleTrainConfig
 
 
 class _Task:
