@@ -69,6 +69,8 @@ def main(cfg: DictConfig) -> dict:
         # line's changes to the composed preset kept
         train_cfg = (None if cfg.eval_only else
                      from_composed(composed, sim, explicit=explicit, seed=int(cfg.seed)))
+        if cfg.eval_only:  # the model to evaluate: missing, damaged or another network's is one line, now
+            load_pinn(sim, path=file, train_if_missing=False, residual_threshold=cfg.eval.residual_threshold)
         if train_cfg is not None:  # a preset without acceptance bar never replaces the default cache
             check_may_train_into(file, train_cfg, sim, bool(cfg.overwrite_cache))
             from anm_torchrl.training.recipe_errors import check_writable

@@ -89,6 +89,7 @@ def test_check_writable_and_artifact_cache(monkeypatch, tmp_path):
     ("train_pinn", "pinn_preset=smoke", "preset 'smoke' has no acceptance bar"),  # into the default cache
     # a folder under a regular file, an existing dataset: a traceback and a run directory before
     ("train_pinn", "pinn_preset=smoke path={tmp}/a_file/x", r"path=.*/a_file/x: cannot write there"),
+    ("train_pinn", "eval_only=true path={tmp}/nopinn", r"no trained PINN at .*/nopinn/pinn.safetensors"),
     ("make_dataset", "dataset=agent size=100 out={tmp}/a_file/ds", r"out=.*/a_file/ds: cannot write there"),
     ("make_dataset", "dataset=agent size=100 out={tmp}", r"out=.* exists; pass overwrite=true to replace it"),
     ("evaluate", "policy=mpc_perfect policy_kwargs.bogus=1 steps=5 episodes=1",
