@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from anm_torchrl.artifacts import atomic_write
 from anm_torchrl.networks.random import SIZE_CLASSES, generate, size_class
 
 log = logging.getLogger(__name__)
@@ -279,8 +280,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                               "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
                               "loadavg": list(os.getloadavg())},
                   "networks": sorted(entries.values(), key=lambda x: (x["n_bus"], x["seed"]))}
-        (out / "battery.json").write_text(json.dumps(record, indent=2, default=float) + "\n")
-        (out / "battery.md").write_text(markdown(record))
+        # atomic: a later --merge reads this file back, and a cut write would lose every earlier entry
+        atomic_write(out / "battery.json", (json.dumps(record, indent=2, default=float) + "\n").encode())
+        atomic_write(out / "battery.md", markdown(record).encode())
     return record
 
 
