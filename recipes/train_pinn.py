@@ -63,6 +63,9 @@ def main(cfg: DictConfig) -> dict:
 
     torch.set_num_threads(int(cfg.threads))
     with user_errors("train_pinn.py", run_dir):  # a network file's tables, the target's rules: one line too
+        from anm_torchrl.networks.resolve import check_controllable
+
+        check_controllable(cfg.network)  # a single-value action range makes the KKT modules' training diverge
         sim = network_simulator(cfg.network)
         file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
         # ``default`` stands for the network's own default (the feeder preset off ANM6-Easy), with the command

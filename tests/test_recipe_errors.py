@@ -143,3 +143,26 @@ def test_user_errors_come_before_torch(recipe, args, tmp_path):
     assert f"{recipe}.py: " in out.stderr, out.stderr
     assert "heavy modules imported: []" in out.stdout, (out.stdout, out.stderr[-2000:])
     assert "per-network defaults" not in out.stderr  # the error is the only line (the defaults: after the checks)
+
+
+def test_a_given_surrogate_of_another_network_is_one_line(tmp_path):
+    """Bug: ``ppo.py network=case33bw surrogate=pinn surrogate.path=<ANM6-Easy's PINN>`` (or an xgb folder, or
+    shac.py model=pinn) stopped with a traceback from inside the training; now one line before the run."""
+    import torch
+
+    from anm_torchrl.networks import simulator
+    from anm_torchrl.surrogates.pinn import cache
+    from anm_torchrl.surrogates.pinn.presets import preset
+
+    torch.set_num_threads(1)
+    cache.train_and_save(preset("smoke"), simulator("anm6_easy"), path=tmp_path / "anm6_pinn" / "pinn.safetensors",
+                         overwrite_cache=True, jobs=1)
+    env = {**os.environ, "ANM_TORCHRL_HOME": str(tmp_path / "home"), "HYDRA_FULL_ERROR": "0", "OMP_NUM_THREADS": "1"}
+    for recipe, extra in (("ppo", ["surrogate=pinn"]), ("shac", ["model=pinn", "surrogate=pinn"])):
+        out = subprocess.run([sys.executable, str(ROOT / "recipes" / f"{recipe}.py"), "network=case33bw", *extra,
+                              "surrogate.path=anm6_pinn"], cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                             env=env)
+        assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr[-2000:]
+        last = out.stderr.strip().splitlines()[-1]
+        assert last.startswith(f"{recipe}.py: ") and "was trained on network" in last, last
+        assert not (tmp_path / "outputs").exists()

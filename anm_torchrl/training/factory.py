@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch
@@ -181,13 +182,19 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
     return env
 
 
+def surrogate_options(surrogate: Mapping) -> dict:
+    """A config's ``surrogate`` group as :func:`make_env` / :func:`load_surrogate` keyword arguments (all but
+    ``name``): one home for that mapping (the training env, SHAC's PINN model, the recipes' early check)."""
+    return {k: v for k, v in surrogate.items() if k != "name"}
+
+
 def make_train_env(surrogate: dict, num_envs: int, max_steps: int | None, seed: int, action_mode: str,
                    init: str | None, device: str, threads: int, network: str | None = None, stagger: bool = False):
     """The training env: ``make_env`` + ``RewardSum`` (episode returns for logging). Also a collector-worker factory."""
     from torchrl.envs import RewardSum
 
     torch.set_num_threads(int(threads))
-    options = {k: v for k, v in surrogate.items() if k != "name"}
+    options = surrogate_options(surrogate)
     env = make_env(surrogate["name"], num_envs=num_envs, max_steps=max_steps, device=device, seed=seed,
                    action_mode=action_mode, init=init, network=network, stagger=stagger, **options)
     return env.append_transform(RewardSum()) if isinstance(env, TransformedEnv) else TransformedEnv(env, RewardSum())

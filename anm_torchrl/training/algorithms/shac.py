@@ -88,14 +88,14 @@ class PINNModel:
         from omegaconf import OmegaConf
 
         from anm_torchrl.surrogates.pinn.chain import run_chain
-        from anm_torchrl.training.factory import load_surrogate_in_home
+        from anm_torchrl.training.factory import load_surrogate_in_home, surrogate_options
 
         surrogate = cfg.get("surrogate", {})
         # ``surrogate=pinn``'s options (path, terminal, classifier_path, residual_threshold) reach the loader as in
         # PPO's surrogate env (factory.make_env); another surrogate group is not this model's: the defaults
         options = {}
         if surrogate.get("name") == "pinn":
-            options = {k: v for k, v in OmegaConf.to_container(surrogate, resolve=True).items() if k != "name"}
+            options = surrogate_options(OmegaConf.to_container(surrogate, resolve=True))
         # the default cache trains on first use (as ``ppo.py surrogate=pinn``); an explicit path must exist
         self.chain = load_surrogate_in_home("pinn", sim=env.sim, progress=False, **options)
         self._run = run_chain  # the chain's modules on plain tensors: no TensorDict per step
