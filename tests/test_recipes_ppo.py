@@ -373,3 +373,23 @@ def test_same_seed_ends_in_identical_weights(tmp_path):
     assert any(".weight" in k for k in a)
     changed = [k for k in a if not torch.equal(a[k], b[k])]
     assert not changed, changed[:5]
+
+
+def test_a_surrogate_run_counts_no_true_env_frames(tmp_path, base_run):
+    """Bug: PPO on a surrogate reported its surrogate frames as true-env frames in every curve point (the README's
+    main job: "0 true-env frames"); summary.json now says both, and the true-env run's two counts agree."""
+    from anm_torchrl.networks import simulator
+    from anm_torchrl.surrogates.pinn import cache
+    from anm_torchrl.surrogates.pinn.presets import preset
+    from anm_torchrl.training.network_defaults import compose_recipe_config
+    from anm_torchrl.training.protocol import train
+
+    torch.set_num_threads(1)
+    pinn = cache.train_and_save(preset("smoke"), simulator("anm6_easy"), path=tmp_path / "pinn" / "pinn.safetensors",
+                                overwrite_cache=True, jobs=1)[0]
+    cfg, defaults = compose_recipe_config([*TINY, "surrogate=pinn", f"surrogate.path={pinn}", "logger.backend=null"])
+    summary = train(cfg, tmp_path / "run", network_defaults=defaults)
+    assert summary["frames"] == 64 and summary["true_env_frames"] == 0
+    assert summary["curve"] and all(p["true_env_frames"] == 0 for p in summary["curve"])
+    true_run = json.loads((base_run[0] / "summary.json").read_text())
+    assert true_run["true_env_frames"] == true_run["frames"] > 0

@@ -176,8 +176,14 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     # instead (budget_unit) and reports the true-env frames it used for training (env_frames) as "frames"
     unit = getattr(algorithm_cls, "budget_unit", "frames")
 
-    def true_env_frames() -> int:
+    # a surrogate's frames are no true-simulator frames (gym_anm is the original simulator itself)
+    on_true_env = str(cfg.surrogate.get("name", "none")) in ("none", "gym_anm")
+
+    def env_frames() -> int:  # summary["frames"]: the training env's frames (SHAC: the true env's it used)
         return frames if unit == "frames" else int(getattr(algo, "env_frames", 0))
+
+    def true_env_frames() -> int:
+        return env_frames() if on_true_env or unit != "frames" else 0
 
     def checkpoint_payload() -> dict:
         return {"algorithm": algorithm_cls.name, "config": config, "actor": actor.state_dict(),
@@ -349,7 +355,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                     do_nothing)
     unit_keys = {} if unit == "frames" else {"budget_unit": unit, unit: frames}
     summary = {"algorithm": algorithm_cls.name, "best_eval": best, "final_eval": last_eval,
-               "frames": true_env_frames(), **unit_keys,
+               "frames": env_frames(), "true_env_frames": true_env_frames(), **unit_keys,
                "updates": update, "stopped_early": stopped_early, "out_of_time": out_of_time,
                "interrupted": interrupted, "wall_time": wall_before + time.perf_counter() - t_start,
                "run_dir": str(run_dir),
