@@ -140,3 +140,17 @@ def test_shac_counts_every_model_frame_of_its_last_rollout(tmp_path):
     summary = train(cfg, tmp_path / "run")
     assert summary["model_frames"] == 40 and summary["updates"] == 2
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["model_frames"] == 40
+
+
+def test_sac_warns_when_its_actor_would_never_step(caplog):
+    """A budget below ``optim.actor_delay_frames`` (100,000 on feeders and users' networks) trained only the Q
+    networks, and said nothing."""
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="anm_torchrl.training.algorithms.sac"):
+        _build("sac", ["optim.actor_delay_frames=1000", "collector.total_frames=96"])
+    assert any("the actor never steps in this run" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="anm_torchrl.training.algorithms.sac"):
+        _build("sac", ["optim.actor_delay_frames=0", "collector.total_frames=96"])
+    assert not caplog.records

@@ -99,6 +99,13 @@ class SAC(Algorithm):
         resumed = int(resume["frames"]) if resume else 0
         self.frames = resumed  # collected so far: the actor's delay counts these
         self.actor_delay = int(cfg.optim.actor_delay_frames)
+        if self.actor_delay >= int(cfg.collector.total_frames):  # a short run's actor would silently stay at its start
+            import logging
+
+            logging.getLogger(__name__).warning(
+                "optim.actor_delay_frames=%d >= collector.total_frames=%d: the actor never steps in this run (only the "
+                "Q networks learn); lower optim.actor_delay_frames or raise the budget", self.actor_delay,
+                int(cfg.collector.total_frames))
         self.collector = None
         if budget > 0:
             self.collector = Collector(
