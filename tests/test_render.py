@@ -259,3 +259,18 @@ def test_gif_animates_the_window_of_a_long_episode(anm6, tmp_path):
     ep = _long_episode(tb, 1000, start_index=0)
     write_animation(ep, tb, tmp_path / "a.gif", title="t", max_frames=200, window_hours=6)
     assert Image.open(tmp_path / "a.gif").n_frames == 24  # the 6 h window's 24 steps, not 200 of 1000
+
+
+def test_the_potential_snapshot_says_renewable_only_where_there_is_one(anm6):
+    """Cosmetic bug: on a network whose generators are all classical the snapshot read "peak renewable potential"."""
+    import dataclasses
+
+    env, _ = anm6
+    tb = network_tables(env.sim.net)
+    ep = _long_episode(tb, 400, start_index=44)
+    ep.curtailment[:] = 0.0  # no curtailment: the third snapshot is the peak potential (after step 330)
+    ep.state[331, tb.state_slices()["gen_p_max"]] = 10.0
+    assert default_times(ep, tb)[-1][1] == "peak renewable potential"
+    classical = tb.dev_type.copy()
+    classical[tb.gen_ids] = 1  # CLASSICAL_GEN
+    assert default_times(ep, dataclasses.replace(tb, dev_type=classical))[-1][1] == "peak generation potential"

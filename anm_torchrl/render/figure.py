@@ -10,6 +10,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from tensordict import TensorDictBase
 
+from anm_torchrl.grid.network import RENEWABLE
 from anm_torchrl.render.layout import network_layout
 from anm_torchrl.render.network_plot import NetworkArtist, branch_loading, marker_legend, voltage_limits
 from anm_torchrl.render.tables import NetworkTables
@@ -135,10 +136,13 @@ def default_times(ep: Episode, tables: NetworkTables, start: int = 0, stop: int 
         loading = np.nan_to_num(branch_loading(tables, ep.branch_s)).max(1)
     load = -p_next[:, tables.load_ids].sum(1)
     potential = ep.state[1:, sl["gen_p_max"]].sum(1)
+    # gen_p_max also holds classical generators' caps: "renewable" only where a renewable is among them
+    renewable = bool(np.isin(tables.dev_type[tables.gen_ids], [RENEWABLE]).any())
     picks: dict[int, list[str]] = {}
     for scores in (((ep.penalty, "largest penalty"), (loading, "highest branch loading")),
                    ((load, "peak load"),),
-                   ((ep.curtailment, "most curtailment"), (potential, "peak renewable potential"))):
+                   ((ep.curtailment, "most curtailment"),
+                    (potential, "peak renewable potential" if renewable else "peak generation potential"))):
         for score, why in scores:
             if score[ok].max() > 0:
                 picks.setdefault(int(ok[np.argmax(score[ok])]), []).append(why)
