@@ -34,6 +34,9 @@ def test_outside_the_loop_a_signal_interrupts_at_once():
         with pytest.raises(KeyboardInterrupt):
             _deliver(signal.SIGTERM)
         assert stop_requested() == "SIGTERM"
+    # the request ends with its run: a training called afterwards without the context (a library caller, a test)
+    # stopped at its first update when it stayed set
+    assert stop_requested() is None
     with stop_signals():  # a new run starts with no request
         assert stop_requested() is None
 

@@ -59,6 +59,8 @@ def stop_signals() -> Iterator[None]:
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+        # the request belongs to this run: a later train() called without this context must not see it
+        _state.update(signal=None, graceful=False)
 
 
 @contextlib.contextmanager
