@@ -55,7 +55,6 @@ def main(cfg: DictConfig) -> dict:
                 check_default_target(checked, f"of {cfg.network}", bool(cfg.overwrite_cache))
     import torch
 
-    from anm_torchrl.networks import simulator as network_simulator
     from anm_torchrl.surrogates.pinn.cache import check_may_train_into, default_path, train_and_save
     from anm_torchrl.surrogates.pinn.load import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
@@ -65,8 +64,8 @@ def main(cfg: DictConfig) -> dict:
     with user_errors("train_pinn.py", run_dir):  # a network file's tables, the target's rules: one line too
         from anm_torchrl.networks.resolve import check_controllable
 
-        check_controllable(cfg.network)  # a single-value action range makes the KKT modules' training diverge
-        sim = network_simulator(cfg.network)
+        # a single-value action range makes the KKT modules' training diverge; the check builds the simulator
+        sim = check_controllable(cfg.network)
         file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
         # ``default`` stands for the network's own default (the feeder preset off ANM6-Easy), with the command
         # line's changes to the composed preset kept

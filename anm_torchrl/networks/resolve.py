@@ -81,11 +81,14 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
                                      profile_source=source)
 
 
-def check_controllable(network: str | NetworkCase) -> None:
+def check_controllable(network: str | NetworkCase) -> GridSimulator:
     """Refuse a network a policy cannot be trained for, before a controller is trained for it: nothing to control
     (the slack and loads only), an action whose range is a single value (e.g. QMAX = QMIN: every trained policy's
     bounded ``TanhNormal`` needs low < high, and TorchRL stops with a traceback otherwise) or is unbounded (an unset
     PMAX: the ``TanhNormal`` would give NaN actions).
+
+    Returns:
+        The network's simulator (built for the checks; a caller needs not build it again).
 
     Raises:
         ValueError: naming the network and what it lacks (or :func:`simulator`'s error for an invalid one).
@@ -110,6 +113,7 @@ def check_controllable(network: str | NetworkCase) -> None:
     if flat:
         raise ValueError(f"network {name!r}: the action range of {', '.join(flat)} is a single value; a trained "
                          "policy needs low < high on every action (give the device a range, or make it a load)")
+    return sim
 
 
 @functools.lru_cache(maxsize=1)

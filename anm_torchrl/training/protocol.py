@@ -447,21 +447,18 @@ def run_recipe(cfg: DictConfig) -> dict:
         # surrogate is trained for it or a model is built
         from anm_torchrl.networks.resolve import check_controllable
 
-        check_controllable(cfg.network)
+        sim = check_controllable(cfg.network)
         surrogate = OmegaConf.to_container(cfg.surrogate, resolve=True)
         if surrogate.get("path") and surrogate["name"] not in ("none", "gym_anm"):
             # a given model of another network, kind or a damaged file: one line now, not a traceback in train()
-            from anm_torchrl.networks import simulator
             from anm_torchrl.training.factory import load_surrogate_in_home, surrogate_options
 
-            load_surrogate_in_home(surrogate["name"], sim=simulator(cfg.network), progress=False,
-                                   **surrogate_options(surrogate))
+            load_surrogate_in_home(surrogate["name"], sim=sim, progress=False, **surrogate_options(surrogate))
         if cfg.checkpoint.resume:  # the checkpoint's algorithm, architecture and network: one line, not a traceback
-            from anm_torchrl.networks import simulator
             from anm_torchrl.training.checkpoint import check_network
 
             _, resume, _ = read_resume(cfg, str(cfg.algorithm))
-            check_network(resume, simulator(cfg.network), str(cfg.checkpoint.resume))
+            check_network(resume, sim, str(cfg.checkpoint.resume))
     log_network_defaults(defaults)
     print(f"run directory: {run_dir}", flush=True)
     with stop_signals():
