@@ -106,9 +106,9 @@ def draw_initial_states(num_episodes: int, seed: int, sim: GridSimulator | None 
     num_episodes = check_integer("num_episodes", num_episodes, low=1)  # 2.5 gave 2 states, seed 0.9 seed 0's
     generator = torch.Generator(device=sim.net.dev.device).manual_seed(check_integer("seed", seed, low=0))
     if init == "uniform":
-        states, _ = grid_reset.random_state(sim, int(num_episodes), generator)
+        states, _ = grid_reset.random_state(sim, num_episodes, generator)
     elif init in ("gym_anm", "intended"):
-        states, _ = grid_reset.gym_anm_reset(sim, int(num_episodes), generator, intended=init == "intended")
+        states, _ = grid_reset.gym_anm_reset(sim, num_episodes, generator, intended=init == "intended")
     else:
         raise ValueError(f"init must be gym_anm, intended or uniform, got {init!r}")
     return states.cpu()

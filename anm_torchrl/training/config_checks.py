@@ -155,6 +155,9 @@ def check_protocol_config(cfg: Mapping) -> None:
     _int(cfg, "checkpoint.interval")
 
 
+# the surrogate names that are the true simulator (this package's, or gym-anm itself): no model to load or train,
+# and their frames are true-env frames
+TRUE_SIMULATORS = ("none", "gym_anm")
 # the activations of anm_torchrl.training.models.ACTIVATIONS (which checks that they agree), named here without torch
 ACTIVATION_NAMES = ("elu", "leaky_relu", "relu", "silu", "tanh", "tanh_sigmoid")
 

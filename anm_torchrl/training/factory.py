@@ -12,6 +12,7 @@ from anm_torchrl._extras import require
 from anm_torchrl.console import plain_torchrl_console
 from anm_torchrl.envs import ANM6Env, ANMEnv, SurrogateEnv
 from anm_torchrl.envs.specs import check_integer
+from anm_torchrl.training.config_checks import TRUE_SIMULATORS
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.paths import artifact_home
@@ -156,7 +157,7 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
         raise ValueError(f"stagger must be True or False, got {stagger!r}")
     if stagger and max_steps is None:
         raise ValueError("stagger=True needs a time limit (max_steps) to stagger")
-    if surrogate in (None, "none", "gym_anm") and surrogate_kwargs:
+    if surrogate in (None, *TRUE_SIMULATORS) and surrogate_kwargs:
         raise ValueError(f"surrogate={surrogate!r} takes no surrogate options, got {sorted(surrogate_kwargs)}")
     if surrogate in (None, "none"):
         env = make_true_env(num_envs, device, seed, action_mode, init, network, load_p, gen_p_max)

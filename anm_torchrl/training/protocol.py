@@ -27,6 +27,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from anm_torchrl.training.config_checks import TRUE_SIMULATORS
 from anm_torchrl.training.signals import graceful, stop_requested, stop_signals
 
 log = logging.getLogger(__name__)
@@ -177,7 +178,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     unit = getattr(algorithm_cls, "budget_unit", "frames")
 
     # a surrogate's frames are no true-simulator frames (gym_anm is the original simulator itself)
-    on_true_env = str(cfg.surrogate.get("name", "none")) in ("none", "gym_anm")
+    on_true_env = str(cfg.surrogate.get("name", "none")) in TRUE_SIMULATORS
 
     def env_frames() -> int:  # summary["frames"]: the training env's frames (SHAC: the true env's it used)
         return frames if unit == "frames" else int(getattr(algo, "env_frames", 0))
@@ -449,7 +450,7 @@ def run_recipe(cfg: DictConfig) -> dict:
 
         sim = check_controllable(cfg.network)
         surrogate = OmegaConf.to_container(cfg.surrogate, resolve=True)
-        if surrogate.get("path") and surrogate["name"] not in ("none", "gym_anm"):
+        if surrogate.get("path") and surrogate["name"] not in TRUE_SIMULATORS:
             # a given model of another network, kind or a damaged file: one line now, not a traceback in train()
             from anm_torchrl.training.factory import load_surrogate_in_home, surrogate_options
 

@@ -124,8 +124,9 @@ def check_artifact_cache(surrogate: Mapping) -> None:
         NotWritableError: naming ``ANM_TORCHRL_HOME``.
     """
     from anm_torchrl.paths import artifact_home, surrogate_dir
+    from anm_torchrl.training.config_checks import TRUE_SIMULATORS
 
-    if surrogate["name"] in ("none", "gym_anm") or surrogate.get("path") is not None:
+    if surrogate["name"] in TRUE_SIMULATORS or surrogate.get("path") is not None:
         return
     folder = surrogate_dir(surrogate["name"], surrogate.get("dataset"))
     if folder.is_dir() and os.access(folder, os.R_OK | os.X_OK) and any(folder.iterdir()):

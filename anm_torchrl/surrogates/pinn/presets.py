@@ -51,6 +51,7 @@ MODULES = ("generator", "storage", "power_balance")
 # the loss terms of each module (losses.py computes them): what a preset's ``weights`` may name
 KKT_TERMS = ("stationarity", "primal", "complementarity")
 PB_TERMS = ("residual_p", "residual_q")
+NOT_OPTIONS = ("name", "preset", "base")  # a composed preset's name, and a YAML file's base preset: not options
 PRESET_PACKAGE = "anm_torchrl.surrogates.conf"
 #: the preset that ``default`` stands for on every network other than ANM6-Easy (:func:`network_preset_name`)
 FEEDER_DEFAULT = "feeder"
@@ -281,7 +282,7 @@ def overrides_of(d: dict[str, Any], name: str) -> dict[str, Any]:
     base = preset(name).to_dict()
     out: dict[str, Any] = {}
     for k, v in d.items():
-        if k in ("name", "preset", "base"):  # the name, and a YAML file's base preset, are not options
+        if k in NOT_OPTIONS:
             continue
         if k in MODULES and isinstance(v, dict):
             sub = {m: x for m, x in v.items() if base.get(k, {}).get(m) != x}
@@ -317,7 +318,7 @@ def from_composed(composed: dict[str, Any], sim=None, *, anm6: bool | None = Non
         top, _, sub = key.partition(".")
         if top in MODULES and sub and isinstance(d.get(top), dict) and sub in d[top]:
             changed.setdefault(top, {})[sub] = d[top][sub]
-        elif not sub and top in d and top not in ("name", "preset", "base"):
+        elif not sub and top in d and top not in NOT_OPTIONS:
             changed[top] = d[top]
     return preset(network_preset_name(given, sim, anm6=anm6), **{**changed, **overrides})
 
