@@ -27,6 +27,8 @@ Temporary and lock names (siblings of the artifact ``<dir>/<name>``)::
     .<name>.tmp-<host>-<pid>-<hex>     temporary file or folder of a save in progress
     .<name>.old-<host>-<pid>-<hex>     the previous folder while an overwrite swaps it out
     .<name>.lock                       exclusive lock (JSON: host, pid)
+
+JSON written for users and tools goes through :func:`anm_torchrl.strict_json.json_text` (no bare ``NaN``).
 """
 
 from __future__ import annotations

@@ -28,12 +28,13 @@ and ``<render_dir>/<policy>.gif`` (the network over the episode); their paths go
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
 
 from omegaconf import OmegaConf
+
+from anm_torchrl.strict_json import json_text
 
 CONFIG = Path(__file__).parent / "conf_evaluate" / "evaluate.yaml"  # not in conf/: "checkpoint" and "env"
 # are keys here but config groups there
@@ -139,7 +140,7 @@ def main(argv: list[str] | None = None) -> dict:
            "max_steps": int(cfg.steps), "gamma": float(cfg.gamma), "wall_time": time.perf_counter() - t0,
            "per_episode": {"return": result.returns.tolist(), "discounted_return": result.discounted_returns.tolist(),
                            "steps": result.steps.tolist(), "terminated": result.terminated.tolist()}}
-    line = json.dumps(out)
+    line = json_text(out)
     sys.stderr.flush()
     print(line, flush=True)  # first: a failed write below must not lose a (possibly long) evaluation
     if cfg.output:

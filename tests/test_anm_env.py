@@ -365,3 +365,34 @@ def test_surrogate_env_refuses_a_models_non_finite_output():
     with pytest.raises(ValueError, match=r"model NaNReward predicted a non-finite reward or next state for "
                                          r"non-terminated rows \[0, 1\]"):
         env.step(td)
+
+
+@pytest.mark.parametrize("every", [2, 50])
+def test_surrogate_env_names_a_model_that_terminates_far_too_often(every, caplog):
+    """Bug: PPO on a smoke-preset PINN trained on episodes of one or two steps (the model's terminal predictions)
+    without a word; a model that ends more than one step in ten over its first 20 steps per env is now named once.
+    One termination in 50 steps (2 %) stays below the bar."""
+    import logging
+
+    from tensordict.nn import TensorDictModuleBase
+
+    from anm_torchrl.envs import SurrogateEnv
+    from anm_torchrl.networks import ANM6_EASY, simulator
+
+    class EndsEvery(TensorDictModuleBase):
+        in_keys, out_keys = ["state", "action"], ["next_state", "reward", "terminated"]
+        calls = 0
+
+        def forward(self, td):
+            n, EndsEvery.calls = td["state"].shape[0], EndsEvery.calls + 1
+            return td.update({"next_state": td["state"].clone(), "reward": torch.zeros(n, 1),
+                              "terminated": torch.full((n, 1), EndsEvery.calls % every == 0)})
+
+    env = SurrogateEnv(EndsEvery(), 3, sim=simulator(ANM6_EASY), seed=0)
+    with caplog.at_level(logging.WARNING, logger="anm_torchrl.envs.surrogate"):
+        env.rollout(60, break_when_any_done=False)
+    warned = [r.getMessage() for r in caplog.records if "termination" in r.getMessage()]
+    if every == 2:
+        assert len(warned) == 1 and "EndsEvery ended 50 % of its first 60 steps" in warned[0], warned
+    else:
+        assert warned == []

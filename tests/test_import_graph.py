@@ -15,7 +15,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "anm_torchrl"
 
 # floors, bottom first: a module may import its own floor's and lower floors' modules only
 LAYERS = [
-    ("artifacts", "paths", "_extras", "console", "provenance", "processes", "_version", "lazy"),
+    ("artifacts", "strict_json", "paths", "_extras", "console", "provenance", "processes", "_version", "lazy"),
     ("grid",),
     ("networks",),
     ("envs",),

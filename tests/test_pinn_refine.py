@@ -165,6 +165,17 @@ def test_a_model_from_before_the_rule_is_refused_then_migrated(auto_file, tmp_pa
     modules, cfg, report = tr.load_modules(old, case33)
     assert cfg.power_balance.refine_steps == "auto" and modules["power_balance"].refine_steps == rec["k"]
     assert report["power_balance"]["refine"]["applied_after_training"] is True
+    assert report["accepted"] is (report["acceptance_failures"] == [])
+    assert any("power_balance.refine" in f for f in report["acceptance_failures"]) is (not rec["met"])
+    # the rewritten record is re-checked against the bar: a stale "accepted" is not carried over (this smoke-trained
+    # model misses the feeder preset's accuracy bars)
+    def stale_accepted(m):
+        before_the_rule("feeder", 1)(m)
+        m["report"].update(accepted=True, acceptance_failures=[])
+    stale = _rewrite(file, tmp_path / "stale.safetensors", stale_accepted)
+    apply_refine_rule(stale, case33)
+    report = tr.load_modules(stale, case33)[2]
+    assert report["accepted"] is False and report["acceptance_failures"], report["acceptance_failures"]
     before = tr.read_pinn_file(file)["state_dict"]["power_balance"]
     for name, t in modules["power_balance"].state_dict().items():
         assert torch.equal(t, before[name]), name

@@ -22,6 +22,33 @@ def test_every_listed_policy_is_shipped_and_matches_its_hash():
         assert path.is_file() and resolve(PREFIX + name) == path
 
 
+def test_every_shipped_policy_names_its_network_as_it_is_now():
+    """Each checkpoint records its network's key (tables and reward constants), so evaluate.py refuses it on another
+    version of the network; the key is the registered network's of today's code (the policies re-scored their
+    records to the last digit before their keys were written, policies/README.md)."""
+    from anm_torchrl.grid.identity import network_key
+    from anm_torchrl.networks import simulator
+
+    for name in available_pretrained():
+        ckpt = load_checkpoint(pretrained_path(name))
+        assert ckpt["config"]["network"] == name
+        assert ckpt.get("network_key") == network_key(simulator(name)), name
+
+
+def test_publish_refuses_a_checkpoint_without_its_network_key(tmp_path, monkeypatch):
+    import anm_torchrl.policies as policies
+    from anm_torchrl.training.checkpoint import save_checkpoint
+
+    ckpt = load_checkpoint(pretrained_path("case33bw"))
+    old = {k: v for k, v in ckpt.items() if k not in ("kind", "format_version", "sha256", "network_key")}
+    save_checkpoint(tmp_path / "old.pt", old)
+    monkeypatch.setattr(policies, "FOLDER", tmp_path / "shipped")
+    monkeypatch.setattr(policies, "SUMS", tmp_path / "shipped" / "SHA256SUMS")
+    with pytest.raises(ValueError, match="records no network key"):
+        policies.publish(tmp_path / "old.pt", "case33bw")
+    assert not (tmp_path / "shipped").exists()
+
+
 def test_unknown_or_corrupted_policies_fail_clearly(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="no pretrained policy 'nope'; shipped: .*anm6_easy"):
         pretrained_path("nope")

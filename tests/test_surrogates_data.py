@@ -292,6 +292,16 @@ def test_wrong_or_missing_model_files_fail_clearly(trained, tmp_path):
     (bad / "manifest.json").unlink()
     with pytest.raises(ArtifactError, match="has no manifest.json"):
         load_xgb(path=bad)
+    # a folder without its description (damaged, or another program's) is refused, not retrained over
+    bad = tmp_path / "no_description"
+    shutil.copytree(surrogate_dir("xgb", "generative"), bad)
+    (bad / "surrogate.json").unlink()
+    before = sorted(f.name for f in bad.iterdir())
+    for train in (False, True):
+        with pytest.raises(ModelFileError, match="but no surrogate.json: not a saved 'xgb' surrogate.*nothing was "
+                                                 "overwritten"):
+            load_xgb(path=bad, train_if_missing=train)
+    assert sorted(f.name for f in bad.iterdir()) == before
     # another state layout (a consistent folder made for another layout)
     bad = tmp_path / "xgb_layout"
     shutil.copytree(surrogate_dir("xgb", "generative"), bad)

@@ -29,7 +29,6 @@ Writes ``<out>.json`` and ``<out>.md``.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import platform
 import time
@@ -40,6 +39,7 @@ import torch
 
 from anm_torchrl.benchmarks.timing import _timed, time_env_steps, time_gym_steps
 from anm_torchrl.grid import reset as grid_reset
+from anm_torchrl.strict_json import json_text
 
 log = logging.getLogger(__name__)
 N_ = np.nan
@@ -350,7 +350,7 @@ def main(argv: list[str] | None = None) -> str:
     if args.out:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.with_suffix(".json").write_text(json.dumps(record, indent=1, default=float))
+        out.with_suffix(".json").write_text(json_text(record, indent=1))
         out.with_suffix(".md").write_text(text + "\n")
     print(text)  # noqa: T201  (the benchmark's one table, as the ANM6 benchmark prints its table)
     return text

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from anm_torchrl.benchmarks.gym_anm_replay import generic_network, observation_arg
+from anm_torchrl.strict_json import json_text
 
 log = logging.getLogger(__name__)
 
@@ -274,7 +275,7 @@ def main(argv: list[str] | None = None) -> dict:
               "versions": _versions(), "machine": machine_info()}
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(out.with_suffix(".json"), (json.dumps(record, indent=1) + "\n").encode())
+    atomic_write(out.with_suffix(".json"), (json_text(record, indent=1) + "\n").encode())
     atomic_write(out.with_suffix(".md"), render_markdown(record).encode())
     log.info("wrote %s.json and %s.md", out, out)
     return record

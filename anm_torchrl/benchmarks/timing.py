@@ -84,12 +84,12 @@ def record_provenance(module: str, argv: list[str] | None) -> dict:
 
 def write_record(out, record: dict, markdown_lines: list[str]) -> None:
     """``<out>.json`` (the record) and ``<out>.md`` (its table), atomically, creating the folder."""
-    import json
     from pathlib import Path
 
     from anm_torchrl.artifacts import atomic_write
+    from anm_torchrl.strict_json import json_text
 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(out.with_suffix(".json"), (json.dumps(record, indent=1) + "\n").encode())
+    atomic_write(out.with_suffix(".json"), (json_text(record, indent=1) + "\n").encode())
     atomic_write(out.with_suffix(".md"), ("\n".join(markdown_lines) + "\n").encode())

@@ -21,12 +21,12 @@ column is the issue's target (≥ 0.5).
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import torch
 
+from anm_torchrl.strict_json import json_text
 from anm_torchrl.training.factory import make_env
 
 STEPS = 16  # steps per env per iteration (PPO, SAC): frames_per_batch = N x STEPS
@@ -168,7 +168,7 @@ def write(record: dict, out: str | Path) -> None:
     from anm_torchrl.artifacts import atomic_write
 
     out = Path(out)
-    atomic_write(out.with_suffix(".json"), json.dumps(record, indent=2).encode())
+    atomic_write(out.with_suffix(".json"), json_text(record, indent=2).encode())
     atomic_write(out.with_suffix(".md"), markdown(record).encode())
 
 

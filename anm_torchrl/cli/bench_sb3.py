@@ -7,12 +7,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
 from anm_torchrl.benchmarks import sb3
 from anm_torchrl.cli.args import count
+from anm_torchrl.strict_json import json_text
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> None:
     record = sb3.run(args.num_envs, args.n_steps, args.rollouts, args.gym_rollouts, args.threads, args.seed)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(record, indent=2) + "\n")
+    out.write_text(json_text(record, indent=2) + "\n")
     log.info("%s\n\nwritten to %s", sb3.table(record), out)
 
 

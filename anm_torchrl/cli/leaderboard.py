@@ -9,13 +9,13 @@ MPC and do-nothing on the network's gap-table states; writes ``<out>.json`` and 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
 
 from anm_torchrl.cli.args import count, read_kept
 from anm_torchrl.experiments import leaderboard
+from anm_torchrl.strict_json import json_text
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> None:
         from anm_torchrl.artifacts import atomic_write
 
         out = Path(args.out)
-        atomic_write(out.with_suffix(".json"), json.dumps(record, indent=2).encode())
+        atomic_write(out.with_suffix(".json"), json_text(record, indent=2).encode())
         atomic_write(out.with_suffix(".md"), text.encode())
     if args.readme:
         leaderboard.update_pages(args.readme, record)

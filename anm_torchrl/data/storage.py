@@ -53,6 +53,7 @@ from anm_torchrl.data.options import DEFAULT_FRACTIONS, MIN_SPLIT_UNITS, check_f
 from anm_torchrl.data.registry import available_datasets, dataset_generator
 from anm_torchrl.grid.identity import network_key, simulator_fingerprint
 from anm_torchrl.grid.simulator import GridSimulator
+from anm_torchrl.strict_json import json_text
 
 LAYOUT = "anm_torchrl.transitions"
 LAYOUT_VERSION = 2  # 2: manifest.json (atomic, hash-checked saves)
@@ -175,7 +176,7 @@ def save_dataset(td: TensorDictBase, path: str | os.PathLike, meta: dict[str, An
             with atomic_folder(path, overwrite=overwrite) as tmp:
                 reserve_space({tmp / DATA_DIR / f: n for f, n in sizes.items()}, path)
                 td.to_tensordict().memmap_(prefix=str(tmp / DATA_DIR))
-                (tmp / META_FILE).write_text(json.dumps(full, indent=2, sort_keys=True))
+                (tmp / META_FILE).write_text(json_text(full, indent=2, sort_keys=True))
                 write_manifest(tmp, LAYOUT, {"kind": meta["kind"], "size": int(meta["size"]), "seed": meta["seed"]})
     except OSError as err:
         if err.errno in (errno.ENOSPC, errno.EDQUOT):  # named for the dataset, free space measured after cleanup

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -9,6 +11,14 @@ from tensordict.nn import TensorDictModuleBase
 from anm_torchrl.envs.anm_env import ANMEnv
 from anm_torchrl.envs.specs import GRID_KEYS, check_action, grid_sizes
 from anm_torchrl.grid.simulator import GridSimulator
+
+log = logging.getLogger(__name__)
+#: (steps per env, share of row-steps): after this many steps per env, a model that ended more than this share of
+#: its steps in a termination is named in a warning. The true simulators end an episode only where the power flow
+#: has no solution, which is rare: a surrogate that ends one step in ten likely predicts terminations that are not
+#: there (an inaccurate model, e.g. the PINN's ``smoke`` preset), and a policy trained on it learns from episodes a
+#: few steps long
+TERMINATION_CHECK = (20, 0.1)
 
 
 class SurrogateEnv(ANMEnv):
@@ -54,6 +64,7 @@ class SurrogateEnv(ANMEnv):
                              f"{self.transition_key[:12]}…")
         self.model = model.to(self.device).requires_grad_(False)
         self._grid_sizes = grid_sizes(self.sim)
+        self._rows_stepped, self._rows_terminated, self._termination_checked = 0, 0, False
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = check_action(tensordict.get("action"), self._a_box, clip=self.action_mode == "clip")
@@ -67,6 +78,8 @@ class SurrogateEnv(ANMEnv):
             rows = (~finite & ~terminated.squeeze(1)).nonzero().flatten()[:5].tolist()
             raise ValueError(f"the surrogate model {type(self.model).__name__} predicted a non-finite reward or next "
                              f"state for non-terminated rows {rows}")
+        if not self._termination_checked:
+            self._check_terminations(terminated)
         reward = torch.where(terminated.squeeze(1), torch.full_like(reward, self.sim.terminal_reward), reward)
         next_state = self.sim.with_next_vars(pred.get("next_state").to(torch.float64), *self.sim.next_vars(state))
         next_state = torch.where(terminated, torch.zeros_like(next_state), next_state)
@@ -79,3 +92,20 @@ class SurrogateEnv(ANMEnv):
              "grid": grid, "reward": reward.to(torch.float32).unsqueeze(-1), "terminated": terminated,
              "done": terminated.clone()},
             batch_size=self.batch_size, device=self.device)
+
+    def _check_terminations(self, terminated: torch.Tensor) -> None:
+        """Count the model's terminations over its first steps; warn once if they are far too many
+        (:data:`TERMINATION_CHECK`)."""
+        self._rows_stepped += terminated.numel()
+        self._rows_terminated += int(terminated.sum())
+        steps, share = TERMINATION_CHECK
+        if self._rows_stepped < steps * self.batch_size.numel():
+            return
+        self._termination_checked = True
+        rate = self._rows_terminated / self._rows_stepped
+        if rate > share:
+            log.warning("the surrogate model %s ended %.0f %% of its first %d steps in a termination (an episode "
+                        "every %.1f steps); the true simulator ends one only where the power flow has no solution: "
+                        "its terminal predictions are likely wrong (an inaccurate model, e.g. a smoke preset), and "
+                        "a policy trained on it learns from episodes that short", type(self.model).__name__,
+                        100 * rate, self._rows_stepped, 1 / rate)

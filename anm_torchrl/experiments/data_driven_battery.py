@@ -30,6 +30,7 @@ import torch
 from tensordict import TensorDict
 
 from anm_torchrl.provenance import machine_info, versions
+from anm_torchrl.strict_json import json_text
 
 PINN_RECORD = Path(__file__).resolve().parents[2] / "results" / "pinn_battery" / "battery.json"
 TARGET_PQ = 0.01  # of each device's rating: the PINN battery's target (issue 23)
@@ -142,6 +143,6 @@ def run(seeds: list[int], kinds: list[str], out: str | Path, n_random: int = 400
                       + " --kinds " + " ".join(kinds) + f" --n-random {n_random} --out {out}"}
     stem = Path(out)
     stem.parent.mkdir(parents=True, exist_ok=True)
-    stem.with_suffix(".json").write_text(json.dumps(rec, indent=1) + "\n")
+    stem.with_suffix(".json").write_text(json_text(rec, indent=1) + "\n")
     stem.with_suffix(".md").write_text(markdown(rec))
     return rec

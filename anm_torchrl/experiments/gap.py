@@ -39,6 +39,7 @@ import torch
 
 from anm_torchrl.evaluation import EVAL_GAMMA
 from anm_torchrl.networks import ANM6_EASY
+from anm_torchrl.strict_json import json_text
 
 log = logging.getLogger(__name__)
 
@@ -266,7 +267,7 @@ def write_record(path: Path, rec: dict) -> None:
     """Write a gap record atomically (a temporary file, then a rename), creating its folder."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(rec, indent=1) + "\n")
+    tmp.write_text(json_text(rec, indent=1) + "\n")
     os.replace(tmp, path)
 
 

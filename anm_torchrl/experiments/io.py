@@ -14,29 +14,13 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import os
 from pathlib import Path
 from typing import Any
 
+from anm_torchrl.strict_json import json_text, plain_json
+
 STATUSES = ("ok", "partial", "not available", "error")
-
-
-def _plain(x: Any) -> Any:
-    """JSON-able copy: tensors/arrays to lists (their ``tolist``; no torch import), NaN/inf to None, paths to str."""
-    if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    if hasattr(x, "tolist") and not isinstance(x, (str, bytes)):
-        return _plain(x.tolist())
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, Path):
-        return str(x)
-    if isinstance(x, (int, str, bool)) or x is None:
-        return x
-    return str(x)
 
 
 def write_json(path: str | Path, obj: Any) -> Path:
@@ -44,7 +28,7 @@ def write_json(path: str | Path, obj: Any) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(_plain(obj), indent=2))
+    tmp.write_text(json_text(obj, indent=2))
     os.replace(tmp, path)
     return path
 
@@ -56,7 +40,7 @@ def write_record(out_dir: str | Path, stem: str, record: dict, text: str) -> Pat
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write(out / f"{stem}.json", (json.dumps(record, indent=1) + "\n").encode())
+    atomic_write(out / f"{stem}.json", (json_text(record, indent=1) + "\n").encode())
     atomic_write(out / f"{stem}.md", text.encode())
     return out / f"{stem}.json"
 
@@ -87,7 +71,7 @@ def write_csv(path: str | Path, rows: list[dict[str, Any]]) -> Path | None:
         w = csv.DictWriter(f, fieldnames=cols)
         w.writeheader()
         for r in rows:
-            w.writerow({k: _plain(v) for k, v in r.items()})
+            w.writerow({k: plain_json(v) for k, v in r.items()})
     return path
 
 

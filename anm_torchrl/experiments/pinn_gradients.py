@@ -22,7 +22,6 @@ first with ``--train`` when missing)::
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -32,6 +31,7 @@ from tensordict import TensorDict
 
 from anm_torchrl.grid import differentiable
 from anm_torchrl.provenance import machine_info, versions
+from anm_torchrl.strict_json import json_text
 
 SIGN_FLOOR = 0.01  # a component counts in the sign agreement when |g| > this share of its row's largest |g|
 PART_FLOOR = 0.10  # a component "parts" when |g_pinn - g| > this share of its row's largest exact |g|
@@ -193,6 +193,6 @@ def run(networks: list[str], rows: int, out: str | Path, train: bool = False) ->
                       f"--out {out}"}
     stem = Path(out)
     stem.parent.mkdir(parents=True, exist_ok=True)
-    stem.with_suffix(".json").write_text(json.dumps(rec, indent=1) + "\n")
+    stem.with_suffix(".json").write_text(json_text(rec, indent=1) + "\n")
     draw(grads, stem.with_suffix(".png"))
     return rec

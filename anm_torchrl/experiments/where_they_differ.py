@@ -31,6 +31,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from anm_torchrl.baselines.optimal import OptimalPolicy
 from anm_torchrl.evaluation import EVAL_GAMMA, EVAL_MAX_STEPS, draw_initial_states, evaluate_policy
 from anm_torchrl.provenance import machine_info, versions
+from anm_torchrl.strict_json import json_text
 from anm_torchrl.training.checkpoint import load_actor, load_checkpoint
 from anm_torchrl.training.factory import make_true_env
 
@@ -140,7 +141,7 @@ def run(checkpoint: str, out: str | Path, gap_record: str | Path = GAP_RECORD, s
     stem = Path(out)
     stem.parent.mkdir(parents=True, exist_ok=True)
     draw(pol_terms, opt_terms, rec, gamma, steps_per_day, window_days).savefig(stem.with_suffix(".png"), dpi=90)
-    stem.with_suffix(".json").write_text(json.dumps(rec, indent=1) + "\n")
+    stem.with_suffix(".json").write_text(json_text(rec, indent=1) + "\n")
     return rec
 
 

@@ -54,11 +54,15 @@ def resolve(checkpoint: str | Path) -> Path:
 
 
 def publish(checkpoint: str | Path, name: str) -> Path:
-    """Copy a training checkpoint into this folder as ``<name>.pt`` (validated first) and record its sha256."""
+    """Copy a training checkpoint into this folder as ``<name>.pt`` (validated first, and refused without its
+    network's key) and record its sha256."""
     from anm_torchrl.artifacts import atomic_write
     from anm_torchrl.training.checkpoint import load_checkpoint
 
-    load_checkpoint(checkpoint)  # refuse anything that is not a valid checkpoint
+    ckpt = load_checkpoint(checkpoint)  # refuse anything that is not a valid checkpoint
+    if ckpt.get("network_key") is None:  # evaluate.py could not tell a policy of another version of its network
+        raise ValueError(f"{checkpoint} records no network key (a checkpoint from before they were recorded): "
+                         f"a shipped policy must name the network it was trained on; retrain it")
     target = atomic_write(FOLDER / f"{name}.pt", Path(checkpoint).read_bytes())
     sums = {**_sums(), name: sha256_file(target)}
     atomic_write(SUMS, "".join(f"{d}  {n}.pt\n" for n, d in sorted(sums.items())).encode())

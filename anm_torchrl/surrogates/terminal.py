@@ -33,13 +33,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from anm_torchrl._version import __version__
 from anm_torchrl._extras import require
+from anm_torchrl._version import __version__
 from anm_torchrl.artifacts import ArtifactError, atomic_folder, verify_manifest, write_manifest
 from anm_torchrl.grid.identity import network_key
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
+from anm_torchrl.strict_json import json_text
 from anm_torchrl.surrogates._xgb import predict as xgb_predict, train_booster
 from anm_torchrl.surrogates.conf import load_defaults
 from anm_torchrl.surrogates.features import Featurizer
@@ -194,7 +195,7 @@ class TerminalClassifier:
         }
         if self.booster is not None:
             self.booster.save_model(str(folder / MODEL_FILE))
-        (folder / META_FILE).write_text(json.dumps(meta, indent=2))
+        (folder / META_FILE).write_text(json_text(meta, indent=2))
 
     @classmethod
     def load(cls, path: str | os.PathLike, sim: GridSimulator | None = None, n_jobs: int | None = None

@@ -19,7 +19,6 @@ and update behind :class:`~anm_torchrl.training.algorithms.base.Algorithm`; ever
 from __future__ import annotations
 
 import copy
-import json
 import logging
 import shutil
 import time
@@ -27,6 +26,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from anm_torchrl.strict_json import json_text
 from anm_torchrl.training.config_checks import TRUE_SIMULATORS
 from anm_torchrl.training.signals import graceful, stop_requested, stop_signals
 
@@ -370,7 +370,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                "config": config}
     from anm_torchrl.artifacts import atomic_write
 
-    atomic_write(run_dir / "summary.json", json.dumps(summary, indent=2, default=float).encode())
+    atomic_write(run_dir / "summary.json", json_text(summary, indent=2).encode())
     if logger is not None and hasattr(logger.experiment, "flush"):
         logger.experiment.flush()
     log.info("done: %d frames in %.0f s, best eval/discounted_return %s (do-nothing on the same validation states: "

@@ -43,6 +43,7 @@ import torch
 
 from anm_torchrl.artifacts import atomic_write
 from anm_torchrl.networks.random import SIZE_CLASSES, generate, size_class
+from anm_torchrl.strict_json import json_text
 
 log = logging.getLogger(__name__)
 
@@ -281,7 +282,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                               "loadavg": list(os.getloadavg())},
                   "networks": sorted(entries.values(), key=lambda x: (x["n_bus"], x["seed"]))}
         # atomic: a later --merge reads this file back, and a cut write would lose every earlier entry
-        atomic_write(out / "battery.json", (json.dumps(record, indent=2, default=float) + "\n").encode())
+        atomic_write(out / "battery.json", (json_text(record, indent=2) + "\n").encode())
         atomic_write(out / "battery.md", markdown(record).encode())
     return record
 

@@ -55,6 +55,7 @@ from anm_torchrl.surrogates.pinn.load import load_pinn
 from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets
 from anm_torchrl.surrogates.pinn.train import (MODULES, build_modules, check_acceptance, load_modules, module_seed,
                                               network_preset_name, preset, read_pinn_file, save_pinn, train_module)
+from anm_torchrl.strict_json import json_text
 
 log = logging.getLogger(__name__)
 
@@ -254,7 +255,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                      f"{' '.join(args.networks)} --preset {args.preset} --seed {args.seed} --n-random {args.n_random} "
                      f"--expert-envs {args.expert_envs} --expert-steps {args.expert_steps}{model}")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
+    Path(args.out).write_text(json_text(out, indent=2) + "\n")
     return out
 
 

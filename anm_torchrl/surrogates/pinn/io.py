@@ -23,7 +23,8 @@ from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn.model import build_modules
-from anm_torchrl.surrogates.pinn.presets import MODULES, PRESETS, REFINE_AUTO, PINNTrainConfig, module_seed, preset
+from anm_torchrl.surrogates.pinn.presets import (MODULES, PRESETS, REFINE_AUTO, PINNTrainConfig, check_acceptance,
+                                                 module_seed, preset)
 from anm_torchrl.surrogates.pinn.refine import RULE, RULE_METHODS, check_method, check_record, choose_refine_steps
 
 KIND = "anm_torchrl.pinn"
@@ -153,7 +154,8 @@ def load_modules(path: str | Path, sim: GridSimulator) -> tuple[dict[str, nn.Mod
 def apply_refine_rule(path: str | Path, sim: GridSimulator) -> dict[str, Any]:
     """Apply the refinement rule (:mod:`.refine`, v2) to the model saved at ``path`` (trained on ``sim``'s network)
     and rewrite it with the chosen k and the rule's record (weights unchanged; the config's
-    ``power_balance.refine_steps`` becomes ``auto``). Returns the record."""
+    ``power_balance.refine_steps`` becomes ``auto``; the report's acceptance re-checked, the rule's verdict being part
+    of the bar). Returns the record."""
     payload = read_pinn_file(path)
     cfg = config_of(payload, path, sim)
     cfg.power_balance.refine_steps = REFINE_AUTO
@@ -161,5 +163,8 @@ def apply_refine_rule(path: str | Path, sim: GridSimulator) -> dict[str, Any]:
     report = dict(payload.get("report") or {})
     record = choose_refine_steps(modules["power_balance"], sim, module_seed(cfg, "power_balance"))
     report["power_balance"] = {**report.get("power_balance", {}), "refine": {**record, "applied_after_training": True}}
+    # the acceptance bar includes the rule's verdict: the file's record must say what the rewritten model meets
+    report["acceptance_failures"] = check_acceptance(cfg, report)
+    report["accepted"] = not report["acceptance_failures"]
     save_pinn(path, modules, cfg, report, sim)
     return record

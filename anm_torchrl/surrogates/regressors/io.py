@@ -7,7 +7,6 @@ that simulator must have the network the surrogate was trained on (``network_key
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from pathlib import Path
@@ -22,6 +21,7 @@ from anm_torchrl.grid.identity import network_key
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
+from anm_torchrl.strict_json import json_text
 from anm_torchrl.surrogates.features import Featurizer, target_layout
 from anm_torchrl.surrogates.regressors.backends import load_backend
 from anm_torchrl.surrogates.regressors.defaults import FORMAT, FORMAT_VERSION, KINDS, META_FILE, train_command
@@ -48,7 +48,7 @@ def save_surrogate(sur: RegressorSurrogate, path: str | os.PathLike, extra: dict
         sur.backend.save(tmp)
         if sur.classifier is not None:
             sur.classifier.write_files(tmp)
-        (tmp / META_FILE).write_text(json.dumps(meta, indent=2))
+        (tmp / META_FILE).write_text(json_text(meta, indent=2))
         for name, content in (files or {}).items():
             if isinstance(content, Path):
                 (shutil.copytree if content.is_dir() else shutil.copy2)(content, tmp / name)

@@ -51,8 +51,9 @@ def load_regressor_surrogate(kind: str, sim: GridSimulator | None = None, device
     Raises:
         FileNotFoundError: nothing trained there and training not asked for; the message gives the command.
         ValueError: a training of fewer rows than the default asked for the default folder.
-        ModelFileError / ArtifactError (``ValueError``): a corrupted folder, a model of another kind, dataset,
-            state layout or network.
+        ModelFileError / ArtifactError (``ValueError``): a corrupted folder (also one without its
+            ``surrogate.json``: never replaced by a training here), a model of another kind, dataset, state layout
+            or network.
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -65,6 +66,13 @@ def load_regressor_surrogate(kind: str, sim: GridSimulator | None = None, device
     default = path is None
     p = for_network(surrogate_dir(kind, dataset), sim) if default else Path(path)
     train = train_if_missing if train_if_missing is not None else default
+    if not (p / META_FILE).is_file() and p.is_dir() and any(p.iterdir()):
+        # saves are atomic (the description lands with the model): a folder without it is damaged or not ours
+        held = ", ".join(sorted(f.name for f in p.iterdir())[:5])
+        then = ("load it again to train it" if train
+                else f"train it with: {train_command(kind, dataset, sim, None if default else p)}")
+        raise ModelFileError(f"{p} holds {held} but no {META_FILE}: not a saved {kind!r} surrogate (damaged or "
+                             f"another program's); nothing was overwritten: move or delete the folder, then {then}")
     if not (p / META_FILE).is_file() and train:
         from anm_torchrl.data.defaults import DEFAULT_SIZE
         from anm_torchrl.surrogates.regressors.first_use import train_default

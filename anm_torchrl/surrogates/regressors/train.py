@@ -17,6 +17,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
+from anm_torchrl.strict_json import json_text
 from anm_torchrl.surrogates.regressors.requests import check_default_slot, check_request, check_train_config
 
 log = logging.getLogger("train_surrogate")
@@ -110,7 +111,7 @@ def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: 
     metrics["total_seconds"] = time.perf_counter() - total
     job_cfg = OmegaConf.to_container(cfg, resolve=True)
     job_cfg["surrogate"] = {"name": name, "dataset": dataset, "path": path}
-    files = {"metrics.json": json.dumps(metrics, indent=2), "config.yaml": OmegaConf.to_yaml(OmegaConf.create(job_cfg)),
+    files = {"metrics.json": json_text(metrics, indent=2), "config.yaml": OmegaConf.to_yaml(OmegaConf.create(job_cfg)),
              **({"tb": tb} if tb is not None else {})}
     try:
         save_surrogate(sur, out, extra={"dataset": dataset,
@@ -173,7 +174,7 @@ def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int, s
                    for k, d in tqdm(jobs, desc="surrogates", unit="model", disable=not cfg.progress)]
         table = summary_table(results)
         out = for_network(artifact_home() / "surrogates", sim)
-        atomic_write(out / "summary.json", json.dumps(results, indent=2).encode())
+        atomic_write(out / "summary.json", json_text(results, indent=2).encode())
         atomic_write(out / "summary.md", (table + "\n").encode())
         log.info("all surrogates trained in %.1f s; summary in %s\n%s", time.perf_counter() - start,
                  out / "summary.md", table)
