@@ -185,9 +185,11 @@ def main(cfg: DictConfig) -> dict:
     experiments = list(p.get("experiments", []))
     from anm_torchrl.experiments import registry
 
-    from anm_torchrl.training.recipe_errors import user_errors
+    from anm_torchrl.training.recipe_errors import refuse_appended_keys, user_errors
 
     with user_errors("reproduce.py", HydraConfig.get().runtime.output_dir):  # one line, before anything runs
+        # a study's options (preset.<study>.reuse, ...) are added with +preset.<...>=, as docs/RESULTS.md shows
+        refuse_appended_keys("reproduce.py", HydraConfig.get().overrides.task, allowed=("preset",))
         for name in experiments:  # an unknown name is refused
             registry.check(name)
         if cfg.publish:

@@ -55,10 +55,11 @@ def main(cfg: DictConfig) -> list[dict]:
     from hydra.core.hydra_config import HydraConfig
 
     from anm_torchrl.surrogates.regressors.requests import check_train_config
-    from anm_torchrl.training.recipe_errors import user_errors
+    from anm_torchrl.training.recipe_errors import refuse_appended_keys, user_errors
 
     run_dir = HydraConfig.get().runtime.output_dir
     with user_errors("train_surrogate.py", run_dir):  # one line naming the key, before torch is imported
+        refuse_appended_keys("train_surrogate.py", HydraConfig.get().overrides.task)
         check_train_config(cfg, default_size())
     from anm_torchrl.surrogates.regressors.train import check_train_request
 

@@ -94,6 +94,11 @@ def test_check_writable_and_artifact_cache(monkeypatch, tmp_path):
     ("make_dataset", "dataset=agent size=100 out={tmp}", r"out=.* exists; pass overwrite=true to replace it"),
     ("evaluate", "policy=mpc_perfect policy_kwargs.bogus=1 steps=5 episodes=1",
      r"MPC options \['bogus'\] are not settings of the '\w+' solver"),  # was an AttributeError at the first step
+    # Hydra's advice for an unknown key (+key=value) ran the job with the key ignored, in every recipe
+    *[(recipe, "+loss.gama=0.9" + extra, r"\+loss.gama=0.9: 'loss.gama' is not one of this recipe's keys, and an "
+       rf"added key would be ignored; python recipes/{recipe}.py --help")
+      for recipe, extra in [("ppo", ""), ("sac", ""), ("shac", ""), ("make_dataset", ""), ("train_pinn", ""),
+                            ("train_surrogate", " surrogate=lr"), ("reproduce", "")]],
 ])
 def test_recipe_prints_one_line(recipe, args, message, tmp_path):
     """``args`` as typed after ``python recipes/<recipe>.py`` (``NAME=value`` of an upper-case NAME sets that

@@ -419,11 +419,13 @@ def run_recipe(cfg: DictConfig) -> dict:
     from anm_torchrl.networks import check_network_name
     from anm_torchrl.networks.user import network_argument
     from anm_torchrl.training.algorithms import check_algorithm_config
-    from anm_torchrl.training.recipe_errors import check_artifact_cache, check_device, user_errors
+    from anm_torchrl.training.recipe_errors import (check_artifact_cache, check_device, refuse_appended_keys,
+                                                    user_errors)
     from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys, log_network_defaults
 
     run_dir = Path.cwd()
     with user_errors(f"{HydraConfig.get().job.name}.py", run_dir):
+        refuse_appended_keys(f"{HydraConfig.get().job.name}.py", HydraConfig.get().overrides.task)
         # a network file's path is relative to where the command was typed, not to the run directory
         cfg.network = network_argument(cfg.network, hydra.utils.get_original_cwd())
         check_network_name(cfg.network)  # before its defaults are applied (and logged)

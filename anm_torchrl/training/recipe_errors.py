@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 
 from anm_torchrl._extras import MissingExtraError
@@ -66,6 +66,31 @@ def user_errors(recipe: str, run_dir: str | os.PathLike | None = None) -> Iterat
             remove_hydra_only_dir(Path(run_dir))
         message = err.args[0] if isinstance(err, KeyError) and err.args else err
         raise SystemExit(f"{recipe}: {message}") from None
+
+
+def refuse_appended_keys(recipe: str, overrides: Iterable[str], allowed: tuple[str, ...] = ()) -> None:
+    """Refuse Hydra's ``+key=value`` (a key added to the config): no recipe reads a key it does not define, so the
+    value would be ignored without a word. Hydra itself answers ``key=value`` for an unknown key with "To append
+    to your config use +key=value", which leads here.
+
+    Args:
+        recipe: the script's name as the user typed it, e.g. ``"ppo.py"`` (for its ``--help``).
+        overrides: the command line's overrides (``HydraConfig.get().overrides.task``).
+        allowed: key prefixes whose added keys the recipe does check (e.g. ``pinn_preset``, whose keys its
+            dataclasses validate).
+
+    Raises:
+        ValueError: naming the first such override.
+    """
+    for item in overrides:
+        item = str(item)
+        if not item.startswith("+") or item.startswith("++"):  # ``++key`` sets a key that may exist: Hydra's override
+            continue
+        key = item[1:].partition("=")[0].strip()
+        if any(key == a or key.startswith(a + ".") for a in allowed):
+            continue
+        raise ValueError(f"{item}: {key!r} is not one of this recipe's keys, and an added key would be ignored; "
+                         f"python recipes/{recipe} --help lists its groups and keys")
 
 
 def check_device(device: str, key: str = "env.device") -> None:
