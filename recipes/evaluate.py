@@ -109,7 +109,9 @@ def main(argv: list[str] | None = None) -> dict:
             raise SystemExit(f"evaluate.py: {err}") from None
     network = network_of(cfg, ckpt)
     if cfg.env == "gym_anm" and network != "anm6_easy":
-        raise SystemExit(f"evaluate.py: env=gym_anm runs gym-anm's ANM6Easy only; this policy is for {network!r}")
+        from anm_torchrl.training.config_checks import gym_anm_only
+
+        raise SystemExit(f"evaluate.py: {gym_anm_only('env', network)} (this policy's network)")
     test_episodes, test_seed, test_steps = test_protocol(ckpt, network)
     cfg.seed = test_seed if cfg.seed is None else cfg.seed
     cfg.steps = test_steps if cfg.steps is None else cfg.steps

@@ -163,7 +163,8 @@ def test_generators_refuse_datasets_with_an_empty_split(kind, size, options, mes
 def test_split_codes_refuse_fewer_units_than_splits():
     from anm_torchrl.data.storage import split_codes
 
-    with pytest.raises(ValueError, match="2 units cannot fill the train, validation and test splits"):
+    with pytest.raises(ValueError, match=r"n_units must be >= 3 \(at least one unit each for the train, validation "
+                                         r"and test splits\), got 2"):
         split_codes(2)
     assert split_codes(3).bincount().tolist() == [1, 1, 1]
 

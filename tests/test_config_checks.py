@@ -210,7 +210,7 @@ def test_make_env_network_by_name_or_dict():
         make_env("none", network=case.network)
     with pytest.raises(ValueError, match="unknown network 'nowhere'"):
         make_env("none", network="nowhere")
-    with pytest.raises(ValueError, match="surrogate='gym_anm' runs gym-anm's ANM6Easy only"):
+    with pytest.raises(ValueError, match="surrogate=gym_anm runs gym-anm's ANM6Easy only, got network='case33bw'"):
         make_env("gym_anm", network="case33bw")
 
 

@@ -224,6 +224,8 @@ def test_partial_reset_and_bad_input():
         ANMVectorEnv(2, autoreset_mode="Disabled")
     with pytest.raises(ValueError, match="max_episode_steps must be an integer >= 1 or None, got 2.5"):
         ANMVectorEnv(2, max_episode_steps=2.5)
+    with pytest.raises(ValueError, match="max_episode_steps must be an integer >= 1 or None, got 2.0"):
+        ANMVectorEnv(2, max_episode_steps=2.0)  # a float count is refused as everywhere else (it passed before)
     with pytest.raises(ValueError, match=r"unknown network 'nope'; registered: \['anm6_easy', 'case33bw'"):
         gymnasium.make_vec(ID, num_envs=2, network="nope")
     with pytest.raises(ValueError, match="observation='state'"):

@@ -478,6 +478,12 @@ def test_dnn_budget_is_epochs_not_wall_time():
     # the cap is not checked once the epoch budget is spent: a run that finished its budget is kept
     _, info = train_mlp(*_mlp_data(), {**params, "max_epochs": 1, "max_minutes": 0}, seed=3)
     assert info["epochs"] == 1
+    # counts go through the package's one integer check: a NumPy integer is one, a fraction or a bool is not
+    _, info = train_mlp(*_mlp_data(), {**params, "max_epochs": np.int64(2)}, seed=3)
+    assert info["epochs"] == 2
+    for bad in (2.5, True, 0):
+        with pytest.raises(ValueError, match=rf"dnn option max_epochs must be an integer >= 1, got {bad!r}"):
+            train_mlp(*_mlp_data(), {**params, "max_epochs": bad}, seed=3)
 
 
 def test_xgboost_trains_and_predicts_on_the_asked_thread_count(monkeypatch):

@@ -323,5 +323,5 @@ def test_an_unbounded_action_is_refused_for_training_and_by_the_random_baseline(
     with pytest.raises(ValueError, match=r"'unbounded': the action range of P of device 6 \(\[-inf, inf\] MW/MVAr\) "
                                          "is unbounded"):
         check_controllable(case)
-    with pytest.raises(ValueError, match=r"unbounded at entries \[4\]"):
+    with pytest.raises(ValueError, match=r"unbounded at P of device 6 \(\[-inf, inf\] MW/MVAr\): give those"):
         RandomPolicy(seed=0, sim=N.simulator(case))

@@ -16,6 +16,7 @@ from anm_torchrl.baselines.names import BASELINES
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
+from anm_torchrl.networks.resolve import unbounded_actions
 
 
 def _box(sim: GridSimulator | None) -> tuple[GridSimulator, torch.Tensor, torch.Tensor]:
@@ -54,12 +55,11 @@ class RandomPolicy(TensorDictModuleBase):
 
     def __init__(self, seed: int | None = None, sim: GridSimulator | None = None, in_key: str = "state"):
         super().__init__()
-        _, lo, hi = _box(sim)
-        unbounded = (~torch.isfinite(lo) | ~torch.isfinite(hi)).nonzero().flatten().tolist()
+        sim, lo, hi = _box(sim)
+        unbounded = unbounded_actions(sim)
         if unbounded:  # uniform draws in an infinite box are NaN
-            raise ValueError(f"RandomPolicy draws uniformly in the action box, which is unbounded at entries "
-                             f"{unbounded} (low {lo[unbounded].tolist()}, high {hi[unbounded].tolist()}): give those "
-                             "devices finite PMIN/PMAX/QMIN/QMAX")
+            raise ValueError(f"RandomPolicy draws uniformly in the action box, which is unbounded at "
+                             f"{', '.join(unbounded)}: give those devices finite PMIN/PMAX/QMIN/QMAX")
         self.in_keys, self.out_keys = [in_key], ["action"]
         self.register_buffer("low", lo.double())
         self.register_buffer("high", hi.double())

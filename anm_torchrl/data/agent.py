@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 from anm_torchrl.networks.resolve import is_anm6
 from anm_torchrl.data.options import WAYPOINT_DISTS, check_split_units
 from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
+from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.grid import reset as grid_reset
 from anm_torchrl.grid.simulator import GridSimulator
 
@@ -128,11 +129,8 @@ def generate_agent(size: int, seed: int = 0, *, sim: GridSimulator, num_envs: in
     Returns:
         ``(td, meta)``: rows as in :mod:`anm_torchrl.data.storage` (plus ``episode`` and ``step``) and metadata.
     """
-    if size < 1:
-        raise ValueError(f"size must be >= 1, got {size}")
-    for name, value in (("num_envs", num_envs), ("max_episode_steps", max_episode_steps)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    for name, value in (("size", size), ("num_envs", num_envs), ("max_episode_steps", max_episode_steps)):
+        check_integer(name, value, low=1)
     # the split is by env (and size caps the envs): fewer than 3 leaves the validation or test split empty
     check_split_units(num_envs, "num_envs")
     check_split_units(size, "size")

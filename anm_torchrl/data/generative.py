@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 
 from anm_torchrl.data.options import check_split_units
 from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
+from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.simulator import GridSimulator
 
@@ -56,11 +57,8 @@ def generate_generative(size: int, seed: int = 0, *, sim: GridSimulator, chunk: 
     Returns:
         ``(td, meta)``: rows as in :mod:`anm_torchrl.data.storage` and the metadata to store with them.
     """
-    if size < 1:
-        raise ValueError(f"size must be >= 1, got {size}")
-    check_split_units(size, "size")  # one row each for train, validation and test
-    if isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1:
-        raise ValueError(f"chunk must be an integer >= 1, got {chunk!r}")
+    check_split_units(check_integer("size", size, low=1), "size")  # one row each for train, validation and test
+    check_integer("chunk", chunk, low=1)
     dev, b = sim.net.dev, sim.net.base_mva
     a_low, a_high = sim.action_bounds()
     des = dev[sim.des_idx]

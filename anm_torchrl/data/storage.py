@@ -49,7 +49,7 @@ from tensordict import TensorDict, TensorDictBase
 from anm_torchrl._version import __version__
 from anm_torchrl.artifacts import (ArtifactError, DiskFullError, atomic_folder, disk_full_error, exclusive_lock,
                                   reserve_space, verify_manifest, write_manifest)
-from anm_torchrl.data.options import DEFAULT_FRACTIONS, MIN_SPLIT_UNITS, check_fractions  # noqa: F401 (home: options)
+from anm_torchrl.data.options import DEFAULT_FRACTIONS, check_fractions, check_split_units
 from anm_torchrl.data.registry import available_datasets, dataset_generator
 from anm_torchrl.grid.identity import network_key, simulator_fingerprint
 from anm_torchrl.grid.simulator import GridSimulator
@@ -96,11 +96,10 @@ def split_codes(n_units: int, fractions=DEFAULT_FRACTIONS, generator: torch.Gene
     """Assign ``n_units`` units (rows or trajectories) to train/val/test, (n_units,) int8, seeded permutation.
 
     The validation and test splits get at least one unit each when their fraction is positive; ``n_units`` < 3
-    (:data:`MIN_SPLIT_UNITS`) raises a ``ValueError``, as it would leave a split empty.
+    (:data:`.options.MIN_SPLIT_UNITS`) raises a ``ValueError`` (:func:`.options.check_split_units`), as it would leave a
+    split empty.
     """
-    if n_units < MIN_SPLIT_UNITS:
-        raise ValueError(f"{n_units} units cannot fill the train, validation and test splits: at least "
-                         f"{MIN_SPLIT_UNITS} are needed")
+    check_split_units(n_units, "n_units")
     f = torch.tensor(check_fractions(fractions), dtype=torch.float64)
     f = f / f.sum()  # round-off only: the sum is 1 within 1e-6
     n_val, n_test = int(round(f[1].item() * n_units)), int(round(f[2].item() * n_units))

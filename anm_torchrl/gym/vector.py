@@ -9,7 +9,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from torchrl.envs import EnvBase
 
-from anm_torchrl.envs.specs import check_action_dtype
+from anm_torchrl.envs.specs import check_action_dtype, check_integer
 from anm_torchrl.gym.batch import NumpyBatch, make_torchrl_env
 
 AUTORESET_MODES = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)
@@ -55,9 +55,7 @@ class ANMVectorEnv(VectorEnv):
         mode = AutoresetMode(autoreset_mode)
         if mode not in AUTORESET_MODES:
             raise ValueError(f"autoreset_mode must be one of {[m.value for m in AUTORESET_MODES]}, got {mode.value!r}")
-        if max_episode_steps is not None and (isinstance(max_episode_steps, bool) or max_episode_steps != int(
-                max_episode_steps) or int(max_episode_steps) < 1):  # 2.5 was cut to 2
-            raise ValueError(f"max_episode_steps must be an integer >= 1 or None, got {max_episode_steps!r}")
+        check_integer("max_episode_steps", max_episode_steps, low=1, optional=True)  # 2.5 was cut to 2
         if env is not None and int(env.batch_size[0]) != int(num_envs):
             raise ValueError(f"env has batch size {tuple(env.batch_size)}, num_envs is {num_envs}")
         self._batch = NumpyBatch(env if env is not None else make_torchrl_env(network, int(num_envs), seed,

@@ -81,6 +81,25 @@ def simulator(network: str | NetworkCase | dict, load_p=None, gen_p_max=None, *,
                                      profile_source=source)
 
 
+def action_labels(sim: GridSimulator) -> list[str]:
+    """One label per action entry, in the action vector's order: ``"P of device 3"`` (generators' P and Q, then
+    storage units' P and Q; devices named by DEV_ID)."""
+    ids = sim.net.dev[:, 0].long().tolist()
+    return [f"{q} of device {ids[i]}" for q, rows in (("P", sim.gen_idx), ("Q", sim.gen_idx), ("P", sim.des_idx),
+                                                    ("Q", sim.des_idx)) for i in rows.tolist()]
+
+
+def unbounded_actions(sim: GridSimulator) -> list[str]:
+    """The action entries with an infinite bound (an unset PMAX, ...), each as ``"<label> ([low, high] MW/MVAr)"``;
+    empty for a bounded action box (what a trained policy's ``TanhNormal`` and a uniform draw need)."""
+    import torch
+
+    low, high = sim.action_bounds()
+    labels = action_labels(sim)
+    return [f"{labels[j]} ([{low[j].item():g}, {high[j].item():g}] MW/MVAr)"
+            for j in (~torch.isfinite(low) | ~torch.isfinite(high)).nonzero().flatten().tolist()]
+
+
 def check_controllable(network: str | NetworkCase) -> GridSimulator:
     """Refuse a network a policy cannot be trained for, before a controller is trained for it: nothing to control
     (the slack and loads only), an action whose range is a single value (e.g. QMAX = QMIN: every trained policy's
@@ -93,19 +112,14 @@ def check_controllable(network: str | NetworkCase) -> GridSimulator:
     Raises:
         ValueError: naming the network and what it lacks (or :func:`simulator`'s error for an invalid one).
     """
-    import torch
-
     sim = simulator(network)
     name = network.name if isinstance(network, NetworkCase) else network
     if sim.action_dim == 0:
         raise ValueError(f"network {name!r} has no controllable device (a generator other than the slack, or a "
                          "storage unit): a policy would have no action to take")
     low, high = sim.action_bounds()
-    ids = sim.net.dev[:, 0].long().tolist()
-    labels = [f"{q} of device {ids[i]}" for q, rows in (("P", sim.gen_idx), ("Q", sim.gen_idx), ("P", sim.des_idx),
-                                                      ("Q", sim.des_idx)) for i in rows.tolist()]
-    unbounded = [f"{labels[j]} ([{low[j].item():g}, {high[j].item():g}] MW/MVAr)"
-                 for j in (~torch.isfinite(low) | ~torch.isfinite(high)).nonzero().flatten().tolist()]
+    labels = action_labels(sim)
+    unbounded = unbounded_actions(sim)
     if unbounded:  # a TanhNormal between infinite bounds gives NaN actions
         raise ValueError(f"network {name!r}: the action range of {', '.join(unbounded)} is unbounded; a trained "
                          "policy acts in a bounded box (give the device finite PMIN/PMAX and QMIN/QMAX)")

@@ -32,6 +32,7 @@ import torch
 from torch import nn
 from tqdm.auto import tqdm
 
+from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.surrogates.conf import load_defaults
 
 log = logging.getLogger(__name__)
@@ -82,8 +83,7 @@ def train_mlp(x: torch.Tensor, y: torch.Tensor, x_val: torch.Tensor, y_val: torc
     """
     p = {**DEFAULT_PARAMS, **(params or {})}
     for key in ("max_epochs", "patience", "batch_size", "hidden", "depth"):  # 0 epochs saved an untrained model
-        if isinstance(p[key], bool) or not isinstance(p[key], int) or p[key] < 1:
-            raise ValueError(f"dnn option {key} must be an integer >= 1, got {p[key]!r}")
+        check_integer(f"dnn option {key}", p[key], low=1)
     gen = torch.Generator().manual_seed(int(seed))
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))

@@ -88,7 +88,7 @@ def _check_surrogate(cfg: Mapping) -> None:
     if not isinstance(surrogate, Mapping):
         return
     if surrogate.get("name") == "gym_anm" and _get(cfg, "network") != "anm6_easy":
-        raise ValueError(f"surrogate=gym_anm runs gym-anm's ANM6Easy only, got network={_get(cfg, 'network')!r}")
+        raise gym_anm_only("surrogate", _get(cfg, "network"))
     if "dataset" in surrogate:
         from anm_torchrl.surrogates.regressors.defaults import DATASETS
 
@@ -158,6 +158,12 @@ def check_protocol_config(cfg: Mapping) -> None:
 # the surrogate names that are the true simulator (this package's, or gym-anm itself): no model to load or train,
 # and their frames are true-env frames
 TRUE_SIMULATORS = ("none", "gym_anm")
+
+
+def gym_anm_only(key: str, network) -> ValueError:
+    """The error for gym-anm (``surrogate=gym_anm``, ``env=gym_anm``) asked to run another network than
+    ANM6-Easy, the only one gym-anm has; naming ``key`` and the network."""
+    return ValueError(f"{key}=gym_anm runs gym-anm's ANM6Easy only, got network={network!r}")
 # the activations of anm_torchrl.training.models.ACTIVATIONS (which checks that they agree), named here without torch
 ACTIVATION_NAMES = ("elu", "leaky_relu", "relu", "silu", "tanh", "tanh_sigmoid")
 
@@ -346,7 +352,7 @@ def check_evaluate_config(cfg: Mapping) -> None:
     if _get(cfg, "network") is not None:
         check_network_name(_get(cfg, "network"))
     if _get(cfg, "env") == "gym_anm" and _get(cfg, "network") not in (None, "anm6_easy"):
-        raise ValueError(f"env=gym_anm runs gym-anm's ANM6Easy only; got network={_get(cfg, 'network')!r}")
+        raise gym_anm_only("env", _get(cfg, "network"))
     _int(cfg, "seed", low=0, optional=True)
     _int(cfg, "steps", optional=True)
     _int(cfg, "episodes", optional=True)

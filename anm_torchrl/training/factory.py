@@ -12,7 +12,7 @@ from anm_torchrl._extras import require
 from anm_torchrl.console import plain_torchrl_console
 from anm_torchrl.envs import ANM6Env, ANMEnv, SurrogateEnv
 from anm_torchrl.envs.specs import check_integer
-from anm_torchrl.training.config_checks import TRUE_SIMULATORS
+from anm_torchrl.training.config_checks import TRUE_SIMULATORS, gym_anm_only
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.paths import artifact_home
@@ -163,7 +163,7 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
         env = make_true_env(num_envs, device, seed, action_mode, init, network, load_p, gen_p_max)
     elif surrogate == "gym_anm":
         if network_arguments(network, load_p, gen_p_max) is not None:
-            raise ValueError(f"surrogate='gym_anm' runs gym-anm's ANM6Easy only, got network={network!r}")
+            raise gym_anm_only("surrogate", network)
         env = make_gym_anm_env(num_envs, device=device, seed=seed)
     else:
         # the surrogate runs on this network's simulator (its tables and profiles); None = ANM6-Easy's. Built as
