@@ -89,3 +89,55 @@ def test_evaluation_equals_the_env_rollout(kind):
     assert bool(got.terminated[0]) == (kind == "plain") and not bool(got.terminated[1:].any())
     for field in ("returns", "discounted_returns", "e_loss", "penalty", "steps", "terminated"):
         assert torch.equal(getattr(got, field), getattr(want, field)), field
+
+
+@pytest.mark.parametrize("network", ["case33bw", "surrogate"])
+def test_evaluation_steps_the_packages_envs_as_their_rollout(network):
+    """:func:`evaluate_policy` steps the package's envs through their ``_step`` and writes the recipes' actor's
+    deterministic action from its distribution's transform (built once): bit for bit ``env.rollout``'s metrics on a
+    feeder and on a surrogate env whose model ends some episodes (row 0 at its 7th step, row 2 at its 30th; their
+    later steps masked), over enough steps for the actor's cached transform to act."""
+    import torch
+    from tensordict.nn import TensorDictModuleBase
+
+    from anm_torchrl.envs import SurrogateEnv
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.networks import simulator
+    from anm_torchrl.training.factory import make_true_env
+    from anm_torchrl.training.models import make_ppo_models
+
+    if network == "case33bw":
+        def make():
+            return make_true_env(3, network="case33bw", seed=0)
+    else:
+        class EndsSome(TensorDictModuleBase):  # next state = state (time index advanced by the env), reward -t
+            in_keys, out_keys = ["state", "action"], ["next_state", "reward", "terminated"]
+
+            def __init__(self):
+                super().__init__()
+                self.t = 0
+
+            def forward(self, td):
+                self.t += 1
+                ends = torch.tensor([self.t == 7, False, self.t == 30]).unsqueeze(1)
+                return td.update({"next_state": td["state"].clone(), "reward": torch.full((3, 1), -0.01 * self.t),
+                                  "terminated": ends})
+
+        def make():
+            return SurrogateEnv(EndsSome(), 3, sim=simulator("anm6_easy"), seed=0)
+    env = make()
+    states = draw_initial_states(3, 5, env.sim, env.init)
+    torch.manual_seed(1)
+    policy = make_ppo_models(env)[0]
+    built = []
+    build = policy.build_dist_from_params
+    policy.build_dist_from_params = lambda params: built.append(1) or build(params)
+    got = evaluate_policy(policy, states, max_steps=60, env=env)
+    assert len(built) == 1  # the distribution of the first step only: its transform wrote the other 59 actions
+    del policy.build_dist_from_params
+    want = _rollout_reference(policy, states, 60, make())
+    if network == "surrogate":
+        assert got.terminated.tolist() == [True, False, True] and got.steps.tolist() == [7, 60, 30]
+    for field in ("returns", "discounted_returns", "e_loss", "penalty", "steps", "terminated"):
+        # exact; the surrogate predicts no grid terms (NaN e_loss and penalty in both)
+        torch.testing.assert_close(getattr(got, field), getattr(want, field), rtol=0, atol=0, equal_nan=True)
