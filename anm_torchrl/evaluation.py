@@ -266,7 +266,7 @@ def _own_steps(env, act, td: TensorDict, max_steps: int, keys, steps: dict) -> N
         if bool(ended.any()):  # the zero terminal state is not a state a step accepts
             out.set("state", torch.where(ended, td.get("state"), out.get("state")))
             out.set("observation", torch.where(ended, td.get("observation"), out.get("observation")))
-        td = out.exclude("reward", "done", "terminated")  # what the policy reads next: state, observation, grid
+        td = out  # the next step reads its state and action; the policy its observation (or state, grid)
 
 
 @torch.no_grad()
