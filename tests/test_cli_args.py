@@ -9,6 +9,8 @@ import pytest
 
 #: (command, option, a bad value, what the error says)
 BAD = [
+    ("bench_evaluation", "--repeats", "0", "must be an integer >= 1, got 0"),
+    ("bench_evaluation", "--steps", "2.5", "must be an integer >= 1, got '2.5'"),
     ("bench_sb3", "--num-envs", "0", "must be an integer >= 1, got 0"),
     ("bench_sb3", "--gym-rollouts", "-1", "must be an integer >= 1, got -1"),
     ("bench_surrogates", "--min-time", "nan", "must be a finite number > 0, got nan"),

@@ -141,3 +141,18 @@ def test_evaluation_steps_the_packages_envs_as_their_rollout(network):
     for field in ("returns", "discounted_returns", "e_loss", "penalty", "steps", "terminated"):
         # exact; the surrogate predicts no grid terms (NaN e_loss and penalty in both)
         torch.testing.assert_close(getattr(got, field), getattr(want, field), rtol=0, atol=0, equal_nan=True)
+
+
+def test_evaluation_benchmark_times_both_paths_and_compares_them(tmp_path):
+    """``python -m anm_torchrl.cli.bench_evaluation``: both paths timed, their metrics equal, the record written."""
+    import json
+
+    from anm_torchrl.cli import bench_evaluation
+
+    record = bench_evaluation.main(["--network", "case33bw", "--episodes", "2", "--steps", "20", "--repeats", "1",
+                                    "--out", str(tmp_path / "pass")])
+    assert record["metrics_equal"] is True and record["policy"] == "pretrained:case33bw"
+    assert record["best_s"]["default"] > 0 and record["best_s"]["reference"] > 0
+    saved = json.loads((tmp_path / "pass.json").read_text())
+    assert saved["command"].startswith("python -m anm_torchrl.cli.bench_evaluation --network case33bw")
+    assert "metrics bit for bit equal: True" in (tmp_path / "pass.md").read_text()
