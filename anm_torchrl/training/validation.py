@@ -26,8 +26,8 @@ from anm_torchrl.processes import ModuleProcess
 from anm_torchrl.provenance import usable_cpus
 
 #: validation pass length (steps) from which ``auto`` runs the passes in a second process: a pass of 1,000 steps
-#: (~1 s on 16 ANM6-Easy states here) outweighs the process's start (~3 s) after a few passes; shorter ones (tests,
-#: smoke runs) stay here
+#: (~0.5 s on 16 ANM6-Easy states here, results/benchmarks/evaluation_pass.md) outweighs the process's start (~3 s)
+#: after a few passes; shorter ones (tests, smoke runs) stay here
 BACKGROUND_MIN_STEPS = 1000
 #: scheduling niceness of the second process: its passes are off the training's critical path (a result is read
 #: one pass later), so where the CPUs are all busy (SHAC's critic worker beside it on 2 cores) the training and its
