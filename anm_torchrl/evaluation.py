@@ -226,7 +226,10 @@ def _acting(policy: TensorDictModuleBase, exploration_type: ExplorationType, ref
     spec = getattr(module, "spec", None) if getattr(module, "safe", False) else None
     spec = spec[key] if spec is not None and key in spec.keys(True) else None
 
-    loc_key = dict(zip(module.dist_keys, module.dist_params_keys)).get("loc")
+    params_of = dict(zip(module.dist_keys, module.dist_params_keys))
+    # the cached transform holds the distribution's box: only where the box is the module's own (its kwargs), not a
+    # parameter read from the TensorDict at each step (a state-dependent low / high)
+    loc_key = params_of.get("loc") if set(params_of) <= {"loc", "scale"} else None
     squash = []  # TorchRL's TanhNormal: its deterministic sample is its transform of ``loc``, checked at step 1
 
     def act(td):
@@ -258,19 +261,20 @@ def _steps_itself(env: EnvBase) -> bool:
 
 def _own_steps(env, act, td: TensorDict, max_steps: int, keys, steps: dict) -> None:
     """``max_steps`` steps of ``env`` through its ``_step`` (what ``env.step`` runs, without TorchRL's per-step
-    bookkeeping: ~25 % of an evaluation step), appending each step's ``keys`` to ``steps``. A row that terminated
-    goes on from its last state, never reset: everything after its termination is masked by the metrics, and no
-    reset draws from the env's generator."""
-    for _ in range(max_steps):
+    bookkeeping: ~25 % of an evaluation step), appending each step's ``keys`` to ``steps``. Between steps the
+    TensorDict is carried as ``step_and_maybe_reset`` carries it: the step's outputs over what the policy wrote
+    (its action, an exploration module's state), and terminated rows reset through ``env.maybe_reset``."""
+    for t in range(max_steps):
         td = act(td)
         out = env._step(td)
         for k in keys:
             steps[k].append(out.get(k, None))
-        ended = out.get("terminated").reshape(-1, 1)
-        if bool(ended.any()):  # the zero terminal state is not a state a step accepts
-            out.set("state", torch.where(ended, td.get("state"), out.get("state")))
-            out.set("observation", torch.where(ended, td.get("observation"), out.get("observation")))
-        td = out  # the next step reads its state and action; the policy its observation (or state, grid)
+        if t < max_steps - 1:
+            out.del_("reward")
+            for key in td.keys():  # what the policy wrote (its action, an exploration module's state) goes on
+                if key not in out.keys():
+                    out.set(key, td.get(key))
+            td = out if not bool(out.get("done").any()) else env.maybe_reset(out)
 
 
 @torch.no_grad()

@@ -59,7 +59,8 @@ def main(cfg: DictConfig) -> list[dict]:
 
     run_dir = HydraConfig.get().runtime.output_dir
     with user_errors("train_surrogate.py", run_dir):  # one line naming the key, before torch is imported
-        refuse_appended_keys("train_surrogate.py", HydraConfig.get().overrides.task)
+        # models.<kind>.* go to the estimator (scikit-learn, XGBoost), which names a parameter it does not take
+        refuse_appended_keys("train_surrogate.py", HydraConfig.get().overrides.task, allowed=("models",))
         check_train_config(cfg, default_size())
     from anm_torchrl.surrogates.regressors.train import check_train_request
 

@@ -156,3 +156,102 @@ def test_evaluation_benchmark_times_both_paths_and_compares_them(tmp_path):
     saved = json.loads((tmp_path / "pass.json").read_text())
     assert saved["command"].startswith("python -m anm_torchrl.cli.bench_evaluation --network case33bw")
     assert "metrics bit for bit equal: True" in (tmp_path / "pass.md").read_text()
+
+
+# TorchRL's own warning: the env has no InitTracker (the noise then starts at its module's first call, on both paths)
+@pytest.mark.filterwarnings("ignore:The tensordict passed to OrnsteinUhlenbeckProcessModule")
+@pytest.mark.parametrize("kind", ["state_box", "previous_action", "ou_noise"])
+def test_evaluation_carries_what_the_policy_reads_as_the_rollout_does(kind):
+    """Bugs of the first version of the env's own stepping (a review): an actor whose TanhNormal box is read from
+    the TensorDict kept step 1's box (its transform was cached); a policy reading its previous action, and an
+    Ornstein-Uhlenbeck exploration module's state, lost what TorchRL's step carries over. Each now equals the
+    ``reference`` path (``env.rollout``'s) bit for bit."""
+    import torch
+    from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+    from torch import nn
+    from torchrl.envs.utils import ExplorationType
+    from torchrl.modules import OrnsteinUhlenbeckProcessModule, ProbabilisticActor, TanhNormal
+
+    from anm_torchrl.envs import ANM6Env
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.training.models import make_ppo_models
+
+    states = draw_initial_states(3, 3)
+    low, high = (x.float() for x in ANM6Env(1).sim.action_bounds())
+    exploration = ExplorationType.DETERMINISTIC
+
+    class Box(nn.Module):  # the renewables' upper bound at their potential (state entries 15, 16): a moving box
+        def forward(self, state):
+            n = state.shape[0]
+            hi = high.expand(n, 6).clone()
+            hi[:, :2] = state[:, 15:17].float().clamp(min=1.0)
+            return torch.zeros(n, 6), torch.full((n, 6), 0.1), low.expand(n, 6).clone(), hi
+
+    class RateLimited(TensorDictModuleBase):  # moves at most 5 MW/MVAr a step from its previous action
+        in_keys, out_keys = ["observation"], ["action"]
+
+        def forward(self, td):
+            target = torch.tensor([30.0, 50.0, 0.0, 0.0, 20.0, 0.0]).expand(td.shape[0], 6)
+            prev = td.get("action", None)
+            return td.set("action", torch.zeros_like(target) if prev is None else prev + (target - prev).clamp(-5, 5))
+
+    def make():
+        if kind == "state_box":
+            return ProbabilisticActor(TensorDictModule(Box(), ["state"], ["loc", "scale", "lo", "hi"]),
+                                      in_keys={"loc": "loc", "scale": "scale", "low": "lo", "high": "hi"},
+                                      distribution_class=TanhNormal, distribution_kwargs={"tanh_loc": False})
+        if kind == "previous_action":
+            return RateLimited()
+        torch.manual_seed(0)
+        spec = ANM6Env(3).full_action_spec["action"]
+        return TensorDictSequential(make_ppo_models(ANM6Env(3))[0], OrnsteinUhlenbeckProcessModule(spec=spec, sigma=5.0))
+
+    if kind == "ou_noise":
+        exploration = ExplorationType.RANDOM
+    results = []
+    for reference in (False, True):
+        torch.manual_seed(7)
+        results.append(evaluate_policy(make(), states, max_steps=20, env=ANM6Env(3, seed=0),
+                                       exploration_type=exploration, reference=reference))
+    for field in ("returns", "discounted_returns", "e_loss", "penalty", "steps", "terminated"):
+        assert torch.equal(getattr(results[0], field), getattr(results[1], field)), field
+
+
+def test_evaluation_resets_a_terminated_row_as_the_rollout_does(caplog):
+    """A surrogate whose model ends one episode once: the evaluation resets that row as ``step_and_maybe_reset``
+    does (the first version stepped it again from its last state, so the model ended it at every later step and the
+    surrogate's termination warning fired: 18 terminations counted of 80 row-steps, for one)."""
+    import logging
+
+    import torch
+    from tensordict.nn import TensorDictModuleBase
+
+    from anm_torchrl.envs import SurrogateEnv
+    from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
+    from anm_torchrl.networks import simulator
+    from anm_torchrl.training.models import make_ppo_models
+
+    sim = simulator("anm6_easy")
+    states = draw_initial_states(4, 3, sim)
+    ends_at = float(states[0, -1]) + 2  # row 0 ends on its 3rd step
+
+    class EndsOnce(TensorDictModuleBase):
+        in_keys, out_keys = ["state", "action"], ["next_state", "reward", "terminated"]
+
+        def forward(self, td):
+            s = td["state"]
+            ends = torch.zeros(s.shape[0], 1, dtype=torch.bool)
+            ends[0, 0] = bool(s[0, -1] == ends_at)
+            return td.update({"next_state": s.clone(), "reward": torch.full((s.shape[0], 1), -0.01),
+                              "terminated": ends})
+
+    counts = []
+    with caplog.at_level(logging.WARNING, logger="anm_torchrl.envs.surrogate"):
+        for reference in (False, True):
+            env = SurrogateEnv(EndsOnce(), 4, sim=sim, seed=0, init="gym_anm")
+            torch.manual_seed(0)
+            result = evaluate_policy(make_ppo_models(env)[0], states, 20, env=env, reference=reference)
+            assert result.steps.tolist() == [3, 20, 20, 20]
+            counts.append((env._rows_terminated, env._rows_stepped))
+    assert counts == [(1, 80), (1, 80)]
+    assert not [r for r in caplog.records if "termination" in r.getMessage()]

@@ -43,6 +43,18 @@ def test_a_run_dir_with_work_in_it_is_kept(tmp_path):
     assert (run_dir / "checkpoints").is_dir()
 
 
+def test_added_keys_are_refused_outside_the_groups_a_recipe_passes_on():
+    """``+key=`` is refused where the recipe would not read the key, and allowed in a group whose every key the
+    recipe passes on (a review found ``train_surrogate.py +models.dt.max_leaf_nodes=8`` and ``ppo.py
+    +surrogate.n_jobs=2`` refused, though the estimator and the loader take them); ``++key=`` is Hydra's override."""
+    from anm_torchrl.training.recipe_errors import refuse_appended_keys
+
+    refuse_appended_keys("ppo.py", ["network=case33bw", "++env.num_envs=8", "+surrogate.n_jobs=2"], ("surrogate",))
+    refuse_appended_keys("train_surrogate.py", ["+models.dt.max_leaf_nodes=8"], ("models",))
+    with pytest.raises(ValueError, match=r"^\+surrogates.n_jobs=2: 'surrogates.n_jobs' is not one of this recipe"):
+        refuse_appended_keys("ppo.py", ["+surrogates.n_jobs=2"], ("surrogate",))  # a prefix, not a substring
+
+
 def test_check_device():
     check_device("cpu")
     with pytest.raises(ValueError, match="env.device: 'gpu0' is not a torch device"):
@@ -95,8 +107,8 @@ def test_check_writable_and_artifact_cache(monkeypatch, tmp_path):
     ("evaluate", "policy=mpc_perfect policy_kwargs.bogus=1 steps=5 episodes=1",
      r"MPC options \['bogus'\] are not settings of the '\w+' solver"),  # was an AttributeError at the first step
     # Hydra's advice for an unknown key (+key=value) ran the job with the key ignored, in every recipe
-    *[(recipe, "+loss.gama=0.9" + extra, r"\+loss.gama=0.9: 'loss.gama' is not one of this recipe's keys, and an "
-       rf"added key would be ignored; python recipes/{recipe}.py --help")
+    *[(recipe, "+loss.gama=0.9" + extra, r"\+loss.gama=0.9: 'loss.gama' is not one of this recipe's keys \(an "
+       rf"added key is not read\); python recipes/{recipe}.py --help")
       for recipe, extra in [("ppo", ""), ("sac", ""), ("shac", ""), ("make_dataset", ""), ("train_pinn", ""),
                             ("train_surrogate", " surrogate=lr"), ("reproduce", "")]],
 ])

@@ -425,7 +425,9 @@ def run_recipe(cfg: DictConfig) -> dict:
 
     run_dir = Path.cwd()
     with user_errors(f"{HydraConfig.get().job.name}.py", run_dir):
-        refuse_appended_keys(f"{HydraConfig.get().job.name}.py", HydraConfig.get().overrides.task)
+        # the surrogate group's keys go to its loader, which names one it does not take
+        refuse_appended_keys(f"{HydraConfig.get().job.name}.py", HydraConfig.get().overrides.task,
+                             allowed=("surrogate",))
         # a network file's path is relative to where the command was typed, not to the run directory
         cfg.network = network_argument(cfg.network, hydra.utils.get_original_cwd())
         check_network_name(cfg.network)  # before its defaults are applied (and logged)

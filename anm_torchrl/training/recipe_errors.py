@@ -69,15 +69,16 @@ def user_errors(recipe: str, run_dir: str | os.PathLike | None = None) -> Iterat
 
 
 def refuse_appended_keys(recipe: str, overrides: Iterable[str], allowed: tuple[str, ...] = ()) -> None:
-    """Refuse Hydra's ``+key=value`` (a key added to the config): no recipe reads a key it does not define, so the
-    value would be ignored without a word. Hydra itself answers ``key=value`` for an unknown key with "To append
-    to your config use +key=value", which leads here.
+    """Refuse Hydra's ``+key=value`` (a key added to the config) outside the groups whose every key the recipe
+    passes on (``allowed``): elsewhere no recipe reads a key it does not define, so the value was ignored without a
+    word. Hydra itself answers ``key=value`` for an unknown key with "To append to your config use +key=value",
+    which leads here.
 
     Args:
         recipe: the script's name as the user typed it, e.g. ``"ppo.py"`` (for its ``--help``).
         overrides: the command line's overrides (``HydraConfig.get().overrides.task``).
-        allowed: key prefixes whose added keys the recipe does check (e.g. ``pinn_preset``, whose keys its
-            dataclasses validate).
+        allowed: key prefixes whose added keys the recipe passes on and checks there (``pinn_preset``: its
+            dataclasses; ``surrogate``: the surrogate's loader's options; ``models``: the regressors' estimators).
 
     Raises:
         ValueError: naming the first such override.
@@ -89,7 +90,7 @@ def refuse_appended_keys(recipe: str, overrides: Iterable[str], allowed: tuple[s
         key = item[1:].partition("=")[0].strip()
         if any(key == a or key.startswith(a + ".") for a in allowed):
             continue
-        raise ValueError(f"{item}: {key!r} is not one of this recipe's keys, and an added key would be ignored; "
+        raise ValueError(f"{item}: {key!r} is not one of this recipe's keys (an added key is not read); "
                          f"python recipes/{recipe} --help lists its groups and keys")
 
 
