@@ -204,7 +204,8 @@ def test_evaluation_carries_what_the_policy_reads_as_the_rollout_does(kind):
             return RateLimited()
         torch.manual_seed(0)
         spec = ANM6Env(3).full_action_spec["action"]
-        return TensorDictSequential(make_ppo_models(ANM6Env(3))[0], OrnsteinUhlenbeckProcessModule(spec=spec, sigma=5.0))
+        noise = OrnsteinUhlenbeckProcessModule(spec=spec, sigma=5.0)
+        return TensorDictSequential(make_ppo_models(ANM6Env(3))[0], noise)
 
     if kind == "ou_noise":
         exploration = ExplorationType.RANDOM
