@@ -91,7 +91,7 @@ def test_evaluation_equals_the_env_rollout(kind):
         assert torch.equal(getattr(got, field), getattr(want, field)), field
 
 
-@pytest.mark.parametrize("network", ["case33bw", "surrogate"])
+@pytest.mark.parametrize("network", ["case33bw", "random", "surrogate"])
 def test_evaluation_steps_the_packages_envs_as_their_rollout(network):
     """:func:`evaluate_policy` steps the package's envs through their ``_step`` and writes the recipes' actor's
     deterministic action from its distribution's transform (built once): bit for bit ``env.rollout``'s metrics on a
@@ -109,6 +109,13 @@ def test_evaluation_steps_the_packages_envs_as_their_rollout(network):
     if network == "case33bw":
         def make():
             return make_true_env(3, network="case33bw", seed=0)
+    elif network == "random":  # a network nobody tuned for: 8 buses, meshed
+        from anm_torchrl.networks.random import generate
+
+        case = generate(11, n_bus=8, meshed=True)
+
+        def make():
+            return make_true_env(3, network=case.network, load_p=case.load_p, gen_p_max=case.gen_p_max, seed=0)
     else:
         class EndsSome(TensorDictModuleBase):  # next state = state (time index advanced by the env), reward -t
             in_keys, out_keys = ["state", "action"], ["next_state", "reward", "terminated"]
