@@ -166,7 +166,9 @@ def evaluate_policy(policy: TensorDictModuleBase, initial_states: torch.Tensor, 
         exploration_type: default deterministic (the distribution's mean, inside the action box).
         reference: step through TorchRL's ``env.step_and_maybe_reset`` and the policy's own call, as
             ``env.rollout`` does: the path the default one equals bit for bit (``benchmarks.evaluation`` times
-            both), ~1.7x slower on the package's envs.
+            both; ~2x slower on the package's envs) for a policy that reads what TorchRL's modules declare they
+            read (a module reading keys it does not declare, e.g. its own log-probability of the previous step,
+            which the default path does not write for the recipes' actors, needs ``reference=True``).
     """
     from anm_torchrl.envs import ANM6Env
 
@@ -261,20 +263,20 @@ def _steps_itself(env: EnvBase) -> bool:
 
 def _own_steps(env, act, td: TensorDict, max_steps: int, keys, steps: dict) -> None:
     """``max_steps`` steps of ``env`` through its ``_step`` (what ``env.step`` runs, without TorchRL's per-step
-    bookkeeping: ~25 % of an evaluation step), appending each step's ``keys`` to ``steps``. Between steps the
-    TensorDict is carried as ``step_and_maybe_reset`` carries it: the step's outputs over what the policy wrote
-    (its action, an exploration module's state), and terminated rows reset through ``env.maybe_reset``."""
+    bookkeeping), appending each step's ``keys`` to ``steps``. Between steps the TensorDict is carried as
+    ``step_and_maybe_reset`` carries it (its ``step_mdp``), and terminated rows are reset through
+    ``env.maybe_reset``."""
     for t in range(max_steps):
         td = act(td)
         out = env._step(td)
         for k in keys:
             steps[k].append(out.get(k, None))
         if t < max_steps - 1:
-            out.del_("reward")
-            for key in td.keys():  # what the policy wrote (its action, an exploration module's state) goes on
-                if key not in out.keys():
-                    out.set(key, td.get(key))
-            td = out if not bool(out.get("done").any()) else env.maybe_reset(out)
+            # the carry step_and_maybe_reset uses (TorchRL's step_mdp, torchrl pinned): the step's outputs over
+            # what the policy wrote (its action, an exploration module's state), the reward dropped
+            td = env._step_mdp(td.set("next", out))
+            if bool(out.get("done").any()):
+                td = env.maybe_reset(td)
 
 
 @torch.no_grad()

@@ -167,12 +167,12 @@ def test_evaluation_benchmark_times_both_paths_and_compares_them(tmp_path):
 
 # TorchRL's own warning: the env has no InitTracker (the noise then starts at its module's first call, on both paths)
 @pytest.mark.filterwarnings("ignore:The tensordict passed to OrnsteinUhlenbeckProcessModule")
-@pytest.mark.parametrize("kind", ["state_box", "previous_action", "ou_noise"])
+@pytest.mark.parametrize("kind", ["state_box", "previous_action", "ou_noise", "grid_counter", "reward_counter"])
 def test_evaluation_carries_what_the_policy_reads_as_the_rollout_does(kind):
-    """Bugs of the first version of the env's own stepping (a review): an actor whose TanhNormal box is read from
-    the TensorDict kept step 1's box (its transform was cached); a policy reading its previous action, and an
-    Ornstein-Uhlenbeck exploration module's state, lost what TorchRL's step carries over. Each now equals the
-    ``reference`` path (``env.rollout``'s) bit for bit."""
+    """Bugs of the first versions of the env's own stepping (two reviews): an actor whose TanhNormal box is read from
+    the TensorDict kept step 1's box (its transform was cached); a policy reading its previous action, an
+    Ornstein-Uhlenbeck exploration module's state, a counter a policy keeps under "grid" or "reward", were not
+    carried as TorchRL's step carries them. Each now equals the ``reference`` path (``env.rollout``'s) bit for bit."""
     import torch
     from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
     from torch import nn
@@ -202,7 +202,18 @@ def test_evaluation_carries_what_the_policy_reads_as_the_rollout_does(kind):
             prev = td.get("action", None)
             return td.set("action", torch.zeros_like(target) if prev is None else prev + (target - prev).clamp(-5, 5))
 
+    class Counter(TensorDictModuleBase):  # keeps a step count in a key of its own (a second review's cases)
+        in_keys, out_keys = ["observation"], ["action"]
+
+        def forward(self, td):
+            where = ("grid", "count") if kind == "grid_counter" else "reward"
+            count = td.get(where, torch.zeros(td.shape[0], 1)) + 1
+            td.set(where, count)
+            return td.set("action", low + (high - low) * torch.sigmoid(count - 3))
+
     def make():
+        if kind in ("grid_counter", "reward_counter"):
+            return Counter()
         if kind == "state_box":
             return ProbabilisticActor(TensorDictModule(Box(), ["state"], ["loc", "scale", "lo", "hi"]),
                                       in_keys={"loc": "loc", "scale": "scale", "low": "lo", "high": "hi"},
