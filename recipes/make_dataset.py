@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import time
-
 from pathlib import Path
 
 import hydra

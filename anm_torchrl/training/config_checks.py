@@ -17,6 +17,17 @@ LOGGER_PACKAGES = {"wandb": "wandb", "mlflow": "mlflow"}
 ACTION_MODES = ("raise", "clip")
 ENV_INITS = (None, "gym_anm", "intended", "uniform")
 EVALUATE_ENVS = ("exact", "gym_anm", "anm6")  # anm6: the former name of exact, still accepted
+# the surrogate names that are the true simulator (this package's, or gym-anm itself): no model to load or train,
+# and their frames are true-env frames
+TRUE_SIMULATORS = ("none", "gym_anm")
+# the activations of anm_torchrl.training.models.ACTIVATIONS (which checks that they agree), named here without torch
+ACTIVATION_NAMES = ("elu", "leaky_relu", "relu", "silu", "tanh", "tanh_sigmoid")
+
+
+def gym_anm_only(key: str, network) -> ValueError:
+    """The error for gym-anm (``surrogate=gym_anm``, ``env=gym_anm``) asked to run another network than
+    ANM6-Easy, the only one gym-anm has; naming ``key`` and the network."""
+    return ValueError(f"{key}=gym_anm runs gym-anm's ANM6Easy only, got network={network!r}")
 
 
 def _get(cfg: Mapping, key: str) -> Any:
@@ -153,19 +164,6 @@ def check_protocol_config(cfg: Mapping) -> None:
                          f"{_get(cfg, 'eval.seed')}: model selection on the reported states biases the figures")
     # checkpoint
     _int(cfg, "checkpoint.interval")
-
-
-# the surrogate names that are the true simulator (this package's, or gym-anm itself): no model to load or train,
-# and their frames are true-env frames
-TRUE_SIMULATORS = ("none", "gym_anm")
-
-
-def gym_anm_only(key: str, network) -> ValueError:
-    """The error for gym-anm (``surrogate=gym_anm``, ``env=gym_anm``) asked to run another network than
-    ANM6-Easy, the only one gym-anm has; naming ``key`` and the network."""
-    return ValueError(f"{key}=gym_anm runs gym-anm's ANM6Easy only, got network={network!r}")
-# the activations of anm_torchrl.training.models.ACTIVATIONS (which checks that they agree), named here without torch
-ACTIVATION_NAMES = ("elu", "leaky_relu", "relu", "silu", "tanh", "tanh_sigmoid")
 
 
 def _check_model(cfg: Mapping) -> None:
