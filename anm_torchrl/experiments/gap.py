@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from anm_torchrl.artifacts import atomic_write
 from anm_torchrl.evaluation import EVAL_GAMMA
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.strict_json import json_text
@@ -264,11 +265,8 @@ def markdown(rec: dict) -> str:
 
 
 def write_record(path: Path, rec: dict) -> None:
-    """Write a gap record atomically (a temporary file, then a rename), creating its folder."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json_text(rec, indent=1) + "\n")
-    os.replace(tmp, path)
+    """Write a gap record atomically (:func:`~anm_torchrl.artifacts.atomic_write`), creating its folder."""
+    atomic_write(path, (json_text(rec, indent=1) + "\n").encode())
 
 
 def measure(network: str, episodes: int, seed: int, steps: int, out: Path, command: str, *, rows: list[str],

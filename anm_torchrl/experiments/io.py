@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -24,13 +23,10 @@ STATUSES = ("ok", "partial", "not available", "error")
 
 
 def write_json(path: str | Path, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON (atomically)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json_text(obj, indent=2))
-    os.replace(tmp, path)
-    return path
+    """Write ``obj`` as indented JSON (atomically, creating its folder)."""
+    from anm_torchrl.artifacts import atomic_write  # it imports torch; this module is read by torch-free recipes
+
+    return atomic_write(path, json_text(obj, indent=2).encode())
 
 
 def write_record(out_dir: str | Path, stem: str, record: dict, text: str) -> Path:

@@ -89,15 +89,23 @@ def action_labels(sim: GridSimulator) -> list[str]:
                                                     ("Q", sim.des_idx)) for i in rows.tolist()]
 
 
-def unbounded_actions(sim: GridSimulator) -> list[str]:
-    """The action entries with an infinite bound (an unset PMAX, ...), each as ``"<label> ([low, high] MW/MVAr)"``;
-    empty for a bounded action box (what a trained policy's ``TanhNormal`` and a uniform draw need)."""
+def _box_faults(sim: GridSimulator) -> tuple[list[str], list[str]]:
+    """The action entries with an infinite bound, each as ``"<label> ([low, high] MW/MVAr)"``, and those whose range
+    is a single value (or empty), each as ``"<label> (low MW/MVAr)"``; from one read of the bounds and labels."""
     import torch
 
     low, high = sim.action_bounds()
     labels = action_labels(sim)
-    return [f"{labels[j]} ([{low[j].item():g}, {high[j].item():g}] MW/MVAr)"
-            for j in (~torch.isfinite(low) | ~torch.isfinite(high)).nonzero().flatten().tolist()]
+    unbounded = [f"{labels[j]} ([{low[j].item():g}, {high[j].item():g}] MW/MVAr)"
+                 for j in (~torch.isfinite(low) | ~torch.isfinite(high)).nonzero().flatten().tolist()]
+    flat = [f"{labels[j]} ({low[j].item():g} MW/MVAr)" for j in (high <= low).nonzero().flatten().tolist()]
+    return unbounded, flat
+
+
+def unbounded_actions(sim: GridSimulator) -> list[str]:
+    """The action entries with an infinite bound (an unset PMAX, ...), each as ``"<label> ([low, high] MW/MVAr)"``;
+    empty for a bounded action box (what a trained policy's ``TanhNormal`` and a uniform draw need)."""
+    return _box_faults(sim)[0]
 
 
 def check_controllable(network: str | NetworkCase) -> GridSimulator:
@@ -117,13 +125,10 @@ def check_controllable(network: str | NetworkCase) -> GridSimulator:
     if sim.action_dim == 0:
         raise ValueError(f"network {name!r} has no controllable device (a generator other than the slack, or a "
                          "storage unit): a policy would have no action to take")
-    low, high = sim.action_bounds()
-    labels = action_labels(sim)
-    unbounded = unbounded_actions(sim)
+    unbounded, flat = _box_faults(sim)
     if unbounded:  # a TanhNormal between infinite bounds gives NaN actions
         raise ValueError(f"network {name!r}: the action range of {', '.join(unbounded)} is unbounded; a trained "
                          "policy acts in a bounded box (give the device finite PMIN/PMAX and QMIN/QMAX)")
-    flat = [f"{labels[j]} ({low[j].item():g} MW/MVAr)" for j in (high <= low).nonzero().flatten().tolist()]
     if flat:
         raise ValueError(f"network {name!r}: the action range of {', '.join(flat)} is a single value; a trained "
                          "policy needs low < high on every action (give the device a range, or make it a load)")

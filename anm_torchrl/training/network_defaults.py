@@ -19,6 +19,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from anm_torchrl.overrides import parse_override
+
 log = logging.getLogger(__name__)
 
 #: the recipes' Hydra config folder (``recipes/conf``)
@@ -39,8 +41,7 @@ def explicit_keys(overrides: Iterable[str], conf_dir: str | Path | None = None) 
     """
     keys = set()
     for item in overrides:
-        key, _, value = str(item).partition("=")
-        key, choice = key.lstrip("+~").strip().split("@", 1)[0], value.strip()
+        _, key, choice = parse_override(item)
         if not key:
             continue
         option = Path(conf_dir, key, f"{choice}.yaml") if conf_dir is not None and choice and "." not in key else None

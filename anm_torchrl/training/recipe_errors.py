@@ -16,6 +16,7 @@ from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 
 from anm_torchrl._extras import MissingExtraError
+from anm_torchrl.overrides import parse_override
 
 
 class NotWritableError(OSError):
@@ -84,10 +85,9 @@ def refuse_appended_keys(recipe: str, overrides: Iterable[str], allowed: tuple[s
         ValueError: naming the first such override.
     """
     for item in overrides:
-        item = str(item)
-        if not item.startswith("+") or item.startswith("++"):  # ``++key`` sets a key that may exist: Hydra's override
+        prefix, key, _ = parse_override(item)
+        if prefix != "+":  # ``++key`` sets a key that may exist: Hydra's override
             continue
-        key = item[1:].partition("=")[0].strip()
         if any(key == a or key.startswith(a + ".") for a in allowed):
             continue
         raise ValueError(f"{item}: {key!r} is not one of this recipe's keys (an added key is not read); "

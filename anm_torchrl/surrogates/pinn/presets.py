@@ -45,6 +45,8 @@ from typing import Any
 
 import yaml
 
+from anm_torchrl.overrides import parse_override
+
 log = logging.getLogger(__name__)
 
 MODULES = ("generator", "storage", "power_balance")
@@ -296,7 +298,7 @@ def overrides_of(d: dict[str, Any], name: str) -> dict[str, Any]:
 def preset_keys(task_overrides: Iterable[str]) -> list[str]:
     """The ``pinn_preset`` keys a Hydra command line sets (``pinn_preset.power_balance.lr=1e-3`` ->
     ``power_balance.lr``; ``+``/``++``/``~`` prefixes dropped): :func:`from_composed`'s ``explicit``."""
-    keys = (o.lstrip("+~").split("=", 1)[0] for o in task_overrides)
+    keys = (parse_override(o).key for o in task_overrides)
     return [k.removeprefix("pinn_preset.") for k in keys if k.startswith("pinn_preset.")]
 
 
