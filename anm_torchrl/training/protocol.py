@@ -71,6 +71,29 @@ def read_resume(cfg: DictConfig, algorithm: str, device="cpu") -> tuple[Path, di
     return path, resume, changed
 
 
+def _with_newest_best(resume: dict, best_path: Path, resume_path: Path) -> dict:
+    """``resume`` with the best validation result of ``best_path`` (the run's best.pt) where that one is better
+    than the checkpoint's own (best.pt is written at every new best, last.pt every ``checkpoint.interval`` updates: a
+    crash between the two leaves last.pt's best stale), its early-stop count then the passes last.pt recorded after
+    it. A resumed run keeps the better policy instead of overwriting it with the first that beats the stale one.
+
+    Raises:
+        ValueError: best_path exists but is not a checkpoint of this run's kind (:func:`load_checkpoint`)."""
+    from anm_torchrl.training.checkpoint import load_checkpoint
+
+    if not best_path.is_file() or best_path.resolve() == resume_path.resolve():
+        return resume
+    on_disk = load_checkpoint(best_path).get("best_eval")
+    own = resume.get("best_eval")
+    if on_disk is None or (own is not None and own["discounted_return"] >= on_disk["discounted_return"]):
+        return resume
+    log.warning("%s holds a better validation result (%.4g at update %d) than %s (%s): kept as the best so far",
+                best_path, on_disk["discounted_return"], on_disk["update"], resume_path,
+                "none" if own is None else f"{own['discounted_return']:.4g}")
+    after = sum(1 for point in resume.get("curve", []) if point["update"] > on_disk["update"])
+    return {**resume, "best_eval": on_disk, "evals_since_best": after}
+
+
 def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop, read top to bottom
           network_defaults: dict | None = None) -> dict:
     """Train ``cfg.algorithm`` as configured by ``cfg`` (a recipe's composed config) into ``run_dir``; returns the
@@ -123,6 +146,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
         if (resume_path.parent / "best.pt").is_file() and resume_path.parent != ckpt_dir:
             ckpt_dir.mkdir(parents=True, exist_ok=True)  # the best policy so far stays next to the new last.pt
             shutil.copy2(resume_path.parent / "best.pt", ckpt_dir / "best.pt")
+        resume = _with_newest_best(resume, ckpt_dir / "best.pt", resume_path)
     frames = int(resume["frames"]) if resume else 0
     update = int(resume["update"]) if resume else 0
     seed = int(cfg.seed) + update  # a resumed run does not replay the first run's random streams
@@ -168,7 +192,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     best = resume.get("best_eval") if resume else None
     evals_since_best = int(resume.get("evals_since_best", 0)) if resume else 0
     n_evals = 0
-    last_eval = None
+    last_eval = resume.get("last_eval") if resume else None
     wall_before = float(resume.get("wall_time", 0.0)) if resume else 0.0
     # learning curve (summary.json "curve"): validation and, with eval.track_test, test returns per validation point
     curve: list[dict] = list(resume.get("curve", [])) if resume else []
@@ -189,7 +213,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     def checkpoint_payload() -> dict:
         return {"algorithm": algorithm_cls.name, "config": config, "actor": actor.state_dict(),
                 "obs_norm": algo.normalizer.stats(), "state": algo.state_dict(), "frames": frames, "update": update,
-                "logger_step": frames, "best_eval": best, "evals_since_best": evals_since_best,
+                "logger_step": frames, "best_eval": best, "evals_since_best": evals_since_best, "last_eval": last_eval,
                 "wall_time": wall_before + time.perf_counter() - t_start, "curve": curve, "track_seconds": track_s,
                 "network_key": trained_network}
 
@@ -227,12 +251,6 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
         count, the curve, the logs."""
         nonlocal best, evals_since_best, last_eval
         last_eval = {**result, "frames": snapshot["frames"], "update": snapshot["update"]}
-        if best is None or last_eval["discounted_return"] > best["discounted_return"]:
-            best, evals_since_best = dict(last_eval), 0
-            payload = snapshot["payload"] or checkpoint_payload()
-            save_checkpoint(ckpt_dir / "best.pt", {**payload, "best_eval": best, "evals_since_best": 0})
-        else:
-            evals_since_best += 1
         # when the pass's result existed: the policy's moment plus the pass's own time, in either mode (a background
         # pass is read one iteration later; the moment of reading would put its point one iteration late)
         point = {"frames": snapshot["frames"], "true_env_frames": snapshot["true_env_frames"],
@@ -244,6 +262,14 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
             point["test"] = snapshot["tracked"]["discounted_return"]
             eval_metrics.update({f"track/{k}": snapshot["tracked"][k] for k in EVAL_KEYS})
             eval_metrics["time/track"] = snapshot["tracked"]["seconds"]
+        if best is None or last_eval["discounted_return"] > best["discounted_return"]:
+            best, evals_since_best = dict(last_eval), 0
+            payload = snapshot["payload"] or checkpoint_payload()
+            # its own point in its curve: a run resumed from best.pt continues the curve after it
+            save_checkpoint(ckpt_dir / "best.pt", {**payload, "best_eval": best, "evals_since_best": 0,
+                                                   "last_eval": last_eval, "curve": [*payload["curve"], point]})
+        else:
+            evals_since_best += 1
         curve.append(point)
         log_metrics(eval_metrics, step=snapshot["frames"])
         pbar.set_postfix(eval=f"{last_eval['discounted_return']:.4g}", best=f"{best['discounted_return']:.4g}")
@@ -256,10 +282,23 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
         for snapshot, result in validation.results(wait=wait):
             record(snapshot, result)
 
-    last_due = False  # last.pt is written at the first update with no validation pass pending
+    def last_payload() -> dict:
+        """last.pt's content: the run now, and the validation passes still running (at most one, in the second
+        process): a run resumed from it runs them first, so no validation point is lost to a crash."""
+        return {**checkpoint_payload(), "pending": [dict(tag) for tag in validation.pending_tags]}
+
+    # a pass last.pt holds as still running when it was saved (a crash came before its result): run it now
+    for snapshot in resume.get("pending", []) if resume else []:
+        policy = copy.deepcopy(actor)
+        policy.load_state_dict(snapshot["payload"]["actor"])
+        record(snapshot, evaluate(policy, val_states, eval_env, int(cfg.eval.max_steps), float(cfg.eval.gamma)))
+    if resume and patience is not None and evals_since_best >= int(patience) and frames < total_frames:
+        stopped_early = True  # a run resumed after its early stop: no batch more that nothing would validate
+        log.warning("checkpoint stopped early (%d evaluations without improvement, eval.patience=%s); nothing to "
+                    "train (raise eval.patience to train on)", evals_since_best, patience)
     try:
         with graceful():  # a signal here stops the run after its iteration (training.signals)
-            while frames < total_frames:
+            while frames < total_frames and not stopped_early:
                 n_frames, train_metrics = algo.iterate(total_frames - frames)
                 frames += n_frames  # counted once the update is done: an interrupted update is not a trained batch
                 update += 1
@@ -294,10 +333,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                 out_of_time = max_minutes is not None and time.perf_counter() - t_start >= 60 * float(max_minutes)
                 if out_of_time:
                     take_results(wait=True)
-                last_due |= update % int(cfg.checkpoint.interval) == 0 or is_last or stopped_early or out_of_time
-                if last_due and not validation.pending:
-                    save_checkpoint(ckpt_dir / "last.pt", checkpoint_payload())
-                    last_due = False
+                if update % int(cfg.checkpoint.interval) == 0 or is_last or stopped_early or out_of_time:
+                    save_checkpoint(ckpt_dir / "last.pt", last_payload())
                 if stop_requested():
                     raise KeyboardInterrupt
                 if stopped_early:

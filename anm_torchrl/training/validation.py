@@ -70,6 +70,11 @@ class InlineValidation:
     def pending(self) -> int:
         return 0
 
+    @property
+    def pending_tags(self) -> list[Any]:
+        """The tags of the passes submitted and not yet taken by ``results``: none (each runs at submission)."""
+        return []
+
     def submit(self, weights: Mapping[str, torch.Tensor] | None, tag: Any) -> None:
         """Evaluate now; ``weights`` None: the policy as it is (the caller's live policy)."""
         if weights is not None:
@@ -129,6 +134,11 @@ class BackgroundValidation(ModuleProcess):
     @property
     def pending(self) -> int:
         return len(self._tags)
+
+    @property
+    def pending_tags(self) -> list[Any]:
+        """The tags of the passes submitted and not yet taken by ``results``, in submission order."""
+        return list(self._tags)
 
     def submit(self, weights: Mapping[str, torch.Tensor], tag: Any) -> None:
         """Queue a pass of these weights (copied now: training may change the caller's tensors at once)."""
