@@ -116,7 +116,8 @@ def main(argv: list[str] | None = None) -> dict:
     cfg.seed = test_seed if cfg.seed is None else cfg.seed
     cfg.steps = test_steps if cfg.steps is None else cfg.steps
     episodes = int(cfg.episodes) if cfg.episodes is not None else (test_episodes if cfg.env == "exact" else 2)
-    env = make_true_env(episodes, network=network, seed=int(cfg.seed))  # states from its reset distribution
+    with user_errors("evaluate.py"):  # a network file that exists but is not a valid network: one line
+        env = make_true_env(episodes, network=network, seed=int(cfg.seed))  # states from its reset distribution
     states = draw_initial_states(episodes, int(cfg.seed), env.sim, env.init)
     if ckpt is not None:
         with user_errors("evaluate.py"):  # a checkpoint of a network file rewritten since: one line

@@ -80,6 +80,27 @@ def test_check_writable_and_artifact_cache(monkeypatch, tmp_path):
         check_artifact_cache({"name": "pinn", "path": None})
 
 
+@pytest.mark.parametrize("recipe", ["evaluate", "ppo"])
+def test_a_damaged_network_file_is_one_line(recipe, tmp_path):
+    """A network file that exists but lacks an entry: evaluate.py printed a traceback (it loads the network outside
+    its error handling); every recipe names the file and what it lacks."""
+    import numpy as np
+
+    from anm_torchrl.networks import get_network, save_network
+
+    case = get_network("case33bw")
+    good = save_network(tmp_path / "good.npz", case.network, case.load_p, case.gen_p_max)
+    with np.load(good, allow_pickle=False) as data:
+        np.savez(tmp_path / "broken.npz", **{k: data[k] for k in data.files if k != "gen_p_max"})
+    extra = ["policy=do_nothing", "steps=5", "episodes=1"] if recipe == "evaluate" else []
+    out = subprocess.run([sys.executable, str(ROOT / "recipes" / f"{recipe}.py"), "network=broken.npz", *extra],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "ANM_TORCHRL_HOME": str(tmp_path / "home"), "HYDRA_FULL_ERROR": "0"})
+    assert out.returncode == 1 and "Traceback" not in out.stderr + out.stdout, out.stderr[-2000:]
+    last = out.stderr.strip().splitlines()[-1]
+    assert re.fullmatch(rf"{recipe}.py: .*broken.npz: network file without \['gen_p_max'\]", last), last
+
+
 @pytest.mark.parametrize("recipe, args, message", [
     ("make_dataset", "generative.chunk=0", "generative.chunk must be an integer >= 1, got 0"),
     ("train_surrogate", "network=case34bw", "unknown network 'case34bw'"),
