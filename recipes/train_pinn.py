@@ -66,8 +66,10 @@ def main(cfg: DictConfig) -> dict:
     with user_errors("train_pinn.py", run_dir):  # a network file's tables, the target's rules: one line too
         from anm_torchrl.networks.resolve import check_controllable
 
-        # a single-value action range makes the KKT modules' training diverge; the check builds the simulator
-        sim = check_controllable(cfg.network)
+        from anm_torchrl.surrogates.pinn.model import check_pinn_network
+
+        sim = check_controllable(cfg.network)  # builds the simulator
+        check_pinn_network(sim)  # a single-value action range makes the KKT modules' training diverge
         file = resolve_path(to_absolute_path(cfg.path)) if cfg.path is not None else default_path(sim)
         # ``default`` stands for the network's own default (the feeder preset off ANM6-Easy), with the command
         # line's changes to the composed preset kept

@@ -120,9 +120,15 @@ def test_the_target_entropy_is_per_dimension_of_the_box_scaled_to_unit_half_widt
     assert -1.0 * half.numel() > uniform  # the former target: out of reach
     target = box_target_entropy(cigre, default)
     assert target < uniform and math.isclose(target - half.log().sum().item(), default * half.numel())
-    empty = Bounded(low=torch.tensor([0.0, 1.0]), high=torch.tensor([2.0, 1.0]), shape=(2,))
-    with pytest.raises(ValueError, match=r"dimension\(s\) \[1\] have half-width \[0.0\]"):
+    # a single-value dimension is written at its value by the actor, not sampled: no entropy of its own
+    flat = Bounded(low=torch.tensor([0.0, 1.0]), high=torch.tensor([2.0, 1.0]), shape=(2,))
+    assert box_target_entropy(flat, default) == default
+    empty = Bounded(low=torch.tensor([1.0, 1.0]), high=torch.tensor([1.0, 1.0]), shape=(2,))
+    with pytest.raises(ValueError, match=r"dimension\(s\) \[0, 1\] have half-width \[0.0, 0.0\]"):
         box_target_entropy(empty, default)
+    inverted = Bounded(low=torch.tensor([0.0, 1.0]), high=torch.tensor([2.0, 0.5]), shape=(2,))
+    with pytest.raises(ValueError, match=r"dimension\(s\) \[1\] have half-width \[-0.25\]"):
+        box_target_entropy(inverted, default)
 
 
 def test_the_actor_and_temperature_wait_for_optim_actor_delay_frames():

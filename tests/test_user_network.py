@@ -234,22 +234,86 @@ def test_training_refuses_a_network_with_nothing_to_control(tmp_path):
         assert "Traceback" not in proc.stderr and not (tmp_path / recipe / "checkpoints").exists()
 
 
-def test_training_refuses_an_action_whose_range_is_a_single_value(tmp_path):
-    """A valid network whose generator has no reactive range (QMAX = QMIN = 0): the policies' TanhNormal needs
-    low < high, so the training recipes stop with one line naming the device, not TorchRL's traceback."""
+def _flat_q_network(tmp_path) -> tuple[Path, list[int]]:
+    """:func:`feeder` with no reactive range on its PV unit (QMAX = QMIN = 0, capability corners too) nor on its
+    storage unit (a battery without reactive power), saved as a user's file; and the flat entries' positions in the
+    action (generators' P, Q, then storage P, Q: Q of the PV unit and Q of the storage unit)."""
     net, load_p, gen_p_max = feeder()
-    gen = next(i for i, d in enumerate(net["device"]) if d[2] not in (0, -1, 3))
-    device = list(net["device"][gen])
-    device[6] = device[7] = device[10] = device[11] = 0.0  # QMAX, QMIN, Q+, Q-
-    net = {**net, "device": [device if i == gen else d for i, d in enumerate(net["device"])]}
-    N.save_network(tmp_path / "flat_q.npz", net, load_p, gen_p_max)
+    devices = []
+    for d in net["device"]:
+        d = list(d)
+        if d[2] == 2:  # the PV unit: QMAX, QMIN, Q+, Q-
+            d[6] = d[7] = d[10] = d[11] = 0.0
+        if d[2] == 3:  # the storage unit: QMAX, QMIN
+            d[6] = d[7] = 0.0
+        devices.append(d)
+    return N.save_network(tmp_path / "flat_q.npz", {**net, "device": devices}, load_p, gen_p_max), [1, 3]
+
+
+def test_every_algorithm_trains_where_an_action_range_is_a_single_value(tmp_path):
+    """A storage unit without reactive power and a PV unit without reactive range (QMAX = QMIN = 0): gym-anm accepts
+    them and asserts the action lies in its box [0, 0] there. The training recipes refused them (TorchRL's TanhNormal
+    needs low < high); now each algorithm's actor writes those entries at their value and samples the others
+    (``PartlyFixedTanhNormal``), its log-probability that of the sampled entries: PPO, SAC and SHAC train with finite
+    losses, every collected action has the flat entries at 0, and a checkpoint scores through evaluate.py."""
+    import torch
+
+    from anm_torchrl.training.algorithms import get_algorithm
+    from anm_torchrl.training.network_defaults import compose_recipe_config
+    from tests.test_recipes_ppo import TINY
+    from tests.test_recipes_sac import TINY_SAC
+    from tests.test_recipes_shac import TINY_SHAC
+
+    file, flat = _flat_q_network(tmp_path)
+    free = [i for i in range(4) if i not in flat]
+    for name, config, tiny in (("ppo", "config", TINY), ("sac", "sac", [*TINY_SAC, "collector.init_random_frames=0"]),
+                               ("shac", "shac", TINY_SHAC)):
+        cfg = compose_recipe_config([*tiny, f"network={file}"], config)[0]
+        torch.manual_seed(0)
+        algo = get_algorithm(name)(cfg, device=torch.device("cpu"), seed=0, budget=64, reward_scale=1.0, resume=None)
+        try:
+            frames, metrics = algo.iterate(64)
+            td = algo.actor(algo.collector.env.reset() if name != "shac" else _reset(file))
+        finally:
+            algo.close()
+        losses = {k: float(v) for k, v in metrics.items() if k.startswith("train/loss")}
+        assert frames > 0 and losses and all(math.isfinite(v) for v in losses.values()), (name, metrics)
+        action, log_prob = td["action"], td["action_log_prob"]
+        assert (action[..., flat] == 0).all() and torch.isfinite(log_prob).all(), (name, action)
+        assert action[..., free].std(0).gt(0).all(), (name, action)  # the other entries are sampled
     env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0"}
-    # train_pinn.py too: its KKT modules' training diverged on the flat range (a traceback advising a lower lr)
-    for recipe, extra in (("ppo.py", []), ("sac.py", []), ("train_pinn.py", ["pinn_preset=smoke", "path=pinn"])):
-        proc = subprocess.run([sys.executable, str(ROOT / "recipes" / recipe), "network=flat_q.npz", *extra,
+    run = subprocess.run([sys.executable, str(ROOT / "recipes" / "ppo.py"), "network=flat_q.npz", *TINY,
+                          f"hydra.run.dir={tmp_path / 'run'}"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    scored = subprocess.run([sys.executable, str(ROOT / "recipes" / "evaluate.py"),
+                             f"checkpoint={tmp_path / 'run' / 'checkpoints' / 'best.pt'}", "output=null"],
+                            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert scored.returncode == 0, scored.stderr[-2000:]
+    line = json.loads(scored.stdout.strip().splitlines()[0])
+    assert line["discounted_return"] == pytest.approx(summary["test"]["best"]["discounted_return"], rel=1e-12)
+
+
+def _reset(file):
+    """A reset TensorDict of 8 grids of the network in ``file`` (the true env), for the actor to act on."""
+    from anm_torchrl.training.factory import make_true_env
+
+    return make_true_env(8, "cpu", seed=0, network=str(file)).reset()
+
+
+def test_the_pinn_refuses_an_action_whose_range_is_a_single_value(tmp_path):
+    """Its KKT modules' training diverged on a single-value range (a traceback advising a lower lr): the PINN's
+    recipes stop with one line naming the entries and what takes such a network, before training anything."""
+    file, _ = _flat_q_network(tmp_path)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "HYDRA_FULL_ERROR": "0", "ANM_TORCHRL_HOME": str(tmp_path / "h")}
+    for recipe, extra in (("ppo.py", ["surrogate=pinn"]), ("shac.py", ["model=pinn"]),
+                          ("train_pinn.py", ["pinn_preset=smoke", "path=pinn"])):
+        proc = subprocess.run([sys.executable, str(ROOT / "recipes" / recipe), f"network={file.name}", *extra,
                                f"hydra.run.dir={tmp_path / recipe}"], cwd=tmp_path, env=env, capture_output=True,
                               text=True, timeout=120)
-        message = f"the action range of Q of device {int(device[0])} (0 MW/MVAr) is a single value"
+        message = ("the PINN surrogate does not train on a network where the action range of Q of device 3 "
+                   "(0 MW/MVAr), Q of device 4 (0 MW/MVAr) is a single value")
         assert proc.returncode != 0 and message in proc.stderr, proc.stderr[-2000:]
         assert "Traceback" not in proc.stderr and not (tmp_path / recipe / "checkpoints").exists()
 

@@ -108,11 +108,18 @@ def unbounded_actions(sim: GridSimulator) -> list[str]:
     return _box_faults(sim)[0]
 
 
+def single_value_actions(sim: GridSimulator) -> list[str]:
+    """The action entries whose range is a single value (QMIN = QMAX, PMIN = PMAX), each as
+    ``"<label> (value MW/MVAr)"``: a trained policy writes them at that value and chooses the others."""
+    return _box_faults(sim)[1]
+
+
 def check_controllable(network: str | NetworkCase) -> GridSimulator:
     """Refuse a network a policy cannot be trained for, before a controller is trained for it: nothing to control
-    (the slack and loads only), an action whose range is a single value (e.g. QMAX = QMIN: every trained policy's
-    bounded ``TanhNormal`` needs low < high, and TorchRL stops with a traceback otherwise) or is unbounded (an unset
-    PMAX: the ``TanhNormal`` would give NaN actions).
+    (the slack and loads only, or every action's range a single value), or an action whose range is unbounded (an
+    unset PMAX: the ``TanhNormal`` would give NaN actions). An action whose range is a single value (a storage unit
+    without reactive power, QMIN = QMAX) is written at that value by every trained policy
+    (:class:`~anm_torchrl.training.distributions.PartlyFixedTanhNormal`).
 
     Returns:
         The network's simulator (built for the checks; a caller needs not build it again).
@@ -129,9 +136,9 @@ def check_controllable(network: str | NetworkCase) -> GridSimulator:
     if unbounded:  # a TanhNormal between infinite bounds gives NaN actions
         raise ValueError(f"network {name!r}: the action range of {', '.join(unbounded)} is unbounded; a trained "
                          "policy acts in a bounded box (give the device finite PMIN/PMAX and QMIN/QMAX)")
-    if flat:
-        raise ValueError(f"network {name!r}: the action range of {', '.join(flat)} is a single value; a trained "
-                         "policy needs low < high on every action (give the device a range, or make it a load)")
+    if len(flat) == sim.action_dim:
+        raise ValueError(f"network {name!r}: the action range of every controllable device is a single value "
+                         f"({', '.join(flat)}): a policy would have no action to choose")
     return sim
 
 

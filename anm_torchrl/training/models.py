@@ -306,27 +306,40 @@ def make_actor(env: EnvBase, cells=(64, 64), activation: str = "tanh", max_obs_s
     init_action = _initial_action(env, init_action)
     obs_spec, act_spec, normalizer = _specs(env, obs_key, activation, max_obs_scale, obs_clip, obs_stats,
                                             time_features, int(forecast_steps))
-    obs_dim, act_dim = normalizer.out_features, int(act_spec.shape[-1])
+    low, high = act_spec.space.low.float(), act_spec.space.high.float()
+    # entries whose range is a single value (QMIN = QMAX, PMIN = PMAX) are written at it, not sampled
+    free = (high > low).nonzero().flatten()
+    if free.numel() == 0:
+        raise ValueError("every action entry's range is a single value: a policy would have nothing to choose")
+    partly_fixed = free.numel() < low.numel()
+    obs_dim, act_dim = normalizer.out_features, int(free.numel())
     mlp = _mlp(obs_dim, act_dim * (2 if state_dependent_scale else 1), cells, activation)
     value_mlp = None if critic_cells is None else _mlp(obs_dim, 1, critic_cells, activation)
     _orthogonal_init(mlp, 0.01)  # a small last actor layer: the untrained mean is (almost) its bias
     if value_mlp is not None:
         _orthogonal_init(value_mlp, 1.0)
-    low, high = act_spec.space.low.float(), act_spec.space.high.float()
     last = [m for m in mlp.modules() if isinstance(m, nn.Linear)][-1]
     with torch.no_grad():
         if init_action is not None:
-            last.bias[:act_dim].copy_(initial_mean_bias(init_action, low, high, init_action_clip))
+            last.bias[:act_dim].copy_(initial_mean_bias(torch.as_tensor(init_action)[free], low[free], high[free],
+                                                        init_action_clip))
         if state_dependent_scale:  # softplus(bias) = exp(init_log_std) at the untrained policy
             last.bias[act_dim:].fill_(float(torch.log(torch.expm1(torch.tensor(float(init_log_std)).exp()))))
     head = (NormalParamExtractor(scale_mapping="softplus", scale_lb=1e-4) if state_dependent_scale
             else AddStateIndependentNormalScale(act_dim, scale_lb=1e-4, init_value=float(init_log_std)))
+    if partly_fixed:
+        from anm_torchrl.training.distributions import PartlyFixedTanhNormal
+
+        dist_class, dist_kwargs = PartlyFixedTanhNormal, {"low": low[free], "high": high[free], "free": free,
+                                                          "fixed": low, "tanh_loc": False}
+    else:  # every entry chosen: TorchRL's TanhNormal itself
+        dist_class, dist_kwargs = TanhNormal, {"low": low, "high": high, "tanh_loc": False}
     actor = ProbabilisticActor(
         TensorDictModule(nn.Sequential(normalizer, mlp, head), in_keys=[obs_key], out_keys=["loc", "scale"]),
         in_keys=["loc", "scale"],
         spec=act_spec,
-        distribution_class=TanhNormal,
-        distribution_kwargs={"low": low, "high": high, "tanh_loc": False},
+        distribution_class=dist_class,
+        distribution_kwargs=dist_kwargs,
         return_log_prob=True,
         default_interaction_type=ExplorationType.RANDOM,
     )

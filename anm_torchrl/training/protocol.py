@@ -491,6 +491,10 @@ def run_recipe(cfg: DictConfig) -> dict:
 
         sim = check_controllable(cfg.network)
         surrogate = OmegaConf.to_container(cfg.surrogate, resolve=True)
+        if surrogate["name"] == "pinn" or cfg.model.get("dynamics") == "pinn":  # before it is trained on first use
+            from anm_torchrl.surrogates.pinn.model import check_pinn_network
+
+            check_pinn_network(sim)
         if surrogate.get("path") and surrogate["name"] not in TRUE_SIMULATORS:
             # a given model of another network, kind or a damaged file: one line now, not a traceback in train()
             from anm_torchrl.training.factory import load_surrogate_in_home, surrogate_options

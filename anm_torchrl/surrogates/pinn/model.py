@@ -10,12 +10,29 @@ from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
 from anm_torchrl.surrogates.pinn.presets import REFINE_AUTO, PINNTrainConfig
 
 
+def check_pinn_network(sim: GridSimulator) -> None:
+    """Refuse a network the PINN cannot be trained for: an action entry whose range is a single value (a storage
+    unit without reactive power, QMIN = QMAX; a generator with PMIN = PMAX), on which its KKT modules' training
+    diverges. The true simulator and SHAC through the exact model take such a network.
+
+    Raises:
+        ValueError: naming the entries and what to use instead."""
+    from anm_torchrl.networks.resolve import single_value_actions
+
+    flat = single_value_actions(sim)
+    if flat:
+        raise ValueError(f"the PINN surrogate does not train on a network where the action range of "
+                         f"{', '.join(flat)} is a single value (its KKT modules diverge there); train on the true "
+                         "simulator (surrogate=none) or through the exact model (shac.py model.dynamics=exact)")
+
+
 def build_modules(cfg: PINNTrainConfig, sim: GridSimulator, refine_steps: int | None = None) -> dict[str, nn.Module]:
     """Untrained ``generator`` (:class:`GeneratorKKT`), ``storage`` (:class:`StorageKKT`) and
     ``power_balance`` (:class:`PowerBalanceNet`) networks for ``cfg``, float32, on the simulator's device.
 
     ``refine_steps``: the power balance's refinement steps (None: the config's; its ``auto`` builds 0 until
     :func:`.refine.choose_refine_steps` sets them after training)."""
+    check_pinn_network(sim)
     g, s, p = cfg.generator, cfg.storage, cfg.power_balance
     if refine_steps is None:
         refine_steps = 0 if p.refine_steps == REFINE_AUTO else p.refine_steps

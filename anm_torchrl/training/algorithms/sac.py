@@ -36,20 +36,24 @@ def box_target_entropy(action_spec, per_dim: float) -> float:
     action over the box has, and the temperature grows without bound). Summing ``per_dim + log h`` over the
     dimensions asks for the same noise relative to each box.
 
+    A dimension whose range is a single value (half-width 0) is left out: the actor writes it at that value and
+    samples nothing there (:class:`~anm_torchrl.training.distributions.PartlyFixedTanhNormal`).
+
     Args:
-        action_spec: the env's ``Bounded`` action spec, shape (..., A), every half-width finite and > 0.
+        action_spec: the env's ``Bounded`` action spec, shape (..., A), every half-width finite and >= 0, one > 0.
         per_dim: target nats per dimension of the box scaled to [-1, 1] (a uniform action there has log 2).
 
     Raises:
-        ValueError: a dimension's box is empty or unbounded (no entropy target exists for it).
+        ValueError: a dimension's box is inverted or unbounded, or none has a range (no entropy target exists).
     """
     low, high = action_spec.space.low, action_spec.space.high
     half = ((high - low).double() / 2).reshape(-1, action_spec.shape[-1])[0]
-    bad = [i for i, h in enumerate(half.tolist()) if not (math.isfinite(h) and h > 0)]
-    if bad:
-        raise ValueError(f"SAC's target entropy needs every action dimension's box to be finite and non-empty; "
-                         f"dimension(s) {bad} have half-width {[half[i].item() for i in bad]}")
-    return float((per_dim + half.log()).sum())
+    bad = [i for i, h in enumerate(half.tolist()) if not (math.isfinite(h) and h >= 0)]
+    if bad or not (half > 0).any():
+        raise ValueError(f"SAC's target entropy needs every action dimension's box to be finite, and one to have a "
+                         f"range; dimension(s) {bad or list(range(half.numel()))} have half-width "
+                         f"{[half[i].item() for i in (bad or range(half.numel()))]}")
+    return float((per_dim + half[half > 0].log()).sum())
 
 
 class SAC(Algorithm):
