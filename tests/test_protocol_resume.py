@@ -137,3 +137,100 @@ def test_best_pt_ends_its_curve_with_its_own_point(tmp_path):
     best_pt = load_checkpoint(run / "checkpoints" / "best.pt")
     assert best_pt["curve"][-1]["update"] == best_pt["update"] == best_pt["best_eval"]["update"]
     assert json.loads((run / "summary.json").read_text())["curve"][:len(best_pt["curve"])] == best_pt["curve"]
+
+
+@pytest.fixture
+def late_background(monkeypatch):
+    """A background pass whose result comes at the next iteration, not in the one that submitted it."""
+    results, submit = validation_module.BackgroundValidation.results, validation_module.BackgroundValidation.submit
+    state = {"fresh": False}
+
+    def late_submit(self, weights, tag):
+        state["fresh"] = True
+        return submit(self, weights, tag)
+
+    def late_results(self, wait: bool = False):
+        fresh, state["fresh"] = state["fresh"], False
+        return [] if not wait and fresh else results(self, wait=True)
+
+    monkeypatch.setattr(validation_module.BackgroundValidation, "submit", late_submit)
+    monkeypatch.setattr(validation_module.BackgroundValidation, "results", late_results)
+
+
+def test_a_pending_pass_best_pt_already_holds_counts_no_miss(tmp_path, crash_at, late_background):
+    """A review's finding: last.pt saved with update 2's pass pending, its result (a new best) written to best.pt,
+    then a crash. The resume took best.pt's record and re-ran the pass, which counted as a miss: with patience 1 the
+    resumed run stopped at once."""
+    torch.set_num_threads(1)
+    run, common = tmp_path / "run", ["collector.total_frames=256", "eval.interval=2", "checkpoint.interval=2"]
+    crash_at(4)
+    with pytest.raises(Crash):
+        train(_cfg(*common, "eval.background=true"), run)
+    last = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert [tag["update"] for tag in last["pending"]] == [2] and load_checkpoint(
+        run / "checkpoints" / "best.pt")["best_eval"]["update"] == 2
+    resumed = train(_cfg(*common, "eval.patience=1", f"checkpoint.resume={run / 'checkpoints' / 'last.pt'}"),
+                    tmp_path / "resumed")
+    assert resumed["frames"] > last["frames"]  # the pass is the best so far: patience 1 is not used up
+
+
+def test_ctrl_c_while_a_resumed_run_validates_its_pending_pass(tmp_path, crash_at, slow_background, monkeypatch):
+    """A review's finding: the pending pass ran before the protocol's try block, so a Ctrl-C there wrote no
+    summary.json and no last.pt and left the validation process running. Now the run ends as after any Ctrl-C,
+    and its last.pt still holds the pass it did not finish."""
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    crash_at(6)
+    with pytest.raises(Crash):
+        train(_cfg("collector.total_frames=256", "eval.background=true"), run)
+    evaluate, calls = validation_module.evaluate, {"n": 0}
+
+    def interrupted_once(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise KeyboardInterrupt
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(validation_module, "evaluate", interrupted_once)
+    processes, init = [], validation_module.BackgroundValidation.__init__
+
+    def tracked(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        processes.append(self)
+
+    monkeypatch.setattr(validation_module.BackgroundValidation, "__init__", tracked)
+    with pytest.raises(KeyboardInterrupt):
+        train(_cfg("collector.total_frames=256", "eval.background=true",
+                   f"checkpoint.resume={run / 'checkpoints' / 'last.pt'}"), tmp_path / "resumed")
+    assert json.loads((tmp_path / "resumed" / "summary.json").read_text())["interrupted"]
+    assert [t["update"] for t in load_checkpoint(tmp_path / "resumed" / "checkpoints" / "last.pt")["pending"]] == [5]
+    assert processes and all(p.proc.poll() is not None for p in processes)
+
+
+def test_a_second_ctrl_c_keeps_the_pending_pass_in_last_pt(tmp_path, monkeypatch):
+    """A review's finding: a second Ctrl-C while the run waited for the queued pass left it unrecorded, and the
+    final last.pt (written without it) dropped the pass the periodic one held."""
+    torch.set_num_threads(1)
+    results, state = validation_module.BackgroundValidation.results, {"interrupted": False}
+
+    def impatient(self, wait: bool = False):
+        if state["interrupted"] and wait:
+            raise KeyboardInterrupt  # the second Ctrl-C
+        return results(self, wait=True) if wait else []
+
+    monkeypatch.setattr(validation_module.BackgroundValidation, "results", impatient)
+    cls, calls = get_algorithm("ppo"), {"n": 0}
+    iterate = cls.iterate
+
+    def first_ctrl_c(self, remaining):
+        calls["n"] += 1
+        if calls["n"] == 6:
+            state["interrupted"] = True
+            raise KeyboardInterrupt
+        return iterate(self, remaining)
+
+    monkeypatch.setattr(cls, "iterate", first_ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        train(_cfg("collector.total_frames=256", "eval.background=true"), tmp_path / "run")
+    last = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")
+    assert [t["update"] for t in last["pending"]] == [5] and last["curve"][-1]["update"] == 4

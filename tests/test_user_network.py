@@ -295,6 +295,33 @@ def test_every_algorithm_trains_where_an_action_range_is_a_single_value(tmp_path
     assert line["discounted_return"] == pytest.approx(summary["test"]["best"]["discounted_return"], rel=1e-12)
 
 
+def test_the_partly_fixed_distribution_scores_its_draw_as_tanh_normal_does_where_tanh_saturates():
+    """A review's finding: SACLoss scores a draw through ``rsample_and_log_prob`` where a distribution has one
+    (TanhNormal scores the pre-tanh value it drew); without it the fallback inverted the rounded action, wrong once
+    the pre-tanh mean passes ~8 (26.77 against 20.13 at 8, +34.77 against -32.43 at 10). Both paths now give
+    TanhNormal's own score of the chosen entries, and the fixed entries sit at their value."""
+    import torch
+    from torchrl.modules import TanhNormal
+    from torchrl.objectives.sac import compute_rsample_log_prob
+
+    from anm_torchrl.training.distributions import PartlyFixedTanhNormal
+
+    low, high = torch.tensor([0.0, -2.0]), torch.tensor([5.0, 2.0])
+    free, fixed = torch.tensor([0, 2]), torch.tensor([0.0, 0.7, 0.0, -0.3])
+    for mean in (3.0, 8.0, 10.0):
+        loc, scale = torch.full((16, 2), mean), torch.full((16, 2), 0.1)
+        dist = PartlyFixedTanhNormal(loc, scale, low, high, free, fixed)
+        torch.manual_seed(0)
+        action, log_prob = compute_rsample_log_prob(dist)  # what SACLoss computes
+        torch.manual_seed(0)
+        chosen, expected = TanhNormal(loc, scale, low=low, high=high, tanh_loc=False).rsample_and_log_prob()
+        assert torch.equal(action[:, free], chosen) and torch.equal(log_prob, expected), mean
+        assert (action[:, [1, 3]] == torch.tensor([0.7, -0.3])).all()
+        torch.manual_seed(0)
+        sampled, sampled_lp = dist.sample_and_log_prob()
+        assert torch.equal(sampled[:, free], chosen.detach()) and torch.allclose(sampled_lp, expected)
+
+
 def _reset(file):
     """A reset TensorDict of 8 grids of the network in ``file`` (the true env), for the actor to act on."""
     from anm_torchrl.training.factory import make_true_env

@@ -47,6 +47,16 @@ class PartlyFixedTanhNormal(D.Distribution):
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
         return self.inner.log_prob(value.index_select(-1, self.free))
 
+    # TorchRL's losses (SACLoss) score a draw through these where a distribution has them: TanhNormal scores the
+    # pre-tanh value it drew, exact where tanh saturates and log_prob's inverse of the rounded action is not
+    def rsample_and_log_prob(self, sample_shape=torch.Size()) -> tuple[torch.Tensor, torch.Tensor]:
+        chosen, log_prob = self.inner.rsample_and_log_prob(sample_shape)
+        return self.full(chosen), log_prob
+
+    def sample_and_log_prob(self, sample_shape=torch.Size()) -> tuple[torch.Tensor, torch.Tensor]:
+        chosen, log_prob = self.inner.sample_and_log_prob(sample_shape)
+        return self.full(chosen), log_prob
+
     @property
     def deterministic_sample(self) -> torch.Tensor:
         return self.full(self.inner.deterministic_sample)

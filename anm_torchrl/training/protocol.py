@@ -87,6 +87,8 @@ def _with_newest_best(resume: dict, best_path: Path, resume_path: Path) -> dict:
     own = resume.get("best_eval")
     if on_disk is None or (own is not None and own["discounted_return"] >= on_disk["discounted_return"]):
         return resume
+    if on_disk["update"] in {tag["update"] for tag in resume.get("pending", [])}:
+        return resume  # the pass the resumed run validates first: it records that best again, counting no miss
     log.warning("%s holds a better validation result (%.4g at update %d) than %s (%s): kept as the best so far",
                 best_path, on_disk["discounted_return"], on_disk["update"], resume_path,
                 "none" if own is None else f"{own['discounted_return']:.4g}")
@@ -282,22 +284,29 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
         for snapshot, result in validation.results(wait=wait):
             record(snapshot, result)
 
-    def last_payload() -> dict:
-        """last.pt's content: the run now, and the validation passes still running (at most one, in the second
-        process): a run resumed from it runs them first, so no validation point is lost to a crash."""
-        return {**checkpoint_payload(), "pending": [dict(tag) for tag in validation.pending_tags]}
+    # passes last.pt held as still running when it was saved (a crash came before their results), run first
+    unrecorded: list[dict] = list(resume.get("pending", [])) if resume else []
 
-    # a pass last.pt holds as still running when it was saved (a crash came before its result): run it now
-    for snapshot in resume.get("pending", []) if resume else []:
-        policy = copy.deepcopy(actor)
-        policy.load_state_dict(snapshot["payload"]["actor"])
-        record(snapshot, evaluate(policy, val_states, eval_env, int(cfg.eval.max_steps), float(cfg.eval.gamma)))
-    if resume and patience is not None and evals_since_best >= int(patience) and frames < total_frames:
-        stopped_early = True  # a run resumed after its early stop: no batch more that nothing would validate
-        log.warning("checkpoint stopped early (%d evaluations without improvement, eval.patience=%s); nothing to "
-                    "train (raise eval.patience to train on)", evals_since_best, patience)
+    def last_payload() -> dict:
+        """last.pt's content: the run now, and the validation passes not recorded yet (at most one in the second
+        process, and those of the checkpoint resumed from): a run resumed from it runs them first, so no validation
+        point is lost to a crash."""
+        return {**checkpoint_payload(), "pending": [*unrecorded, *(dict(tag) for tag in validation.pending_tags)]}
+
     try:
         with graceful():  # a signal here stops the run after its iteration (training.signals)
+            while unrecorded:
+                policy = copy.deepcopy(actor)
+                policy.load_state_dict(unrecorded[0]["payload"]["actor"])
+                record(unrecorded[0], evaluate(policy, val_states, eval_env, int(cfg.eval.max_steps),
+                                               float(cfg.eval.gamma)))
+                unrecorded.pop(0)
+            if stop_requested():
+                raise KeyboardInterrupt
+            if resume and patience is not None and evals_since_best >= int(patience) and frames < total_frames:
+                stopped_early = True  # a run resumed after its early stop: no batch more that nothing would validate
+                log.warning("checkpoint stopped early (%d evaluations without improvement, eval.patience=%s); "
+                            "nothing to train (raise eval.patience to train on)", evals_since_best, patience)
             while frames < total_frames and not stopped_early:
                 n_frames, train_metrics = algo.iterate(total_frames - frames)
                 frames += n_frames  # counted once the update is done: an interrupted update is not a trained batch
@@ -356,7 +365,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
 
     pbar.close()
     algo.close(interrupted=interrupted)
-    save_checkpoint(ckpt_dir / "last.pt", checkpoint_payload())
+    # with the passes an interruption left unrecorded (a second Ctrl-C while waiting for one), as last.pt held them
+    save_checkpoint(ckpt_dir / "last.pt", last_payload())
 
     # ---- test states: best.pt and last.pt, once -----------------------------------------------------------------
     test = {"seed": int(cfg.eval.test_seed), "num_episodes": int(cfg.eval.test_episodes),
