@@ -25,7 +25,10 @@ def make_dataset_config(*overrides: str):
     ("generative.chunk=0", "generative.chunk must be an integer >= 1, got 0"),
     ("agent.num_envs=0", "agent.num_envs must be an integer >= 1, got 0"),
     ("agent.max_episode_steps=0", "agent.max_episode_steps must be an integer >= 1, got 0"),
-    ("fractions=[0.5,0.5,0.5]", "fractions must be three non-negative numbers .* summing to 1"),
+    ("fractions=[0.5,0.5,0.5]", "fractions must be three positive numbers .* summing to 1"),
+    # a review's finding: an empty validation split kept a DNN's first epoch, its metrics null
+    ("fractions=[0.9,0.0,0.1]", r"fractions must be three positive numbers .* \(each split needs rows\)"),
+    ("agent.num_envs=3 size=4", r"size=4 rows over agent.num_envs=3 envs fill 2 envs \(2 steps each\)"),
     ("size=0", "size must be an integer >= 1, got 0"),
     ("threads=0", "threads must be an integer >= 1, got 0"),
 ])
@@ -38,7 +41,7 @@ def test_make_dataset_options_checked_up_front(override, message, tmp_path, monk
     finally:
         sys.path.remove(str(ROOT / "recipes"))
     dataset = "agent" if override.startswith("agent.") else "generative"
-    cfg = make_dataset_config(override, f"dataset={dataset}", f"out={tmp_path / 'ds'}", "progress=false")
+    cfg = make_dataset_config(*override.split(), f"dataset={dataset}", f"out={tmp_path / 'ds'}", "progress=false")
     import anm_torchrl.networks as networks
 
     monkeypatch.setattr(networks, "simulator", lambda *a, **k: pytest.fail("heavy work started before the check"))
@@ -453,13 +456,14 @@ def test_make_env_arguments_checked(kwargs, message):
         make_env(**kwargs)
 
 
-@pytest.mark.parametrize("fractions", [(0.5, 0.5, 0.5), (0.8, 0.2), (1.2, -0.1, -0.1), (True, 0, 0), 5])
+@pytest.mark.parametrize("fractions", [(0.5, 0.5, 0.5), (0.8, 0.2), (1.2, -0.1, -0.1), (True, 0, 0), 5,
+                                       (0.9, 0.0, 0.1), (1.0, 0.0, 0.0)])
 def test_split_fractions_are_never_renormalised(fractions):
     """Bug 5: the library's split refuses fractions that do not sum to 1 (before: [0.5, 0.5, 0.5] silently
-    became thirds); the recipe's check is this same function."""
+    became thirds), or that leave a split empty; the recipe's check is this same function."""
     from anm_torchrl.data.storage import split_codes
 
-    with pytest.raises(ValueError, match="fractions must be three non-negative numbers .* summing to 1"):
+    with pytest.raises(ValueError, match="fractions must be three positive numbers .* summing to 1"):
         split_codes(10, fractions)
     assert split_codes(10, [0.8, 0.1, 0.1]).bincount().tolist() == [8, 1, 1]
 
@@ -588,3 +592,19 @@ def test_set_state_honours_a_partial_reset_mask():
     out = env.reset(TensorDict({"state": given, "_reset": torch.tensor([[False], [True]])}, [2]), set_state=True)
     torch.testing.assert_close(out["state"][1], given[1])
     assert not bool(out["terminated"][1])
+
+
+def test_every_split_holds_a_unit_and_the_generative_counts_are_the_points_used():
+    """A review's findings: rounding could leave the training split empty (a tiny train fraction), and the
+    generative dataset's metadata counted the whole Sobol chunk drawn (8,192 points and their invalid states for
+    2,000 rows) instead of the points the rows came from; a dataset of valid points only has
+    points_drawn = size + invalid_states_skipped."""
+    from anm_torchrl.data.generative import generate_generative
+    from anm_torchrl.data.storage import split_codes
+    from anm_torchrl.networks import simulator
+
+    codes = split_codes(4, (0.0002, 0.4999, 0.4999), torch.Generator().manual_seed(0))
+    assert sorted(codes.tolist()) == [0, 1, 2, 2] or sorted(codes.tolist()) == [0, 1, 1, 2]
+    _, meta = generate_generative(200, 0, sim=simulator("anm6_easy"), chunk=4096, progress=False)
+    gen = meta["generator"]
+    assert gen["points_drawn"] == 200 + gen["invalid_states_skipped"] < 4096

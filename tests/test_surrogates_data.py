@@ -513,3 +513,25 @@ def test_xgboost_trains_and_predicts_on_the_asked_thread_count(monkeypatch):
             _xgb.predict(booster, x, n_jobs=0)
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_regressor_without_clipping_keeps_the_soc_in_its_bounds(data):
+    """A review's finding: with ``clip=False`` (a documented train_surrogate option) the predicted next SoC was not
+    clamped, and the surrogate env's next step refused the state it had produced (SoC below SOC_MIN). The SoC is now
+    always kept in [SOC_MIN, SOC_MAX], as the simulator keeps it; the other entries stay unclipped."""
+    from anm_torchrl.envs import SurrogateEnv
+
+    tr, va = split(data["generative"], "train"), split(data["generative"], "val")
+    sur = fit_regressor("lr", tr, va, clip=False)
+    sur.classifier = TerminalClassifier(num_boost_round=5).fit(tr["state"], tr["action"], tr["terminated"])
+    soc = sur.soc_columns
+    other = next(k for k in range(len(sur.y_high) - 1) if k not in soc and torch.isfinite(sur.y_high[k]))
+    sur.y_mean[soc] -= 1e3  # every prediction far below SOC_MIN
+    sur.y_mean[other] += 1e3  # and a bounded entry far above its bound, which clip=False leaves
+    state, action = _random_batch(16)
+    y = sur.predict_targets(state, action)
+    assert torch.equal(y[:, soc], sur.y_low[soc].expand(16, -1)) and (y[:, other] > sur.y_high[other]).all()
+    sur.y_mean[other] -= 1e3
+    env = SurrogateEnv(sur, num_envs=16, seed=0, sim=sur.sim)
+    td = env.rollout(3, break_when_any_done=False)  # the second step validated the first's next state
+    assert td.batch_size == torch.Size([16, 3])

@@ -23,7 +23,7 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 from anm_torchrl.networks.resolve import is_anm6
-from anm_torchrl.data.options import WAYPOINT_DISTS, check_split_units
+from anm_torchrl.data.options import WAYPOINT_DISTS, check_agent_split, check_split_units
 from anm_torchrl.data.storage import DEFAULT_FRACTIONS, SPLITS, simulator_settings, split_codes, transition_rows
 from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.grid import reset as grid_reset
@@ -134,6 +134,7 @@ def generate_agent(size: int, seed: int = 0, *, sim: GridSimulator, num_envs: in
     # the split is by env (and size caps the envs): fewer than 3 leaves the validation or test split empty
     check_split_units(num_envs, "num_envs")
     check_split_units(size, "size")
+    check_agent_split(size, num_envs)
     num_envs = int(min(num_envs, size))
     gen = torch.Generator(device=sim.net.dev.device).manual_seed(int(seed))
     a_low, a_high = sim.action_bounds()

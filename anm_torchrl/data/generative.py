@@ -70,7 +70,6 @@ def generate_generative(size: int, seed: int = 0, *, sim: GridSimulator, chunk: 
     bar = tqdm(total=size, desc="generative", unit="rows", disable=not progress)
     while have < size:
         u = engine.draw(chunk, dtype=torch.float64).to(dev.device)
-        drawn += chunk
         t = torch.clamp((u[:, 0] * sim.n_time).floor().long(), max=sim.n_time - 1)
         soc = soc_low + u[:, 1:1 + nd] * (soc_high - soc_low)
         setpoints = a_low + u[:, 1 + nd:1 + nd + na] * (a_high - a_low)
@@ -79,7 +78,10 @@ def generate_generative(size: int, seed: int = 0, *, sim: GridSimulator, chunk: 
         tr0.soc = soc / b
         state = sim.build_state(tr0, t)
         ok = tr0.converged
-        skipped += int((~ok).sum())
+        # the points this chunk gives the dataset: up to its (size - have)-th valid one (the rest are never used)
+        valid = ok.nonzero().flatten()
+        used = int(valid[size - have - 1]) + 1 if valid.numel() >= size - have else chunk
+        drawn, skipped = drawn + used, skipped + int((~ok[:used]).sum())
         state, action = state[ok][: size - have], action[ok][: size - have]
         next_state, tr = sim.step(state, action)
         parts.append(transition_rows(sim, state, action, next_state, tr))

@@ -21,16 +21,28 @@ def check_split_units(value, name: str) -> None:
                          f"test splits), got {value!r}")
 
 
+def check_agent_split(size: int, num_envs: int) -> None:
+    """The agent dataset splits by env: ``size`` rows over ``num_envs`` envs take ceil(size / num_envs) steps each
+    and fill ceil(size / steps) envs, which must be at least :data:`MIN_SPLIT_UNITS` (``size=4`` over 3 envs fills
+    2). A ``ValueError`` naming both otherwise."""
+    steps = -(-int(size) // int(num_envs))
+    filled = -(-int(size) // steps)
+    if filled < MIN_SPLIT_UNITS:
+        raise ValueError(f"size={size} rows over agent.num_envs={num_envs} envs fill {filled} envs ({steps} steps "
+                         f"each); the agent dataset splits by env and needs >= {MIN_SPLIT_UNITS}: raise size")
+
+
 def check_fractions(fractions, name: str = "fractions") -> tuple[float, float, float]:
-    """``fractions`` as three non-negative finite floats (train, validation, test) summing to 1 (within 1e-6);
-    a ``ValueError`` naming ``name`` otherwise (they are never renormalised silently)."""
+    """``fractions`` as three positive finite floats (train, validation, test) summing to 1 (within 1e-6); a
+    ``ValueError`` naming ``name`` otherwise (they are never renormalised silently). A zero share would leave its split
+    empty (see :data:`MIN_SPLIT_UNITS`): a DNN kept its first epoch, metrics came out null."""
     try:
         f = tuple(float(x) for x in fractions if not isinstance(x, (bool, str, bytes)))
         ok = len(f) == len(list(fractions)) == 3
     except (TypeError, ValueError):
         ok = False
-    if not ok or any(not math.isfinite(x) or x < 0 for x in f) or not math.isclose(sum(f), 1.0, abs_tol=1e-6):
+    if not ok or any(not math.isfinite(x) or x <= 0 for x in f) or not math.isclose(sum(f), 1.0, abs_tol=1e-6):
         shown = list(fractions) if isinstance(fractions, Iterable) and not isinstance(fractions, str) else fractions
-        raise ValueError(f"{name} must be three non-negative numbers (train, validation, test) summing to 1, "
-                         f"got {shown!r}")
+        raise ValueError(f"{name} must be three positive numbers (train, validation, test) summing to 1 (each split "
+                         f"needs rows), got {shown!r}")
     return f

@@ -95,15 +95,20 @@ def simulator_settings(sim: GridSimulator) -> dict[str, Any]:
 def split_codes(n_units: int, fractions=DEFAULT_FRACTIONS, generator: torch.Generator | None = None) -> torch.Tensor:
     """Assign ``n_units`` units (rows or trajectories) to train/val/test, (n_units,) int8, seeded permutation.
 
-    The validation and test splits get at least one unit each when their fraction is positive; ``n_units`` < 3
-    (:data:`.options.MIN_SPLIT_UNITS`) raises a ``ValueError`` (:func:`.options.check_split_units`), as it would leave a
-    split empty.
+    Every split gets at least one unit (the fractions are positive, :func:`.options.check_fractions`; where rounding
+    left the training split empty, the larger of the other two gives one up); ``n_units`` < 3
+    (:data:`.options.MIN_SPLIT_UNITS`) raises a ``ValueError`` (:func:`.options.check_split_units`).
     """
     check_split_units(n_units, "n_units")
     f = torch.tensor(check_fractions(fractions), dtype=torch.float64)
     f = f / f.sum()  # round-off only: the sum is 1 within 1e-6
-    n_val, n_test = int(round(f[1].item() * n_units)), int(round(f[2].item() * n_units))
-    n_val, n_test = max(n_val, 1 if f[1] > 0 else 0), max(n_test, 1 if f[2] > 0 else 0)
+    n_val = max(int(round(f[1].item() * n_units)), 1)
+    n_test = max(int(round(f[2].item() * n_units)), 1)
+    while n_units - n_val - n_test < 1:  # n_units >= 3: the larger of the two holds >= 2 units here
+        if n_val >= n_test:
+            n_val -= 1
+        else:
+            n_test -= 1
     n_train = n_units - n_val - n_test
     codes = torch.cat([torch.full((n_train,), 0), torch.full((n_val,), 1), torch.full((n_test,), 2)]).to(torch.int8)
     perm = torch.randperm(n_units, generator=generator)

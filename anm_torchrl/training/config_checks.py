@@ -279,7 +279,7 @@ def check_make_dataset_config(cfg: Mapping) -> None:
     Raises:
         ValueError: the first offending key, with the expected range and the value received.
     """
-    from anm_torchrl.data.options import WAYPOINT_DISTS, check_fractions, check_split_units
+    from anm_torchrl.data.options import WAYPOINT_DISTS, check_agent_split, check_fractions, check_split_units
     from anm_torchrl.data.registry import available_datasets
     from anm_torchrl.networks import check_network_name
 
@@ -294,6 +294,7 @@ def check_make_dataset_config(cfg: Mapping) -> None:
         _int(cfg, "generative.chunk")
     if _get(cfg, "dataset") == "agent":
         check_split_units(_int(cfg, "agent.num_envs"), "agent.num_envs")
+        check_agent_split(_int(cfg, "size"), _int(cfg, "agent.num_envs"))
         _int(cfg, "agent.waypoint_every")
         _int(cfg, "agent.max_episode_steps")
         if not isinstance(_get(cfg, "agent.random_every"), bool):

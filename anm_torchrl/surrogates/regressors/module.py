@@ -53,6 +53,8 @@ class RegressorSurrogate(TensorDictModuleBase):
         c1, c2 = sim.costs_clipping
         self.register_buffer("y_low", torch.cat([low, low.new_tensor([-(c1 + c2)])]))
         self.register_buffer("y_high", torch.cat([high, high.new_tensor([c1])]))
+        soc = sim.state_slices()["des_soc"]
+        self.soc_columns = [k for k, i in enumerate(idx) if soc.start <= i < soc.stop]  # predicted SoC entries
 
     # ---------------------------------------------------------------------------------------------- predict
     def features(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -65,6 +67,9 @@ class RegressorSurrogate(TensorDictModuleBase):
         y = self.backend.predict(self.features(state, action)) * self.y_std + self.y_mean
         if self.clip:
             y = torch.maximum(torch.minimum(y, self.y_high), self.y_low)
+        else:  # the SoC within its bounds, always: the simulator never leaves them, and the next step checks them
+            soc = self.soc_columns
+            y[:, soc] = torch.maximum(torch.minimum(y[:, soc], self.y_high[soc]), self.y_low[soc])
         return y
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
