@@ -12,9 +12,10 @@ What gym-anm can represent, and the defaults used where pandapower has no value 
 * **Unsupported physics is refused or removed, and the removal is applied to the pandapower net the checks
   run on** (:func:`prepare`): gym-anm branches have no shunt conductance and B >= 0, so transformer
   magnetising currents (``i0_percent``, ``pfe_kw``) and line conductance ``g_us_per_km`` are set to 0; bus
-  shunts, wards, impedances, DC lines, 3-winding transformers and voltage-dependent loads raise ``ValueError``.
+  shunts, wards, impedances, DC lines, 3-winding transformers, voltage-dependent loads, voltage-controlled
+  generators (``gen``: model them as ``sgen``) and reactive-only loads (p_mw 0, q_mvar not) raise ``ValueError``.
 * **Parallel branches** (gym-anm forbids them) are merged into one pi branch (admittances and charging add,
-  ratings add); parallel branches with different taps raise.
+  ratings add; a plain line drawn the other way is the same branch); parallel branches with different taps raise.
 * **Slack**: the in-service ``ext_grid`` bus becomes bus 0 (gym-anm's power flow fixes V = 1∠0 at bus 0; other
   buses keep pandapower's order). Its set-point ``vm_pu∠va`` is folded exactly into the branches at bus 0
   (TAP / vm_pu, SHIFT − va; lines at bus 0 are oriented away from it), and the slack bus's BASE_KV is
@@ -91,6 +92,10 @@ def prepare(net):
     if len(bad):
         raise ValueError(f"pandapower loads {list(bad)} are voltage dependent ({const}); gym-anm loads are "
                          "constant power")
+    gens = net.gen.index[net.gen.in_service] if "gen" in net and len(net.gen) else []
+    if len(gens):
+        raise ValueError(f"pandapower gens {list(gens)} control their bus voltage (PV buses); gym-anm's generators "
+                         "are P/Q set-points: model them as sgens (static generators)")
     sw = net.switch[~net.switch.closed.astype(bool)]
     net.line.loc[sw.element[sw.et == "l"].unique(), "in_service"] = False
     net.trafo.loc[sw.element[sw.et == "t"].unique(), "in_service"] = False
@@ -124,7 +129,10 @@ def _ratings(net, ppc, lookup, defaults: ImportDefaults) -> np.ndarray:
 def _merge_parallel(rows: list[np.ndarray]) -> np.ndarray:
     """One pi branch equal to parallel pi branches of the same (from, to, tap, shift)."""
     first = rows[0]
-    for r in rows[1:]:
+    for k, r in enumerate(rows[1:], 1):
+        if r[0] == first[1] and r[1] == first[0] and r[6] == 1.0 and r[7] == 0.0:
+            rows[k] = r = r.copy()  # a plain line (no tap, no shift) is the same branch drawn either way
+            r[[0, 1]] = first[[0, 1]]
         if not np.allclose(r[[0, 1, 6, 7]], first[[0, 1, 6, 7]]):
             raise ValueError(f"parallel branches between buses {int(first[0])} and {int(first[1])} differ in "
                              f"orientation, tap or shift ({first[[0, 1, 6, 7]]} vs {r[[0, 1, 6, 7]]})")
@@ -236,8 +244,9 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
     new_id[order] = np.arange(len(order))
     vm, va = float(ppc["bus"][slack, VM]), float(ppc["bus"][slack, VA])
 
+    # an isolated bus is left out of ppc["bus"] but keeps a lookup index past its end (pandapower 3)
     bus_map = {int(b): int(new_id[bus_lookup[b]]) for b in net.bus.index[net.bus.in_service]
-               if new_id[bus_lookup[b]] >= 0}
+               if bus_lookup[b] < len(new_id) and new_id[bus_lookup[b]] >= 0}
     vmax = np.full(len(order), np.inf)
     vmin = np.full(len(order), -np.inf)
     hi_col = net.bus.get("max_vm_pu", pd.Series(NAN, index=net.bus.index))
@@ -264,6 +273,9 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
         p = row.p_mw * row.scaling
         if p < 0 or peak < 0:
             raise ValueError(f"pandapower load {i}: p_mw {p} / profile peak {peak} < 0; gym-anm loads only consume")
+        if row.p_mw == 0 and row.q_mvar != 0:
+            raise ValueError(f"pandapower load {i}: p_mw 0 with q_mvar {row.q_mvar}; a gym-anm load's Q follows its P "
+                             "(a constant Q/P), so a reactive-only load has no model")
         qp = row.q_mvar / row.p_mw if row.p_mw != 0 else 0.0
         devices.append([-1, bus_map[row.bus], -1, qp, 0.0, -max(peak, p), *[NAN] * 9])
         load_idx.append(int(i))
@@ -291,6 +303,8 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
         devices.append([-1, bus_map[row.bus], 3, NAN, pmax, pmin, *inv, emax, emin, defaults.storage_eff])
         storage_idx.append(int(i))
 
+    if not devices:
+        raise ValueError("the pandapower net has no load, generator or storage unit besides its ext_grid")
     dev = np.array(devices, dtype=np.float64)
     installed = -dev[dev[:, 2] == -1, 5].sum() + dev[dev[:, 2] > 0, 4].sum()
     eg = net.ext_grid[net.ext_grid.in_service].iloc[0]

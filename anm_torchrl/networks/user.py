@@ -126,6 +126,9 @@ def load_network_file(path: str | os.PathLike):
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"network file {path} does not exist (write one with anm_torchrl.networks.save_network)")
+    if not zipfile.is_zipfile(path):  # np.load reads a plain .npy (an array, not an archive) without a word
+        raise ValueError(f"{path} is not a readable network file (not an .npz archive; write one with "
+                         "anm_torchrl.networks.save_network)")
     try:
         with np.load(path, allow_pickle=False) as z:
             entries = {k: z[k] for k in z.files}
@@ -135,7 +138,10 @@ def load_network_file(path: str | os.PathLike):
         raise ValueError(f"{path} is not an anm_torchrl network file (no format={FORMAT!r} entry; write one with "
                          f"anm_torchrl.networks.save_network)")
     try:
-        version = int(entries.get("format_version", -1))
+        stored = np.asarray(entries.get("format_version", -1))
+        if stored.dtype.kind not in "iu" or stored.ndim:  # 1.7 read as 1 before
+            raise TypeError(f"an integer, got {stored!r}")
+        version = int(stored)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{path}: unreadable format_version entry ({type(err).__name__}: {err})") from None
     if version != FORMAT_VERSION:
@@ -143,6 +149,11 @@ def load_network_file(path: str | os.PathLike):
     missing = [k for k in ("baseMVA", *TABLES, "load_p", "gen_p_max", "meta") if k not in entries]
     if missing:
         raise ValueError(f"{path}: network file without {missing}")
+    # real numbers only: a complex table lost its imaginary part and a string one was parsed without a word
+    mistyped = [f"{k} ({entries[k].dtype})" for k in ("baseMVA", *TABLES, "load_p", "gen_p_max")
+                if entries[k].dtype.kind not in "fiu"]
+    if mistyped:
+        raise ValueError(f"{path}: entries {', '.join(mistyped)} must hold real numbers")
     try:
         meta = json.loads(str(entries["meta"]))
         env = meta["env"]

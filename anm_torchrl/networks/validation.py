@@ -362,7 +362,7 @@ def check_reward_args(delta_t, gamma, lamb, costs_clipping) -> tuple[float, floa
         raise ValueError(f"lamb must be a finite number >= 0, got {lamb!r}")
     if costs_clipping is None:
         return math.inf, math.inf
-    if len(costs_clipping) != 2:
+    if isinstance(costs_clipping, (str, bytes)) or np.ndim(costs_clipping) != 1 or len(costs_clipping) != 2:
         raise ValueError(f"costs_clipping must be (c_energy, c_penalty), got {costs_clipping!r}")
     c = tuple(math.inf if v is None else float(v) for v in costs_clipping)
     if not all(v > 0 for v in c):
