@@ -65,7 +65,6 @@ def main(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
     with user_errors("train_pinn.py", run_dir):  # a network file's tables, the target's rules: one line too
         from anm_torchrl.networks.resolve import check_controllable
-
         from anm_torchrl.surrogates.pinn.model import check_pinn_network
 
         sim = check_controllable(cfg.network)  # builds the simulator
