@@ -151,19 +151,29 @@ def main(argv: list[str] | None = None) -> dict:
     if cfg.render:
         from anm_torchrl.render import render_episode
 
-        paths = render_episode(policy, make_true_env(1, network=network), states[0], int(cfg.steps), cfg.render_dir,
-                               stem=name, title=f"{name} on {network}, initial state 0 of seed {int(cfg.seed)}")
+        title = f"{name} on {network}, initial state 0 of seed {int(cfg.seed)}"
+        if ckpt is None:  # a fresh baseline: the evaluation advanced a stateful one (random's generator)
+            policy = make_baseline(cfg.policy, env.sim, **kwargs)
+            if cfg.policy == "random" and episodes > 1:  # its draws for a batch of 1 are not episode 0's
+                title += f" (a draw of its own, random seed {kwargs['seed']})"
+        with user_errors("evaluate.py"):
+            paths = render_episode(policy, make_true_env(1, network=network), states[0], int(cfg.steps),
+                                   cfg.render_dir, stem=name, title=title)
         print("episode figure: " + ", ".join(str(p) for p in paths.values()), file=sys.stderr, flush=True)
     return out
 
 
 def network_of(cfg, ckpt: dict | None) -> str:
     """The network to evaluate on: ``network=``, else the checkpoint's (ANM6-Easy for checkpoints that predate the
-    key and for baselines); a checkpoint trained on another network than ``network=`` is refused."""
+    key and for baselines); a checkpoint trained on another network than ``network=`` is refused (a network file
+    given where the checkpoint names another file: by the network's key, so a moved or copied file is accepted)."""
     from anm_torchrl.networks.user import is_network_file
 
     def same(a: str, b: str) -> bool:  # a network file may be spelled relative here, absolute in the checkpoint
-        return a == b or (is_network_file(a) and is_network_file(b) and Path(a).resolve() == Path(b).resolve())
+        if is_network_file(a) and is_network_file(b):
+            # moved or copied since: the checkpoint's network key decides (load_actor checks it)
+            return ckpt.get("network_key") is not None or Path(a).resolve() == Path(b).resolve()
+        return a == b
 
     trained = (ckpt["config"].get("network") or "anm6_easy") if ckpt is not None else None
     if cfg.network is not None and trained is not None and not same(cfg.network, trained):

@@ -21,7 +21,6 @@ instead, and the run fails, unless ``overwrite_cache=true``. Presets live in
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -61,6 +60,7 @@ def main(cfg: DictConfig) -> dict:
     from anm_torchrl.surrogates.pinn.load import load_pinn
     from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
     from anm_torchrl.surrogates.pinn.train import from_composed, resolve_path
+    from anm_torchrl.strict_json import json_text
 
     torch.set_num_threads(int(cfg.threads))
     with user_errors("train_pinn.py", run_dir):  # a network file's tables, the target's rules: one line too
@@ -89,7 +89,7 @@ def main(cfg: DictConfig) -> dict:
         file, report = train_and_save(train_cfg, sim, path=file, overwrite_cache=bool(cfg.overwrite_cache),
                                       reject_path=run_dir / "pinn.safetensors", log_dir=log_dir,
                                       progress=bool(cfg.progress))
-        log.info("trained in %.1f s: %s", report["time_s"], json.dumps(report, indent=1))
+        log.info("trained in %.1f s: %s", report["time_s"], json_text(report, indent=1))
         out["train"] = report
     if cfg.eval.enabled:
         chain = load_pinn(sim, path=file, train_if_missing=False,
@@ -99,7 +99,7 @@ def main(cfg: DictConfig) -> dict:
         table = format_table(results)
         log.info("accuracy against the exact simulator:\n%s", table)
         (run_dir / "pinn_eval.md").write_text(table + "\n")
-        (run_dir / "pinn_eval.json").write_text(json.dumps(results, indent=2))
+        (run_dir / "pinn_eval.json").write_text(json_text(results, indent=2))
         out["eval"] = results
     return out
 

@@ -226,6 +226,12 @@ def test_partial_reset_and_bad_input():
         ANMVectorEnv(2, max_episode_steps=2.5)
     with pytest.raises(ValueError, match="max_episode_steps must be an integer >= 1 or None, got 2.0"):
         ANMVectorEnv(2, max_episode_steps=2.0)  # a float count is refused as everywhere else (it passed before)
+    with pytest.raises(ValueError, match="num_envs must be an integer >= 1, got 2.5"):
+        gymnasium.make_vec(ID, num_envs=2.5)  # cut to 2 before
+    inf = np.zeros((3, 6))
+    inf[1, 4] = np.inf  # reported as the value 3.4e38 (float32's largest) before
+    with pytest.raises(ValueError, match=r"outside the box at \(env, entry\) \[\(1, 4\)\]; values \[inf\]"):
+        venv.step(inf)
     with pytest.raises(ValueError, match=r"unknown network 'nope'; registered: \['anm6_easy', 'case33bw'"):
         gymnasium.make_vec(ID, num_envs=2, network="nope")
     with pytest.raises(ValueError, match="observation='state'"):
@@ -244,6 +250,33 @@ def test_single_env_stays_terminal_like_gym_anm():
     assert term
     obs, reward, term, trunc, _ = env.step(np.zeros(6))
     assert not obs.any() and reward == 0.0 and term and not trunc
+
+
+def test_a_terminated_grid_is_drawn_at_its_own_time_without_the_solvers_iterate():
+    """After a diverged power flow the state is zeroed (gym-anm's convention): the clock counts on from the last
+    real time index (it read 00:00) and |V| / flows are missing, not the solver's last iterate."""
+    env = ANMGymEnv(render_mode="rgb_array")
+    env.reset(seed=0)
+    batch = env._batch
+    t0 = int(batch.state[0, env._batch.env.sim.state_slices()["aux"]][0])
+    for k in range(1, 21):
+        _, _, term, _, _ = env.step(COLLAPSE)
+        if term:
+            break
+    assert term and np.isnan(batch.grid("v_magn")[0]).all() and np.isnan(batch.grid("branch_s")[0]).all()
+    minutes = (t0 + k) * 15
+    assert batch.clock(0) == f"{minutes // 60 % 24:02d}:{minutes % 60:02d}" != "00:00"
+    assert env.render().shape == (480, 640, 3)
+
+
+def test_sb3_vec_env_renders_rgb_arrays():
+    from anm_torchrl.gym.sb3 import SB3VecEnv
+
+    venv = SB3VecEnv(num_envs=2, seed=0, render_mode="rgb_array")
+    venv.reset()
+    images = venv.get_images()  # SB3's VecEnv raised NotImplementedError
+    assert len(images) == 2 and images[0].shape == (480, 640, 3)
+    assert venv.render().ndim == 3  # SB3 tiles them
 
 
 def _deterministic_loss(model, seed: int = 123, n: int = 64, steps: int = 32) -> float:

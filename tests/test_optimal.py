@@ -13,7 +13,7 @@ from anm_torchrl.experiments import gap  # noqa: E402
 from anm_torchrl.baselines.acmpc import ACMPCPolicy  # noqa: E402
 from anm_torchrl.baselines.mpc import MPCPolicy  # noqa: E402
 from anm_torchrl.baselines.nlp_model import ACHorizonNLP, rollout  # noqa: E402
-from anm_torchrl.baselines.optimal import (replay_in_env, solve_optimal,  # noqa: E402
+from anm_torchrl.baselines.optimal import (OptimalPolicy, replay_in_env, solve_optimal,  # noqa: E402
                                            warm_start_actions)
 from anm_torchrl.evaluation import EVAL_GAMMA, draw_initial_states, evaluate_policy  # noqa: E402
 from anm_torchrl.networks import ANM6_EASY  # noqa: E402
@@ -68,6 +68,17 @@ def test_bad_arguments(sim):
         warm_start_actions(sim, np.zeros(sim.state_dim), 4, "zeros")
     with pytest.raises(ValueError, match="forecast"):
         ACMPCPolicy(sim, horizon=4, forecast="oracle")
+    # each was cut to an int, refused only at the first state, or a raw CasADi error at the first solve
+    with pytest.raises(ValueError, match="horizon must be an integer >= 1, got 2.7"):
+        ACMPCPolicy(sim, horizon=2.7)
+    with pytest.raises(ValueError, match="horizon must be an integer >= 1, got 0"):
+        OptimalPolicy(sim, horizon=0)
+    with pytest.raises(ValueError, match="ipopt options .*No such IPOPT option: foo"):
+        ACMPCPolicy(sim, horizon=4, ipopt={"foo": 1})
+    with pytest.raises(ValueError, match="ipopt options .*'tol': 'abc'"):
+        OptimalPolicy(sim, horizon=4, ipopt={"tol": "abc"})
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['rtoll'\]"):
+        OptimalPolicy(sim, horizon=4, rtoll=1e-6)
 
 
 def test_optimum_solved_and_replays_in_env(sim, states, optimum):
@@ -226,6 +237,23 @@ def test_acmpc_failed_solves_are_recorded(sim, monkeypatch):
     assert pol.last_info[0]["fallback"] and pol.last_info[0]["warm"]
     # the previous plan's next set-points, as float32 actions (the clip to the action box is a no-op here)
     torch.testing.assert_close(a1[0], torch.as_tensor(plan, dtype=torch.float32), rtol=0.0, atol=0.0)
+
+
+def test_acmpc_flags_a_penalty_slack_at_its_bound(sim, monkeypatch, caplog):
+    """A plan whose penalty slack reached its bound (its penalty under-counted) is applied, flagged and logged
+    (forced by marking the solution so); a plan within the bounds is not flagged."""
+    import dataclasses
+
+    s = draw_initial_states(1, 0, sim)
+    pol = ACMPCPolicy(sim, horizon=4)
+    pol.act(s)
+    assert pol.last_info[0]["slack_at_bound"] is False
+    pol = ACMPCPolicy(sim, horizon=4)
+    solve = pol.nlp.solve
+    monkeypatch.setattr(pol.nlp, "solve", lambda *a, **k: dataclasses.replace(solve(*a, **k), slack_at_bound=True))
+    with caplog.at_level("WARNING"):
+        pol.act(s)
+    assert pol.last_info[0]["slack_at_bound"] is True and "penalty slack sits at its bound" in caplog.text
 
 
 # ------------------------------------------------------------------------------------------ other networks

@@ -7,6 +7,7 @@ Tiny networks and a few dozen steps only (the ``smoke`` preset); accuracy of the
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
@@ -338,6 +339,42 @@ def test_bad_training_options_fail_before_training():
         tr.preset("smoke", generator={"max_steps": -5})
     with pytest.raises(ValueError, match="'lr' must be a finite number > 0"):
         tr.preset("smoke", power_balance={"lr": float("nan")})
+    # each was read only after training (a file then saved that no loader accepts, or a raw error)
+    with pytest.raises(ValueError, match=r"'refine_steps' must be an integer in 0..8 or 'auto', got 9"):
+        tr.preset("smoke", power_balance={"refine_steps": 9})
+    with pytest.raises(ValueError, match="'activation' must be one of .*, got 'foo'"):
+        tr.preset("smoke", power_balance={"activation": "foo"})
+    with pytest.raises(ValueError, match="'dual_activation' must be one of .*, got 'foo'"):
+        tr.preset("smoke", generator={"dual_activation": "foo"})
+    with pytest.raises(ValueError, match="'max_time_s' must be > 0 or null, got 'abc'"):
+        tr.preset("smoke", power_balance={"max_time_s": "abc"})
+    with pytest.raises(ValueError, match="acceptance.generator.val_mae_pu must be a number, got 'abc'"):
+        tr.preset("default", acceptance={"generator": {"val_mae_pu": "abc"}})
+    with pytest.raises(ValueError, match="acceptance.generater: must be one of"):
+        tr.preset("default", acceptance={"generater": {"val_mae_pu": 1e-3}})
+
+
+def test_a_time_cap_before_the_first_evaluation_keeps_the_trained_weights(sim):
+    """Stopped by ``max_time_s`` before its first evaluation, a module is evaluated where it stopped; it used to
+    restore (and save as trained) its initial weights."""
+    cfg = tr.preset("smoke", generator={"max_steps": 400, "eval_every": 200, "max_time_s": 1e-9},
+                    storage={"max_steps": 1}, power_balance={"max_steps": 1})
+    torch.manual_seed(cfg.seed)
+    init = tr.build_modules(cfg, sim)["generator"].state_dict()
+    modules, report = tr.train_pinn(cfg, sim, jobs=1)
+    assert report["generator"]["steps"] == report["generator"]["best_step"] == 1
+    assert any(not torch.equal(init[k], v) for k, v in modules["generator"].state_dict().items())
+
+
+def test_lbfgs_finish_with_a_separate_dual_network(sim):
+    """L-BFGS runs in float64 on both networks of a KKT module with ``separate_dual`` (the dual network stayed
+    float32: a dtype error after the whole Adam phase) and hands back float32 networks."""
+    cfg = tr.preset("smoke", generator={"separate_dual": True, "lbfgs_iters": 2, "lbfgs_batch": 64},
+                    storage={"max_steps": 1}, power_balance={"max_steps": 1})
+    modules, report = tr.train_pinn(cfg, sim, jobs=1)
+    gen = modules["generator"]
+    assert gen.dual_net is not None and math.isfinite(report["generator"]["val_loss"])
+    assert {p.dtype for p in gen.parameters()} == {torch.float32}
 
 
 @pytest.mark.parametrize("network", ["anm6_easy", "case33bw"])
@@ -558,6 +595,11 @@ def test_recipe_smoke(tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     assert out.is_file() and (tmp_path / "run" / "pinn_eval.json").is_file()
     assert any((tmp_path / "run" / "tb").iterdir())
+
+    def bare(constant):
+        raise AssertionError(f"pinn_eval.json holds a bare {constant}, which strict JSON parsers refuse")
+
+    json.loads((tmp_path / "run" / "pinn_eval.json").read_text(), parse_constant=bare)
 
 
 @pytest.mark.parametrize("arg,message", [

@@ -185,7 +185,7 @@ def test_a_model_from_before_the_rule_is_refused_then_migrated(auto_file, tmp_pa
 
 
 def test_refine_option_is_validated():
-    with pytest.raises(ValueError, match="'refine_steps' must be an integer >= 0 or 'auto', got 'al'"):
+    with pytest.raises(ValueError, match="'refine_steps' must be an integer in 0..8 or 'auto', got 'al'"):
         tr.preset("smoke", power_balance={"refine_steps": "al"})
     with pytest.raises(ValueError, match="must be an integer >= 0, got -1"):
         PowerBalanceNet(network_simulator("cigre_mv"), hidden=8, depth=1, refine_steps=-1)

@@ -103,6 +103,9 @@ def test_bad_options_and_files_fail_clearly(evaluate, tmp_path):
     assert "unknown option" in fails(evaluate, "policy=do_nothing", "no_such_option=1")
     assert "gamma must be in (0, 1], got 1.5" in fails(evaluate, "policy=do_nothing", "gamma=1.5")
     assert "steps must be an integer >= 1 or null, got 0" in fails(evaluate, "policy=do_nothing", "steps=0")
+    # a string is not false: render=no drew the episode
+    assert "render must be true or false, got 'no'" in fails(evaluate, "policy=do_nothing", "render=no")
+    assert "progress must be true or false, got 'off'" in fails(evaluate, "policy=do_nothing", "progress=off")
     from anm_torchrl.baselines import available_baselines
 
     message = fails(evaluate, "policy=nope")  # the registry's names, not a list typed in the recipe
@@ -209,4 +212,37 @@ def test_defaults_are_the_test_states_the_recipes_report_on(evaluate, capsys):
     states = draw_initial_states(4, 0, env.sim, env.init)
     want = evaluate_policy(make_baseline("do_nothing", env.sim), states, max_steps=2, gamma=0.995, env=env)
     assert out["per_episode"]["discounted_return"] == pytest.approx(want.discounted_returns.tolist(), rel=1e-12)
+    capsys.readouterr()
+
+
+def test_a_moved_network_file_is_judged_by_the_checkpoints_network_key(evaluate, tmp_path):
+    """A checkpoint trained on a network file that has moved since is evaluated with network=<its new path>: the
+    network's key decides (load_actor refuses another network by it); it was refused by the path."""
+    from types import SimpleNamespace
+
+    ckpt = {"config": {"network": str(tmp_path / "old" / "feeder.npz")}, "network_key": "k"}
+    cfg = SimpleNamespace(network=str(tmp_path / "new" / "feeder.npz"))
+    assert evaluate.network_of(cfg, ckpt) == cfg.network
+    with pytest.raises(SystemExit, match="trained on network="):  # no key (an older checkpoint): the path decides
+        evaluate.network_of(cfg, {"config": ckpt["config"]})
+    with pytest.raises(SystemExit, match="trained on network="):  # a registered name is never a file's
+        evaluate.network_of(SimpleNamespace(network="case33bw"), ckpt)
+
+
+def test_render_draws_the_random_baselines_seeded_stream(evaluate, tmp_path, monkeypatch, capsys):
+    """render=true draws with a fresh baseline: the evaluation advanced the random baseline's generator, and the
+    figure showed other actions than the episode reported; with several episodes its title says it is a draw."""
+    import anm_torchrl.render
+
+    seen = {}
+
+    def fake_render(policy, env, state, steps, out_dir, stem, title):
+        seen.update(policy=policy, title=title)
+        return {}
+
+    monkeypatch.setattr(anm_torchrl.render, "render_episode", fake_render)
+    evaluate.main(["policy=random", "steps=3", "episodes=2", "render=true", f"render_dir={tmp_path}"])
+    fresh = torch.Generator().manual_seed(0)
+    assert torch.equal(seen["policy"].generator.get_state(), fresh.get_state())
+    assert "(a draw of its own, random seed 0)" in seen["title"]
     capsys.readouterr()

@@ -16,7 +16,7 @@ from anm_torchrl.envs import ANM6Env  # noqa: E402
 from anm_torchrl.grid.network import make_network  # noqa: E402
 from anm_torchrl.render import Episode, episode_figure, episode_from_rollout, network_tables, render_episode, \
     write_episode  # noqa: E402
-from anm_torchrl.render.figure import choose_window, day_of_step, default_times  # noqa: E402
+from anm_torchrl.render.figure import choose_window, day_of_step, default_times, snapshot_title  # noqa: E402
 from anm_torchrl.render.layout import is_radial, network_layout, tree_layout  # noqa: E402
 from anm_torchrl.render.network_plot import NetworkArtist, branch_loading  # noqa: E402
 
@@ -102,6 +102,30 @@ def test_render_episode_stops_at_a_termination(tmp_path):
     assert paths["png"].exists() and "gif" not in paths
     with pytest.raises(ValueError, match=r"batch size \(1,\)"):
         render_episode(collapse, ANM6Env(2), torch.stack([state, state]), 3, tmp_path)
+    # asked for a GIF of an episode with no converged step (a ValueError after the PNG, before): the PNG alone
+    paths = render_episode(collapse, env, state, 30, tmp_path / "gif", title="collapse")
+    assert paths["png"].exists() and "gif" not in paths and not (tmp_path / "gif" / "episode.gif").exists()
+
+
+def test_a_diverged_step_is_drawn_as_missing_at_its_own_time(anm6):
+    """The state after a diverged power flow is zeroed and its voltages and flows are the solver's last iterate:
+    the snapshot's clock counts on from s_0 (it read 00:00) and |V| / flows are missing (NaN), not drawn."""
+    torch.set_num_threads(1)
+    env = ANM6Env(1, seed=0)
+    td = env.reset()
+
+    def collapse(td):
+        return td.set("action", COLLAPSE.expand(*td.batch_size, 6).clone())
+
+    rollout = env.rollout(3, collapse, tensordict=td, auto_reset=False, break_when_any_done=True)
+    ep = episode_from_rollout(rollout, env.sim.net.base_mva)
+    assert ep.terminated[-1]
+    tb = network_tables(env.sim.net)
+    t = ep.steps - 1
+    minutes = int((float(td["state"][0, tb.state_slices()["aux"]][0]) + t + 1) * tb.delta_t * 60)
+    assert f", {minutes // 60 % 24:02d}:{minutes % 60:02d}): " in snapshot_title(ep, tb, t)
+    assert np.isnan(ep.v_magn[t]).all() and np.isnan(ep.branch_s[t]).all()
+    assert np.isfinite(ep.v_magn[~ep.terminated]).all()
 
 
 def test_meshed_network_figure_without_a_simulator():
@@ -274,3 +298,31 @@ def test_the_potential_snapshot_says_renewable_only_where_there_is_one(anm6):
     classical = tb.dev_type.copy()
     classical[tb.gen_ids] = 1  # CLASSICAL_GEN
     assert default_times(ep, dataclasses.replace(tb, dev_type=classical))[-1][1] == "peak generation potential"
+
+
+def test_a_one_step_episode_marks_its_points(anm6):
+    """A line through one point is invisible: a window of one or two steps draws markers (its panels were blank)."""
+    env, rollout = anm6
+    tb = network_tables(env.sim.net)
+    ep = episode_from_rollout(rollout, env.sim.net.base_mva)
+    fig = episode_figure(ep.window(0, 1), tb)
+    series = [line for ax in fig.axes for line in ax.get_lines() if len(line.get_xdata()) == 1]
+    assert series and all(line.get_marker() == "o" for line in series)
+    fig = episode_figure(ep, tb)  # 12 steps: lines
+    assert all(line.get_marker() in ("None", "", None) for ax in fig.axes for line in ax.get_lines()
+               if len(line.get_xdata()) == ep.steps)
+
+
+def test_render_cli_refuses_bad_input_in_one_line(tmp_path, capsys):
+    from anm_torchrl.render.__main__ import main
+
+    (tmp_path / "file").write_text("")
+    for argv, message in ((["--policy", "nope"], "invalid choice: 'nope'"),
+                          (["--steps", "0"], "--steps: must be an integer >= 1, got 0"),
+                          (["--policy", "random", "--steps", "2", "--out", str(tmp_path / "file")], "File exists")):
+        with pytest.raises(SystemExit) as err:
+            main(argv)
+        assert err.value.code == 2 and message in capsys.readouterr().err
+    # the optimum plans the 2 steps drawn (it planned gym-anm's 3,000: minutes)
+    main(["--policy", "optimal", "--steps", "2", "--no-gif", "--out", str(tmp_path / "opt")])
+    assert (tmp_path / "opt" / "episode_optimal.png").is_file()

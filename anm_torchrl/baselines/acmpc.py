@@ -35,6 +35,7 @@ from tensordict.nn import TensorDictModuleBase
 from anm_torchrl.baselines.nlp_model import (ACHorizonNLP, NLPResult, exogenous, rollout, storage_direction,
                                              time_indices)
 from anm_torchrl.baselines.optimal import warm_start_actions
+from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.evaluation import EVAL_GAMMA
 from anm_torchrl.grid.simulator import GridSimulator
 
@@ -101,7 +102,8 @@ class ACMPCPolicy(TensorDictModuleBase):
         if forecast not in FORECASTS:
             raise ValueError(f"forecast must be one of {FORECASTS}, got {forecast!r}")
         self.in_keys, self.out_keys = [in_key], ["action"]
-        self.sim, self.horizon, self.forecast, self.soc_tol = sim, int(horizon), forecast, float(soc_tol)
+        self.sim, self.horizon, self.forecast, self.soc_tol = sim, check_integer("horizon", horizon, low=1), \
+            forecast, float(soc_tol)
         self.warm_start, self.pin_direction = bool(warm_start), bool(pin_direction)
         self.nlp = ACHorizonNLP(sim, horizon, gamma, formulation, ipopt)
         sl = sim.state_slices()
@@ -143,8 +145,9 @@ class ACMPCPolicy(TensorDictModuleBase):
         (``status``, ``iterations``: the free-split solve's; ``warm_status``: IPOPT's status from the shifted
         start, None without one; ``overlap``: max min(p_ch, p_dis) p.u. of the free split; ``pinned``,
         ``pinned_status``, ``pinned_iterations``, ``pinned_failed``: the pinned re-solve's; ``overlap_applied``:
-        max min(p_ch, p_dis) p.u. of the solution returned; ``solve_time``: wall s of all IPOPT calls;
-        ``cpu_time``: process CPU s of all of it).
+        max min(p_ch, p_dis) p.u. of the solution returned; ``slack_at_bound``: whether a penalty slack of that
+        solution sits at its bound, so the plan's penalty is under-counted (logged); ``solve_time``: wall s of all
+        IPOPT calls; ``cpu_time``: process CPU s of all of it).
         """
         c0 = time.process_time()
         soc0 = state[self._sl["des_soc"]] / self.sim.net.base_mva
@@ -171,8 +174,11 @@ class ACMPCPolicy(TensorDictModuleBase):
                             "(overlap %.2e p.u.)", pinned.status, res.complementarity)
                 info["pinned_failed"] = True
         self.solve_times.append(wall)
+        if res.success and res.slack_at_bound:  # the plan is still the best this NLP found; its penalty is not
+            log.warning("AC-MPC: a penalty slack sits at its bound (SLACK_MAX, nlp_model): the plan's penalty is "
+                        "under-counted; the env scores the true one")
         info.update(overlap_applied=res.complementarity if res.success else None, solve_time=wall,
-                    cpu_time=time.process_time() - c0)
+                    cpu_time=time.process_time() - c0, slack_at_bound=bool(res.success and res.slack_at_bound))
         return res, info
 
     def act(self, states: torch.Tensor) -> torch.Tensor:

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from anm_torchrl._extras import require
+from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.network import CLASSICAL_GEN, LOAD, RENEWABLE, SLACK, STORAGE, branch_flows
 from anm_torchrl.grid.residuals import power_injection
@@ -76,6 +77,19 @@ WARM_OPTIONS = {"warm_start_init_point": "yes", "warm_start_bound_push": 1e-9, "
                 "warm_start_slack_bound_push": 1e-9, "warm_start_slack_bound_frac": 1e-9,
                 "warm_start_mult_bound_push": 1e-9, "mu_init": 1e-4}
 _DIRECTIONS = (-1, 0, 1)  # storage direction per step: charge only, free (relaxed split), discharge only
+
+
+def check_ipopt_options(options: dict) -> None:
+    """A ``ValueError`` naming the first IPOPT option in ``options`` that IPOPT does not know or whose value has the
+    wrong type, found now on a one-variable problem rather than at the first solve (the horizon's solver is built
+    there, after seconds of setup)."""
+    ca = require("casadi")
+    x = ca.SX.sym("x")
+    try:
+        ca.nlpsol("ipopt_options", "ipopt", {"x": x, "f": x * x}, {"print_time": False, "ipopt": dict(options)})
+    except RuntimeError as err:
+        reason = str(err).strip().splitlines()[-1].split(": ", 1)[-1]
+        raise ValueError(f"ipopt options {dict(options)!r}: {reason}") from None
 
 
 @dataclasses.dataclass
@@ -230,8 +244,7 @@ class ACHorizonNLP:
                  ipopt: dict | None = None):
         if formulation not in FORMULATIONS:
             raise ValueError(f"formulation must be one of {FORMULATIONS}, got {formulation!r}")
-        if int(horizon) < 1:
-            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        check_integer("horizon", horizon, low=1)
         if not 0.0 < float(gamma) <= 1.0:
             raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
         kinds = set(sim.net.dev_type.tolist())
@@ -244,6 +257,7 @@ class ACHorizonNLP:
         if unknown:
             log.info("passing extra IPOPT options %s", sorted(unknown))
         self.ipopt = {**IPOPT_OPTIONS, **(ipopt or {})}
+        check_ipopt_options(self.ipopt)
         self._tables()
         self._build()
         self._solvers: dict[bool, object] = {}

@@ -30,8 +30,8 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from anm_torchrl.baselines.nlp_model import (ACHorizonNLP, NLPResult, PowerFlowOffsets, exogenous, rollout,
-                                             storage_direction, time_indices)
+from anm_torchrl.baselines.nlp_model import (IPOPT_OPTIONS, ACHorizonNLP, NLPResult, PowerFlowOffsets,
+                                             check_ipopt_options, exogenous, rollout, storage_direction, time_indices)
 from anm_torchrl.envs.specs import check_integer
 from anm_torchrl.evaluation import EVAL_GAMMA, EVAL_MAX_STEPS, reset_to
 from anm_torchrl.grid.simulator import GridSimulator
@@ -129,9 +129,10 @@ def solve_horizon(sim: GridSimulator, horizon: int) -> int:
     repeats with the time index, which wraps modulo ``n_time``. One ``n_time``-step solve then gives every step of
     a longer episode exactly (the SimBench feeder: 672 steps instead of 3,000).
     """
+    horizon = check_integer("horizon", horizon, low=1)
     if sim.n_des == 0 and sim.next_vars_hook is None and horizon > sim.n_time:
         return int(sim.n_time)
-    return int(horizon)
+    return horizon
 
 
 def solve_optimal(sim: GridSimulator, state: np.ndarray, horizon: int = EVAL_MAX_STEPS, gamma: float = EVAL_GAMMA,
@@ -252,6 +253,10 @@ def replay_in_env(setpoints: np.ndarray, state: np.ndarray, gamma: float = EVAL_
     return {"discounted_return": _discounted(r, gamma), "rewards": r, "terminated": terminated}
 
 
+#: the keyword arguments of :func:`solve_optimal` an :class:`OptimalPolicy` passes on
+SOLVE_OPTIONS = frozenset({"warm_start", "seed", "formulation", "rtol", "max_rounds", "ipopt"})
+
+
 class OptimalPolicy(TensorDictModuleBase):
     """The perfect-foresight optimum as a policy: plan at an episode's first state, then replay the plan.
 
@@ -273,8 +278,13 @@ class OptimalPolicy(TensorDictModuleBase):
                  in_key: str = "state", soc_tol: float = 1e-2, **solve_kw):
         super().__init__()
         self.in_keys, self.out_keys = [in_key], ["action"]
-        self.sim, self.horizon, self.gamma, self.soc_tol, self.solve_kw = sim, int(horizon), float(gamma), \
-            float(soc_tol), solve_kw
+        self.sim, self.gamma, self.soc_tol, self.solve_kw = sim, float(gamma), float(soc_tol), solve_kw
+        self.horizon = check_integer("horizon", horizon, low=1)
+        unknown = sorted(set(solve_kw) - SOLVE_OPTIONS)
+        if unknown:
+            raise ValueError(f"optimal policy: unknown option(s) {unknown}; known: {sorted(SOLVE_OPTIONS)}")
+        if solve_kw.get("ipopt"):  # an IPOPT option error now, not after the first state's seconds of setup
+            check_ipopt_options({**IPOPT_OPTIONS, **solve_kw["ipopt"]})
         self.plans: list[OptimalResult] = []
         self._cursor: list[int] = []
         self._nlp: ACHorizonNLP | None = None

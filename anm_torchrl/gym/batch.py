@@ -79,6 +79,7 @@ class NumpyBatch:
         self.action_space = spaces.Box(a_low, a_high, dtype=np.float64)
         self._state: torch.Tensor | None = None  # (N, D) float64, the TorchRL env's "state"
         self._grid: dict[str, torch.Tensor] = {}  # ("grid", k) (N, ...) of the last reset / step, for rendering
+        self._time: torch.Tensor | None = None  # (N,) time index of each row, counted on past a termination
         self._frame = None  # anm_torchrl.render.frame.NetworkFrame, built on the first draw
 
     @property
@@ -95,10 +96,14 @@ class NumpyBatch:
         return None if value is None else value.to(torch.float64).cpu().numpy()
 
     def clock(self, row: int) -> str:
-        """Time of day ``HH:MM`` of env ``row``'s current state (from its time index)."""
-        sim = self.env.sim
-        minutes = int(round(float(self.state[row, sim.state_slices()["aux"]][0]) * float(sim.net.delta_t) * 60))
+        """Time of day ``HH:MM`` of env ``row``'s current state (from its time index; after a termination, whose
+        state is zeroed, the index it would have)."""
+        self._require_reset()
+        minutes = int(round(float(self._time[row]) * float(self.env.sim.net.delta_t) * 60))
         return f"{minutes // 60 % 24:02d}:{minutes % 60:02d}"
+
+    def _time_index(self, state: torch.Tensor) -> torch.Tensor:
+        return state[:, self.env.sim.state_slices()["aux"]][:, 0].clone()
 
     def draw(self, rows: list[int], titles: list[str]) -> list[np.ndarray]:
         """(H, W, 3) uint8 images of the network of envs ``rows`` after the last reset or step (bus |V|, branch
@@ -142,6 +147,7 @@ class NumpyBatch:
         if mask is None:
             td = self.env.reset()
             self._state = td.get("state").clone()
+            self._time = self._time_index(self._state)
             self._keep_grid(td)
         else:
             self._require_reset()
@@ -149,6 +155,7 @@ class NumpyBatch:
             td = self.env.reset(TensorDict({"_reset": mask_t.unsqueeze(-1)}, self.env.batch_size,
                                            device=self.env.device))
             self._state = torch.where(mask_t.unsqueeze(-1), td.get("state"), self._state)
+            self._time = torch.where(mask_t, self._time_index(self._state), self._time)
             self._keep_grid(td, mask_t)
         return self.observe(self._state)
 
@@ -183,10 +190,14 @@ class NumpyBatch:
                         self.env.batch_size, device=self.env.device)
         nxt = self.env.step(td).get("next")
         self._state = nxt.get("state")
+        done = nxt.get("terminated").squeeze(-1)
+        self._time = torch.where(done, self._time + 1, self._time_index(self._state))
         self._keep_grid(nxt)
+        for key, value in self._grid.items():  # a diverged power flow's last iterate is not the grid's: missing
+            if value.is_floating_point():
+                self._grid[key] = value.masked_fill(done.reshape(-1, *[1] * (value.dim() - 1)), float("nan"))
         reward = nxt.get("reward").squeeze(-1).to(torch.float64).cpu().numpy()
-        terminated = nxt.get("terminated").squeeze(-1).cpu().numpy()
-        return self.observe(self._state), reward, terminated
+        return self.observe(self._state), reward, done.cpu().numpy()
 
     def _to_float32(self, action: np.ndarray) -> np.ndarray:
         """The env's float32 actions: a float64 action inside the box stays inside it after rounding.
@@ -196,7 +207,7 @@ class NumpyBatch:
         the env clips), as they would in gym-anm.
         """
         low, high = self.action_space.low, self.action_space.high
-        if getattr(self.env, "action_mode", "raise") == "raise" and np.isfinite(action).all():
+        if getattr(self.env, "action_mode", "raise") == "raise" and not np.isnan(action).any():
             out = (action < low) | (action > high)
             if out.any():
                 envs, entries = np.nonzero(out)

@@ -67,3 +67,9 @@ class SB3VecEnv(VecEnv):
 
     def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
         return [False] * len(list(self._get_indices(indices)))
+
+    def get_images(self) -> list[np.ndarray | None]:
+        """One (H, W, 3) uint8 image of the network per env (``render_mode="rgb_array"``; what SB3's ``render()``
+        tiles), None per env without a render mode."""
+        images = self.venv.render()
+        return [None] * self.num_envs if images is None else list(images)

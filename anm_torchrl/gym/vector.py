@@ -56,6 +56,7 @@ class ANMVectorEnv(VectorEnv):
         if mode not in AUTORESET_MODES:
             raise ValueError(f"autoreset_mode must be one of {[m.value for m in AUTORESET_MODES]}, got {mode.value!r}")
         check_integer("max_episode_steps", max_episode_steps, low=1, optional=True)  # 2.5 was cut to 2
+        check_integer("num_envs", num_envs, low=1)
         if env is not None and int(env.batch_size[0]) != int(num_envs):
             raise ValueError(f"env has batch size {tuple(env.batch_size)}, num_envs is {num_envs}")
         self._batch = NumpyBatch(env if env is not None else make_torchrl_env(network, int(num_envs), seed,

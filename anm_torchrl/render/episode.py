@@ -45,7 +45,7 @@ def write_episode(rollout: TensorDictBase, net: Network, out_dir: str | Path, st
         max_frames, fps: animation length and speed.
 
     Returns:
-        ``{"png": path, "gif": path}`` (no ``"gif"`` when ``gif`` is false).
+        ``{"png": path, "gif": path}`` (no ``"gif"`` when ``gif`` is false or no step converged).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -55,7 +55,10 @@ def write_episode(rollout: TensorDictBase, net: Network, out_dir: str | Path, st
     fig = episode_figure(ep, tables, times=times, title=title, window_hours=window_hours)
     FigureCanvasAgg(fig)
     fig.savefig(paths["png"], dpi=FIGURE_DPI)
-    if gif:
+    start, stop, _ = choose_window(ep, tables, window_hours)
+    if gif and ep.terminated[start:stop].all():  # e.g. a policy that collapses the grid at its first step
+        log.warning("no animation: the episode has no converged step to draw (its figure: %s)", paths["png"])
+    elif gif:
         paths["gif"] = out / f"{stem}.gif"
         write_animation(ep, tables, paths["gif"], title=title, max_frames=max_frames, fps=fps,
                         window_hours=window_hours)

@@ -6,6 +6,7 @@ import dataclasses
 import warnings
 
 import numpy as np
+from matplotlib import rc_context
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from tensordict import TensorDictBase
@@ -72,10 +73,13 @@ def episode_from_rollout(rollout: TensorDictBase, base_mva: float) -> Episode:
     if missing:
         raise ValueError(f"rollout lacks keys {missing} (expected an env rollout with ('grid', ...) entries)")
     get = lambda *k: rollout.get(k if len(k) > 1 else k[0]).detach().cpu().double().numpy()  # noqa: E731
+    terminated = get("next", "terminated")[:, 0].astype(bool)
+    # a diverged power flow's voltages and flows are the solver's last iterate, not the grid's: drawn as missing
+    v_magn, branch_s = get("next", "grid", "v_magn"), get("next", "grid", "branch_s")
+    v_magn[terminated], branch_s[terminated] = np.nan, np.nan
     return Episode(
         state=np.concatenate([get("state")[:1], get("next", "state")]), action=get("action"),
-        reward=get("next", "reward")[:, 0], terminated=get("next", "terminated")[:, 0].astype(bool),
-        v_magn=get("next", "grid", "v_magn"), branch_s=get("next", "grid", "branch_s"),
+        reward=get("next", "reward")[:, 0], terminated=terminated, v_magn=v_magn, branch_s=branch_s,
         e_loss=get("next", "grid", "e_loss")[:, 0] * base_mva, penalty=get("next", "grid", "penalty")[:, 0],
         curtailment=get("next", "grid", "curtailment")[:, 0])
 
@@ -93,8 +97,8 @@ def day_of_step(ep: Episode, tables: NetworkTables) -> np.ndarray:
 
 
 def clock(ep: Episode, tables: NetworkTables, step: int) -> str:
-    """Time of day ``hh:mm`` after ``step`` (from the state's time index)."""
-    minutes = int(round(ep.state[step + 1, tables.state_slices()["aux"]][0] * tables.delta_t * 60))
+    """Time of day ``hh:mm`` after ``step`` (from s_0's time index: a diverged step's state is zeroed)."""
+    minutes = int(round(minutes_from_midnight(ep, tables)[step + 1]))
     return f"{minutes // 60 % 24:02d}:{minutes % 60:02d}"
 
 
@@ -208,7 +212,9 @@ def episode_figure(ep: Episode, tables: NetworkTables, times: list[int] | None =
     axes = [fig.add_subplot(grid[i, j]) for i in range(4) for j in range(2)]
     for ax in axes[1:]:
         ax.sharex(axes[0])
-    _time_series(axes, ep.window(start, stop), tables, offset=start)
+    # a line through one or two points is invisible or bare: mark the points of so short a window
+    with rc_context({"lines.marker": "o", "lines.markersize": 4} if stop - start <= 2 else {}):
+        _time_series(axes, ep.window(start, stop), tables, offset=start)
     ticks, labels = _clock_ticks(ep, tables, start, stop)
     for ax in axes:
         ax.set_xlim(start + 0.5, stop + 0.5)

@@ -92,7 +92,7 @@ class NetworkArtist:
             sc.set_edgecolors(np.where(bad_v[idx], "black", "0.35"))
             sc.set_linewidths(np.where(bad_v[idx], 3.0, 0.8))
         for b, txt in enumerate(self.bus_text):
-            txt.set_text(f"{b}\n{v_magn[b]:.3f}" if self.values else str(b))
+            txt.set_text(f"{b}\n{v_magn[b]:.3f}" if self.values and np.isfinite(v_magn[b]) else str(b))
         for j, txt in enumerate(self.branch_text):
             txt.set_text(f"{loading[j]:.0f}%" if np.isfinite(loading[j]) else "")
         self.ax.set_title(title, fontsize=10)

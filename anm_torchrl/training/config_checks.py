@@ -357,3 +357,4 @@ def check_evaluate_config(cfg: Mapping) -> None:
     _int(cfg, "episodes", optional=True)
     _in_range(cfg, "gamma", 0, 1, True, False)
     _int(cfg, "threads")
+    _bool(cfg, "render", "progress")

@@ -57,6 +57,7 @@ from anm_torchrl.grid import devices as dv
 from anm_torchrl.grid.residuals import constraint_slack
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.surrogates.pinn.nets import ResidualMLP, box_normalise
+from anm_torchrl.surrogates.pinn.presets import DUAL_ACTIVATIONS
 
 DUAL_SHIFT = -4.0  # softplus(-4) ≈ 0.018: multipliers start near zero
 
@@ -127,8 +128,8 @@ class _ProjectionKKT(nn.Module):
 
     def _build_net(self, hidden: int, depth: int, activation: str, dual_activation: str,
                    separate_dual: bool = False) -> None:
-        if dual_activation not in ("softplus", "relu"):
-            raise ValueError(f"dual_activation must be 'softplus' or 'relu', got {dual_activation!r}")
+        if dual_activation not in DUAL_ACTIVATIONS:
+            raise ValueError(f"dual_activation must be one of {DUAL_ACTIVATIONS}, got {dual_activation!r}")
         self.dual_activation = dual_activation
         m, n_in = self.g.shape[1], 3 + self.cond.shape[1]
         kw = dict(hidden=hidden, depth=depth, activation=activation, out_scale=0.1)

@@ -135,7 +135,12 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
         if cfg.max_time_s is not None and time.perf_counter() - t0 > cfg.max_time_s:
             log.info("%s: time cap %.0f s reached at step %d", name, cfg.max_time_s, step)
             break
-    if n_evals and not math.isfinite(best):  # restoring best_state would save the untrained weights as trained
+    if step % cfg.eval_every and step != cfg.max_steps:  # stopped by the time cap between evaluations
+        v = log_eval(step)["val_loss"]
+        n_evals += 1
+        if v < best:
+            best, best_step, best_state = v, step, copy.deepcopy(module.state_dict())
+    if not math.isfinite(best):  # restoring best_state would save the untrained weights as trained
         raise RuntimeError(f"PINN module {name!r} diverged: its held-out loss was not finite at any of its {n_evals} "
                            f"evaluations ({step} Adam steps at lr {cfg.lr:g}); lower {name}.lr or check the preset")
     module.load_state_dict(best_state)
@@ -157,7 +162,10 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
 def _lbfgs_finish(task: _Task, cfg: ModuleTrainConfig, seed: int) -> None:
     """L-BFGS (strong Wolfe) on a fixed Sobol batch, in float64, then back to float32."""
     module = task.module
-    module.net.double()  # only the network: the physics buffers are float64 / complex128 already
+    # only the networks: the physics buffers are float64 / complex128 already
+    nets = [net for net in (module.net, getattr(module, "dual_net", None)) if net is not None]
+    for net in nets:
+        net.double()
     inputs = task.sample(torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=seed + 20_000)
                          .draw(_points(cfg.lbfgs_batch, task, cfg)).double())
     opt = torch.optim.LBFGS(module.parameters(), lr=1.0, max_iter=cfg.lbfgs_iters, history_size=50,
@@ -170,7 +178,8 @@ def _lbfgs_finish(task: _Task, cfg: ModuleTrainConfig, seed: int) -> None:
         return loss
 
     opt.step(closure)
-    module.net.float()
+    for net in nets:
+        net.float()
 
 
 STAGE_KIND = "anm_torchrl.pinn_stage"

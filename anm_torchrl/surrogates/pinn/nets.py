@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-ACTIVATIONS = ("leaky_relu", "silu", "tanh", "gelu", "relu")
+from anm_torchrl.surrogates.pinn.presets import ACTIVATIONS
 
 
 def make_activation(name: str, negative_slope: float = 0.01) -> nn.Module:

@@ -59,6 +59,12 @@ PRESET_PACKAGE = "anm_torchrl.surrogates.conf"
 FEEDER_DEFAULT = "feeder"
 #: ``refine_steps`` value asking for the refinement-step count to be chosen after training (:mod:`.refine`)
 REFINE_AUTO = "auto"
+#: the most refinement steps a power balance may take (``refine_steps``, fixed or chosen by :mod:`.refine`)
+REFINE_MAX = 8
+#: the hidden activations of the modules' networks (:func:`.nets.make_activation`)
+ACTIVATIONS = ("leaky_relu", "silu", "tanh", "gelu", "relu")
+#: what keeps a KKT-NN's dual variables >= 0 (:mod:`.kkt`)
+DUAL_ACTIVATIONS = ("softplus", "relu")
 
 
 @dataclasses.dataclass
@@ -143,9 +149,10 @@ class ModuleTrainConfig:
             v = getattr(self, k)
             if k == "refine_steps" and v == REFINE_AUTO:
                 continue
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                extra = " or 'auto'" if k == "refine_steps" else ""
-                raise ValueError(f"PINN training option {k!r} must be an integer >= 0{extra}, got {v!r}")
+            high = REFINE_MAX if k == "refine_steps" else math.inf
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= high:
+                expected = f"in 0..{REFINE_MAX} or 'auto'" if k == "refine_steps" else ">= 0"
+                raise ValueError(f"PINN training option {k!r} must be an integer {expected}, got {v!r}")
         for k in ("lr", "robust_scale", "v_scale", "ang_scale"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -156,11 +163,15 @@ class ModuleTrainConfig:
                 raise ValueError(f"PINN training option {k!r} must be a finite number >= 0, got {v!r}")
         if not 0 <= self.min_lr_ratio <= 1:
             raise ValueError(f"PINN training option 'min_lr_ratio' must lie in [0, 1], got {self.min_lr_ratio!r}")
-        if self.max_time_s is not None and not self.max_time_s > 0:
+        if self.max_time_s is not None and not (isinstance(self.max_time_s, (int, float))
+                                                and not isinstance(self.max_time_s, bool) and self.max_time_s > 0):
             raise ValueError(f"PINN training option 'max_time_s' must be > 0 or null, got {self.max_time_s!r}")
         for k, allowed in (("schedule", ("constant", "cosine")), ("norm", ("squared", "l2")),
                            ("residual_unit", ("pu", "box")),
                            ("robust", ("squared", "pseudo_huber", "cauchy"))):
+            if getattr(self, k) not in allowed:
+                raise ValueError(f"PINN training option {k!r} must be one of {allowed}, got {getattr(self, k)!r}")
+        for k, allowed in (("activation", ACTIVATIONS), ("dual_activation", DUAL_ACTIVATIONS)):
             if getattr(self, k) not in allowed:
                 raise ValueError(f"PINN training option {k!r} must be one of {allowed}, got {getattr(self, k)!r}")
 
@@ -179,7 +190,20 @@ class PINNTrainConfig:
     acceptance: dict[str, dict[str, float]] | None = None
 
     def __post_init__(self):
-        """Reject a ``weights`` entry that names no loss term of its module (it was ignored) or is not finite >= 0."""
+        """Reject a ``weights`` entry that names no loss term of its module (it was ignored) or is not finite >= 0,
+        and an ``acceptance`` bar that names no module or is not a number (it was read only after training)."""
+        if self.acceptance is not None:
+            if not isinstance(self.acceptance, dict):
+                raise ValueError(f"PINN training option 'acceptance' must map modules to {{metric: bound}}, "
+                                 f"got {self.acceptance!r}")
+            for module, bars in self.acceptance.items():
+                if module not in MODULES or not isinstance(bars, dict):
+                    raise ValueError(f"PINN training option acceptance.{module}: must be one of {list(MODULES)} "
+                                     f"mapping metrics to bounds, got {bars!r}")
+                for metric, bound in bars.items():
+                    if isinstance(bound, bool) or not isinstance(bound, (int, float)) or math.isnan(bound):
+                        raise ValueError(f"PINN training option acceptance.{module}.{metric} must be a number, "
+                                         f"got {bound!r}")
         for name in MODULES:
             terms = PB_TERMS if name == "power_balance" else KKT_TERMS
             weights = getattr(self, name).weights if isinstance(getattr(self, name), ModuleTrainConfig) else {}

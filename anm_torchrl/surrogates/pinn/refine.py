@@ -50,7 +50,7 @@ import torch
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.surrogates.pinn.chain import DEFAULT_RESIDUAL_THRESHOLD  # the threshold's one home
 from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
-from anm_torchrl.surrogates.pinn.presets import REFINE_AUTO as AUTO, module_seed
+from anm_torchrl.surrogates.pinn.presets import REFINE_AUTO as AUTO, REFINE_MAX, module_seed
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ RULE_METHODS = {"sobol_box_quantile_v1": "chord", RULE: "newton"}
 QUANTILE = 0.99
 MARGIN = 0.5
 POINTS = 4096
-K_MAX = 8
+K_MAX = REFINE_MAX
 SEED_OFFSET = 30_000
 
 
