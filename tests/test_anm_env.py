@@ -367,6 +367,47 @@ def test_surrogate_env_refuses_a_models_non_finite_output():
         env.step(td)
 
 
+@pytest.mark.parametrize("fault", ["soc", "float_terminated", "nan_exogenous"])
+def test_surrogate_env_checks_what_the_model_writes_at_the_step(fault):
+    """A predicted SoC out of its bounds is refused at the step that made it, naming the model (it failed a step
+    later, blamed on "the state", or never where a time limit reset the env); a float 'terminated' is refused (a
+    probability cast to bool ended every row); NaN in entries the env overwrites (loads, potentials, time) is not a
+    fault of the model's prediction."""
+    from tensordict.nn import TensorDictModuleBase
+    from torchrl.envs import StepCounter, TransformedEnv
+
+    from anm_torchrl.envs import SurrogateEnv
+    from anm_torchrl.networks import ANM6_EASY, simulator
+
+    sim = simulator(ANM6_EASY)
+
+    class Faulty(TensorDictModuleBase):
+        in_keys, out_keys = ["state", "action"], ["next_state", "reward", "terminated"]
+
+        def forward(self, td):
+            state = td["state"]
+            n = state.shape[0]
+            nxt, tr = sim.step(state, td["action"].double())
+            nxt, reward, term = nxt.clone(), tr.reward, ~tr.converged
+            if fault == "soc":
+                nxt[:, sim.state_slices()["des_soc"]] = 1e4
+            if fault == "nan_exogenous":
+                nxt[:, sim.state_slices()["aux"]] = float("nan")
+            term = term.reshape(n, 1)
+            return td.update({"next_state": nxt, "reward": reward.reshape(n, 1),
+                              "terminated": term.float() if fault == "float_terminated" else term})
+
+    env = TransformedEnv(SurrogateEnv(Faulty(), 2, sim=sim, seed=0), StepCounter(1))  # a time limit every step
+    td = env.reset().set("action", torch.zeros(2, 6, dtype=torch.float32))
+    if fault == "nan_exogenous":
+        assert torch.isfinite(env.step(td)["next", "state"]).all()
+        return
+    message = {"soc": r"model Faulty predicted a next state no transition can start from .*SoC",
+               "float_terminated": r"model Faulty wrote 'terminated' as torch.float32; it must be bool"}[fault]
+    with pytest.raises(ValueError, match=message):
+        env.step(td)
+
+
 @pytest.mark.parametrize("every", [2, 50])
 def test_surrogate_env_names_a_model_that_terminates_far_too_often(every, caplog):
     """Bug: PPO on a smoke-preset PINN trained on episodes of one or two steps (the model's terminal predictions)

@@ -165,3 +165,65 @@ def test_the_actor_and_temperature_wait_for_optim_actor_delay_frames():
     finally:
         algo.close()
 
+
+
+def test_replay_samples_per_frame_is_kept_on_average():
+    """``replay.samples_per_frame`` x frames is what the updates draw: a fraction of a minibatch carries over (every
+    iteration was rounded up to a whole minibatch: 1 sample per frame drew 48 per 32 frames at minibatches of 48)."""
+    import torch
+    from recipe_utils import compose
+
+    from anm_torchrl.training.algorithms import get_algorithm
+
+    cfg = compose("sac", ["network=case33bw", "env.num_envs=4", "collector.frames_per_batch=32",
+                          "collector.init_random_frames=0", "replay.batch_size=48", "replay.samples_per_frame=1",
+                          "model.actor_cells=[16]", "model.critic_cells=[16]"])
+    algo = get_algorithm("sac")(cfg, device=torch.device("cpu"), seed=0, budget=96, reward_scale=1.0, resume=None)
+    drawn = []
+    sample = algo.buffer.sample
+    algo.buffer.sample = lambda: drawn.append(1) or sample()
+    try:
+        counts = []
+        for remaining in (96, 64, 32):
+            before = len(drawn)
+            _, metrics = algo.iterate(remaining)
+            counts.append(len(drawn) - before)
+            assert ("train/loss_qvalue" in metrics) == (counts[-1] > 0)
+        assert counts == [0, 1, 1]  # 32, 64, 96 samples due: 0, 1 (16 left), 1 (0 left) minibatches of 48
+    finally:
+        algo.close()
+
+
+def test_a_resumed_run_takes_the_configs_discount_and_entropy_target(sac_run):
+    """SACLoss keeps its discount and entropy target as buffers in the checkpoint: a resumed run with other values
+    trained with the checkpoint's while summary.json and the resume warning named the new ones."""
+    import torch
+    from recipe_utils import compose
+
+    from anm_torchrl.training.algorithms import get_algorithm
+    from anm_torchrl.training.checkpoint import load_checkpoint
+
+    overrides = [o for o in TINY_SAC if not o.startswith("collector.total_frames")]
+    cfg = compose("sac", [*overrides, "loss.gamma=0.9", "loss.target_entropy_per_dim=-1.0"])
+    fresh = get_algorithm("sac")(cfg, device=torch.device("cpu"), seed=0, budget=0, reward_scale=1.0, resume=None)
+    algo = get_algorithm("sac")(cfg, device=torch.device("cpu"), seed=0, budget=0, reward_scale=1.0,
+                                resume=load_checkpoint(sac_run / "checkpoints" / "last.pt"))
+    try:
+        assert float(algo.loss_module.value_estimator.gamma) == pytest.approx(0.9)
+        assert float(algo.loss_module.target_entropy) == pytest.approx(float(fresh.loss_module.target_entropy))
+    finally:
+        algo.close()
+        fresh.close()
+
+
+def test_do_nothing_start_on_gym_anms_own_env():
+    """``sac.py surrogate=gym_anm`` (SAC's default do-nothing start) failed with a traceback: gym-anm's own env has
+    no simulator to read do-nothing from; ANM6-Easy's action is the same policy there."""
+    import torch
+
+    from anm_torchrl.training.algorithms.ppo import model_options
+
+    options = model_options({"model": {"init_action": "do_nothing"}, "surrogate": {"name": "gym_anm"}})
+    torch.testing.assert_close(options["init_action"].double(), torch.tensor([30.0, 50, 0, 0, 0, 0], dtype=torch.float64))
+    assert model_options({"model": {"init_action": "do_nothing"}, "surrogate": {"name": "none"}})["init_action"] \
+        == "do_nothing"

@@ -71,17 +71,28 @@ class SurrogateEnv(ANMEnv):
         state = self.validate_state(tensordict.get("state"))
         with torch.no_grad():
             pred = self.model(TensorDict({"state": state, "action": action}, batch_size=self.batch_size))
-        terminated = pred.get("terminated").reshape(-1, 1).to(torch.bool)
+        name = type(self.model).__name__
+        terminated = pred.get("terminated")
+        if terminated.dtype != torch.bool:  # a probability cast to bool would end every row
+            raise ValueError(f"the surrogate model {name} wrote 'terminated' as {terminated.dtype}; it must be bool")
+        terminated = terminated.reshape(-1, 1)
         reward = pred.get("reward").reshape(-1).to(torch.float64)
-        finite = torch.isfinite(reward) & torch.isfinite(pred.get("next_state")).all(-1)
-        if not bool((finite | terminated.squeeze(1)).all()):  # a NaN reward would enter the data unnoticed
-            rows = (~finite & ~terminated.squeeze(1)).nonzero().flatten()[:5].tolist()
-            raise ValueError(f"the surrogate model {type(self.model).__name__} predicted a non-finite reward or next "
-                             f"state for non-terminated rows {rows}")
+        # the env writes the exogenous entries (loads, potentials, time): the model's own there are not checked
+        next_state = self.sim.with_next_vars(pred.get("next_state").to(torch.float64), *self.sim.next_vars(state))
+        live = ~terminated.squeeze(1)
+        finite = torch.isfinite(reward) & torch.isfinite(next_state).all(-1)
+        if not bool((finite | ~live).all()):  # a NaN reward would enter the data unnoticed
+            rows = (~finite & live).nonzero().flatten()[:5].tolist()
+            raise ValueError(f"the surrogate model {name} predicted a non-finite reward or next state for "
+                             f"non-terminated rows {rows}")
+        try:  # e.g. a SoC out of its bounds: refused here, not at the next step (or never, at a time limit)
+            self.sim.check_state(next_state if bool(live.all()) else next_state[live])
+        except ValueError as err:
+            raise ValueError(f"the surrogate model {name} predicted a next state no transition can start from "
+                             f"(among its non-terminated rows): {err}") from None
         if not self._termination_checked:
             self._check_terminations(terminated)
         reward = torch.where(terminated.squeeze(1), torch.full_like(reward, self.sim.terminal_reward), reward)
-        next_state = self.sim.with_next_vars(pred.get("next_state").to(torch.float64), *self.sim.next_vars(state))
         next_state = torch.where(terminated, torch.zeros_like(next_state), next_state)
         nan = float("nan")
         grid = {k: pred.get(("grid", k), None) for k in GRID_KEYS}

@@ -30,11 +30,18 @@ LOSS_KEYS = ("observation", "action", "action_log_prob", "advantage", "value_tar
 def model_options(config) -> dict:
     """The ``model`` group of a config (a composed ``DictConfig`` or a checkpoint's plain dict) as the keyword
     arguments of :func:`~anm_torchrl.training.models.make_ppo_models` / ``make_sac_models`` (the keys are named
-    alike)."""
+    alike); ``init_action=do_nothing`` on ``surrogate=gym_anm`` as ANM6-Easy's do-nothing action."""
     from omegaconf import OmegaConf
 
     model = config.get("model", {})
-    return dict(OmegaConf.to_container(model, resolve=True) if OmegaConf.is_config(model) else model)
+    options = dict(OmegaConf.to_container(model, resolve=True) if OmegaConf.is_config(model) else model)
+    if options.get("init_action") == "do_nothing" and (config.get("surrogate") or {}).get("name") == "gym_anm":
+        # gym-anm's own env has no simulator object to read do-nothing from: ANM6-Easy's is the same policy
+        from anm_torchrl.baselines.simple import DoNothingPolicy
+        from anm_torchrl.networks import ANM6_EASY, simulator
+
+        options["init_action"] = DoNothingPolicy(simulator(ANM6_EASY)).action_value
+    return options
 
 
 def budget_mask(batch_size, remaining: int):

@@ -3,8 +3,9 @@ target networks by Polyak averaging, a learned temperature) -> Adam, as TorchRL'
 
 The batched env makes many frames per collection step, so the update count is set per frame: every iteration
 collects ``collector.frames_per_batch`` frames (``env.num_envs`` x steps) and draws ``replay.samples_per_frame`` x
-that many samples, in minibatches of ``replay.batch_size``. The first ``collector.init_random_frames`` frames are
-collected by a uniformly random policy (they count in the budget). Only the Q networks step in the updates made
+that many samples, in minibatches of ``replay.batch_size``. The first ``collector.init_random_frames`` frames (rounded
+up to whole iterations, as TorchRL's collector does) are collected by a uniformly random policy (they count in the
+budget); unlike TorchRL's recipe, the updates start with the first of them. Only the Q networks step in the updates made
 while at most ``optim.actor_delay_frames`` frames have been collected: the actor (and the temperature) keep their
 start while the critic learns it, and first step in the update after a batch that takes the count past it.
 
@@ -15,6 +16,7 @@ loss_alpha, alpha, entropy, grad_norm, buffer_size}`` and ``time/{collect, updat
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Mapping
@@ -25,6 +27,8 @@ from omegaconf import DictConfig
 
 from anm_torchrl.training.algorithms.base import Algorithm, set_optimizer_options
 from anm_torchrl.training.algorithms.ppo import budget_mask, episode_metrics, model_options
+
+log = logging.getLogger(__name__)
 
 
 def box_target_entropy(action_spec, per_dim: float) -> float:
@@ -77,11 +81,10 @@ class SAC(Algorithm):
         self.actor, qvalue, self.normalizer = make_sac_models(
             env, obs_stats=resume["obs_norm"] if resume else None, **model_options(cfg))
         self.actor, qvalue = self.actor.to(device), qvalue.to(device)
+        target_entropy = box_target_entropy(env.full_action_spec["action"], float(cfg.loss.target_entropy_per_dim))
         self.loss_module = SACLoss(actor_network=self.actor, qvalue_network=qvalue, num_qvalue_nets=2,
                                    loss_function=cfg.loss.loss_function, alpha_init=float(cfg.loss.alpha_init),
-                                   target_entropy=box_target_entropy(env.full_action_spec["action"],
-                                                                     float(cfg.loss.target_entropy_per_dim)),
-                                   action_spec=env.full_action_spec["action"])
+                                   target_entropy=target_entropy, action_spec=env.full_action_spec["action"])
         self.loss_module.make_value_estimator(gamma=float(cfg.loss.gamma))
         self.target_updater = SoftUpdate(self.loss_module, tau=float(cfg.loss.tau))
         critic_params = list(self.loss_module.qvalue_network_params.flatten_keys().values())
@@ -94,19 +97,23 @@ class SAC(Algorithm):
         if resume:
             self.actor.load_state_dict(resume["actor"])
             self.loss_module.load_state_dict(resume["state"]["loss"])
+            # the loss state holds the discount and the entropy target as buffers: the config's apply, as its lr does
+            self.loss_module.make_value_estimator(gamma=float(cfg.loss.gamma))
+            self.loss_module.target_entropy.fill_(target_entropy)
             for name, optim in self.optims.items():
                 optim.load_state_dict(resume["state"]["optimizers"][name])
                 set_optimizer_options(optim, **options[name])
+            log.info("SAC resumes with an empty replay buffer (it is not saved): the first updates replay only "
+                     "the frames collected since")
         self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(int(cfg.replay.size), device=device),
                                              batch_size=int(cfg.replay.batch_size))
         frames_per_batch = int(cfg.collector.frames_per_batch)
         resumed = int(resume["frames"]) if resume else 0
         self.frames = resumed  # collected so far: the actor's delay counts these
+        self._samples_owed = 0.0  # replay samples due but not yet drawn (less than a minibatch)
         self.actor_delay = int(cfg.optim.actor_delay_frames)
         if self.actor_delay >= int(cfg.collector.total_frames):  # a short run's actor would silently stay at its start
-            import logging
-
-            logging.getLogger(__name__).warning(
+            log.warning(
                 "optim.actor_delay_frames=%d >= collector.total_frames=%d: the actor never steps in this run (only the "
                 "Q networks learn); lower optim.actor_delay_frames or raise the budget", self.actor_delay,
                 int(cfg.collector.total_frames))
@@ -115,7 +122,9 @@ class SAC(Algorithm):
             self.collector = Collector(
                 env, self.actor, frames_per_batch=frames_per_batch, device=device,
                 total_frames=-(-budget // frames_per_batch) * frames_per_batch,
-                init_random_frames=max(int(cfg.collector.init_random_frames) - resumed, 0),
+                # whole iterations: TorchRL rounds up (and warns) otherwise
+                init_random_frames=-(-max(int(cfg.collector.init_random_frames) - resumed, 0) // frames_per_batch)
+                * frames_per_batch,
                 auto_register_policy_transforms=False)
         self._batches = iter(self.collector) if self.collector is not None else iter(())
 
@@ -139,7 +148,12 @@ class SAC(Algorithm):
         self.buffer.extend(kept.select(*self.loss_module.in_keys))
 
         t0 = time.perf_counter()
-        n_updates = max(1, math.ceil(float(cfg.replay.samples_per_frame) * n_frames / int(cfg.replay.batch_size)))
+        # gradient steps at replay.samples_per_frame on average: the fraction of a minibatch left over carries to the
+        # next iteration (rounded up per iteration, 1 sample per frame drew 1,000 per 512 frames at minibatches of
+        # 1,000)
+        self._samples_owed += float(cfg.replay.samples_per_frame) * n_frames
+        n_updates = int(self._samples_owed // int(cfg.replay.batch_size))
+        self._samples_owed -= n_updates * int(cfg.replay.batch_size)
         losses = []
         for _ in range(n_updates):
             batch = self.buffer.sample()
@@ -156,8 +170,9 @@ class SAC(Algorithm):
                                       strict=False).detach().set("grad_norm", grad_norm.detach()))
         self.collector.update_policy_weights_()
         t_update = time.perf_counter() - t0
-        loss_means = torch.stack(losses).apply(lambda x: x.float().mean(), batch_size=[])
-        metrics.update({f"train/{key}": value for key, value in loss_means.items()})
+        if losses:
+            loss_means = torch.stack(losses).apply(lambda x: x.float().mean(), batch_size=[])
+            metrics.update({f"train/{key}": value for key, value in loss_means.items()})
         metrics.update({"train/buffer_size": len(self.buffer), "time/collect": t_collect, "time/update": t_update,
                         "time/fps": n_frames / max(t_collect + t_update, 1e-9)})
         return n_frames, metrics
