@@ -183,17 +183,20 @@ def atomic_write(path: str | os.PathLike, data: bytes | Callable[[Path], Any]) -
 
 
 @contextlib.contextmanager
-def atomic_folder(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+def atomic_folder(path: str | os.PathLike, overwrite: bool = False, kind: str | None = None) -> Iterator[Path]:
     """Write a folder atomically: ``with atomic_folder(p) as tmp:`` write into ``tmp``; on success it becomes ``p``.
 
     On an exception (or interruption) inside the block the temporary folder is removed and ``path`` is
     untouched. With ``overwrite`` an existing folder is replaced (it is renamed aside, the new one renamed in,
-    then the old one removed); without it an existing ``path`` raises ``FileExistsError`` before anything is
-    written and again at the rename if it appeared meanwhile.
+    then the old one removed) — with ``kind``, only a folder whose manifest names that kind of artifact: a user's
+    file or folder given by mistake is never deleted; without ``overwrite`` an existing ``path`` raises
+    ``FileExistsError`` before anything is written and again at the rename if it appeared meanwhile.
     """
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=true to replace it")
+    if path.exists() and kind is not None:
+        check_replaceable(path, kind)
     path.parent.mkdir(parents=True, exist_ok=True)
     clean_stale(path)
     tmp = _tmp_name(path, "tmp")
@@ -204,6 +207,8 @@ def atomic_folder(path: str | os.PathLike, overwrite: bool = False) -> Iterator[
         if path.exists():
             if not overwrite:
                 raise FileExistsError(f"{path} appeared while it was being written; pass overwrite=true to replace it")
+            if kind is not None:
+                check_replaceable(path, kind)
             old = _tmp_name(path, "old")
             os.rename(path, old)
         os.rename(tmp, path)
@@ -217,6 +222,21 @@ def atomic_folder(path: str | os.PathLike, overwrite: bool = False) -> Iterator[
     finally:
         if old is not None:
             _remove(old)
+
+
+def check_replaceable(path: Path, kind: str) -> None:
+    """``FileExistsError`` unless ``path`` is an empty folder or one saved as a ``kind`` artifact (its manifest says
+    so; its files may be damaged: a corrupted artifact may be replaced)."""
+    if path.is_dir() and not any(path.iterdir()):
+        return
+    try:
+        found = json.loads((path / MANIFEST).read_text()).get("kind") if path.is_dir() else None
+    except (OSError, ValueError, AttributeError):
+        found = None
+    if found != kind:
+        what = "a file" if not path.is_dir() else f"a folder that is not a saved {kind!r} artifact"
+        raise FileExistsError(f"{path} exists and is {what}: it is not replaced; remove it yourself or choose "
+                              "another path")
 
 
 # ------------------------------------------------------------------------------------------- disk space

@@ -43,6 +43,11 @@ def check(cfg: DictConfig):
     out = Path(cfg.out) if cfg.out else default_dataset_dir(cfg.dataset, int(cfg.size), int(cfg.seed), sim)
     if out.exists() and not cfg.overwrite:  # checked again under the writer's lock
         raise FileExistsError(f"out={out} exists; pass overwrite=true to replace it")
+    if out.exists():  # overwrite replaces a dataset, never a user's file or folder (checked again at the save)
+        from anm_torchrl.artifacts import check_replaceable
+        from anm_torchrl.data.storage import LAYOUT
+
+        check_replaceable(out, LAYOUT)
     check_writable(out, "out")
     return sim
 

@@ -177,6 +177,11 @@ def main(cfg: DictConfig) -> dict:
             raise SystemExit("reproduce.py: report_only=true needs out_dir=<a run directory> (or publish=true for "
                              "results/)")
         out_dir = _run_dir(cfg)
+        from anm_torchrl.training.recipe_errors import user_errors
+
+        with user_errors("reproduce.py", HydraConfig.get().runtime.output_dir):
+            if not (out_dir / "run.json").is_file():
+                raise FileNotFoundError(f"out_dir={out_dir} holds no run.json: not the folder of a reproduction run")
         run_info = json.loads((out_dir / "run.json").read_text())
         figs, md = render(out_dir, _md(cfg, out_dir), run_info)
         log.info("report only: figures %s, page %s", sorted(figs), md)
@@ -190,6 +195,8 @@ def main(cfg: DictConfig) -> dict:
     with user_errors("reproduce.py", HydraConfig.get().runtime.output_dir):  # one line, before anything runs
         # a study's options (preset.<study>.reuse, ...) are added with +preset.<...>=, as docs/RESULTS.md shows
         refuse_appended_keys("reproduce.py", HydraConfig.get().overrides.task, allowed=("preset",))
+        if isinstance(cfg.threads, bool) or not isinstance(cfg.threads, int) or cfg.threads < 1:
+            raise ValueError(f"threads must be an integer >= 1, got {cfg.threads!r}")
         for name in experiments:  # an unknown name is refused
             registry.check(name)
         if cfg.publish:

@@ -34,12 +34,38 @@ from anm_torchrl.training.recipe_help import register as register_help
 CONF = Path(__file__).parent / "conf"
 
 
-def run(cfg: DictConfig, sim=None) -> list[dict]:
+def run(cfg: DictConfig, sim=None, data: dict | None = None) -> list[dict]:
     """Train what ``cfg`` asks for (one surrogate, or all ten with ``all=true``) on ``sim`` (the checks'
-    simulator; None: checked here); returns the metrics."""
+    simulator; None: checked here) from ``data`` (:func:`load_data`'s; None: loaded here); returns the metrics."""
     from anm_torchrl.surrogates.regressors.train import train_surrogates
 
-    return train_surrogates(cfg, OmegaConf.load(CONF / "make_dataset.yaml"), default_size(), sim)
+    return train_surrogates(cfg, OmegaConf.load(CONF / "make_dataset.yaml"), default_size(), sim, data)
+
+
+def load_data(cfg: DictConfig, sim) -> dict:
+    """Both datasets, loaded (or generated) and checked: an explicit folder of another network, a damaged one or
+    one below the default size without ``surrogate.path`` is refused here, before any model trains."""
+    from anm_torchrl.surrogates.regressors.requests import check_default_slot
+    from anm_torchrl.surrogates.regressors.train import load_datasets
+
+    data = load_datasets(cfg, sim, OmegaConf.load(CONF / "make_dataset.yaml"))
+    if not cfg.all:
+        check_default_slot(data[cfg.surrogate.dataset][1]["size"], cfg.surrogate.get("path"),
+                           bool(cfg.overwrite_cache), default_size())
+    return data
+
+
+def check_target(path: Path) -> None:
+    """``surrogate.path`` can take a saved model: a new folder in a writable place, or a saved data-driven
+    surrogate's folder (replaced); a file or a folder of anything else is refused, never deleted."""
+    from anm_torchrl.artifacts import check_replaceable
+    from anm_torchrl.surrogates.regressors.defaults import FORMAT
+    from anm_torchrl.training.recipe_errors import check_writable
+
+    if path.exists():
+        check_replaceable(path, FORMAT)
+    else:
+        check_writable(path.parent, "surrogate.path")
 
 
 def default_size() -> int:
@@ -64,9 +90,12 @@ def main(cfg: DictConfig) -> list[dict]:
         check_train_config(cfg, default_size())
     from anm_torchrl.surrogates.regressors.train import check_train_request
 
-    with user_errors("train_surrogate.py", run_dir):  # the network's tables
+    with user_errors("train_surrogate.py", run_dir):  # the network's tables, the target, the datasets
         sim = check_train_request(cfg, default_size())
-    return run(cfg, sim)
+        if not cfg.all and cfg.surrogate.get("path"):
+            check_target(Path(str(cfg.surrogate.path)))
+        data = load_data(cfg, sim)
+    return run(cfg, sim, data)
 
 
 if __name__ == "__main__":

@@ -232,3 +232,28 @@ def test_two_processes_one_fails(tmp_path):
         child.stdout.close()
     with A.exclusive_lock(tmp_path / "data"):  # the holder is dead: its lock is stale
         assert json.loads((tmp_path / ".data.lock").read_text())["pid"] == os.getpid()
+
+
+def test_atomic_folder_replaces_only_an_artifact_of_its_kind(tmp_path):
+    """With ``kind``, overwrite replaces a folder saved as that kind of artifact (damaged or not), never a user's
+    file or folder given by mistake (``train_surrogate.py surrogate.path=<a file>`` deleted it)."""
+    victim = tmp_path / "notes.txt"
+    victim.write_text("precious")
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    (docs / "thesis.txt").write_text("x")
+    for path, what in ((victim, "is a file"), (docs, "is a folder that is not a saved 'test.kind' artifact")):
+        with pytest.raises(FileExistsError, match=what):
+            with A.atomic_folder(path, overwrite=True, kind="test.kind") as tmp:
+                (tmp / "a").write_text("new")
+    assert victim.read_text() == "precious" and (docs / "thesis.txt").read_text() == "x"
+    art = tmp_path / "art"
+    art.mkdir()  # an empty folder holds nothing to lose: replaced
+    for payload in ("old", "new"):
+        with A.atomic_folder(art, overwrite=True, kind="test.kind") as tmp:
+            (tmp / "a").write_text(payload)
+            A.write_manifest(tmp, "test.kind")
+    assert (art / "a").read_text() == "new"
+    with pytest.raises(FileExistsError, match="not a saved 'other.kind' artifact"):
+        with A.atomic_folder(art, overwrite=True, kind="other.kind"):
+            pass

@@ -4,6 +4,7 @@ any work starts (:mod:`anm_torchrl.cli.args`)."""
 from __future__ import annotations
 
 import importlib
+import json
 
 import pytest
 
@@ -45,3 +46,37 @@ def test_the_types_accept_what_is_in_range():
     from anm_torchrl.cli.args import count, index, positive_float
 
     assert (count("1"), index("0"), positive_float("0.5")) == (1, 0, 0.5)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["bench_evaluation", "--network", "nosuch"], "unknown network 'nosuch'"),
+    (["where_they_differ", "--state", "99", "--out", "{tmp}/w"], "state 99: the gap record"),
+    (["payoff", "{tmp}/missing.json"], "missing.json"),
+])
+def test_a_users_mistake_is_one_line(argv, message, tmp_path):
+    """Each command's user errors (a name, an index, a file the library refuses) end in one line naming the command,
+    not a traceback (they did, except gap's)."""
+    import subprocess
+    import sys
+
+    args = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    proc = subprocess.run([sys.executable, "-m", f"anm_torchrl.cli.{args[0]}", *args[1:]], capture_output=True,
+                          text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines()[-1].startswith(f"python -m anm_torchrl.cli.{args[0]}: ")
+    assert message in proc.stderr
+
+
+def test_bench_sb3_writes_a_record_only_where_asked(tmp_path, monkeypatch, capsys):
+    """Run at other sizes from the repository root, it replaced the committed results/benchmarks/bench_sb3.json."""
+    from anm_torchrl.benchmarks import sb3
+    from anm_torchrl.cli import bench_sb3
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sb3, "run", lambda *a, command, **k: {"command": command, "rows": []})
+    monkeypatch.setattr(sb3, "table", lambda record: "table")
+    bench_sb3.main(["--num-envs", "2"])
+    assert not any(tmp_path.iterdir())
+    bench_sb3.main(["--num-envs", "2", "--out", "r.json"])
+    assert json.loads((tmp_path / "r.json").read_text())["command"] == \
+        "python -m anm_torchrl.cli.bench_sb3 --num-envs 2 --out r.json"

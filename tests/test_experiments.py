@@ -251,6 +251,14 @@ def test_check_publish_and_merge(tmp_path: Path):
                                  "experiments": {"b": {"status": "ok"}}}, merge=True)
     assert [json.loads((target / f"{n}.json").read_text())["v"] for n in "ab"] == [1, 2]
     assert set(info["experiments"]) == {"a", "b"} and info["updates"][-1]["experiments"] == {"b": {"status": "ok"}}
+    # a folder of records another command assembled (results/payoff/, no run.json) is not replaced unasked: a
+    # payoff run of one part replaced the committed three-part record
+    payoff = tmp_path / "payoff"
+    write_json(payoff / "payoff.json", {"name": "payoff", "parts": ["cost", "accuracy", "ppo"]})
+    with pytest.raises(PublishRefused, match=r"holds committed records of \['payoff'\] without a run.json"):
+        check_publish(payoff, "payoff", ["payoff"], merge=False, force=False)
+    check_publish(payoff, "payoff", ["payoff"], merge=False, force=True)
+    check_publish(tmp_path / "empty", "payoff", ["payoff"], merge=False, force=False)  # nothing there yet
 
 
 # ------------------------------------------------------------------------------------------ README and records

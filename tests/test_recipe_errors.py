@@ -125,6 +125,10 @@ def test_a_damaged_network_file_is_one_line(recipe, tmp_path):
     ("train_pinn", "eval_only=true path={tmp}/nopinn", r"no trained PINN at .*/nopinn/pinn.safetensors"),
     ("make_dataset", "dataset=agent size=100 out={tmp}/a_file/ds", r"out=.*/a_file/ds: cannot write there"),
     ("make_dataset", "dataset=agent size=100 out={tmp}", r"out=.* exists; pass overwrite=true to replace it"),
+    # a user's folder is never replaced (overwrite=true emptied any folder named by out=)
+    ("make_dataset", "dataset=agent size=100 out={tmp} overwrite=true", r"is a folder that is not a saved"),
+    ("reproduce", "threads=0", "threads must be an integer >= 1, got 0"),  # a RuntimeError traceback before
+    ("reproduce", "report_only=true out_dir={tmp}/norun", r"out_dir=.*/norun holds no run.json"),
     ("evaluate", "policy=mpc_perfect policy_kwargs.bogus=1 steps=5 episodes=1",
      r"MPC options \['bogus'\] are not settings of the '\w+' solver"),  # was an AttributeError at the first step
     # Hydra's advice for an unknown key (+key=value) ran the job with the key ignored, in every recipe

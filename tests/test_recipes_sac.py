@@ -224,6 +224,7 @@ def test_do_nothing_start_on_gym_anms_own_env():
     from anm_torchrl.training.algorithms.ppo import model_options
 
     options = model_options({"model": {"init_action": "do_nothing"}, "surrogate": {"name": "gym_anm"}})
-    torch.testing.assert_close(options["init_action"].double(), torch.tensor([30.0, 50, 0, 0, 0, 0], dtype=torch.float64))
+    do_nothing = torch.tensor([30.0, 50, 0, 0, 0, 0], dtype=torch.float64)  # PV and wind at their caps, Q and storage 0
+    torch.testing.assert_close(options["init_action"].double(), do_nothing)
     assert model_options({"model": {"init_action": "do_nothing"}, "surrogate": {"name": "none"}})["init_action"] \
         == "do_nothing"

@@ -535,3 +535,62 @@ def test_a_regressor_without_clipping_keeps_the_soc_in_its_bounds(data):
     env = SurrogateEnv(sur, num_envs=16, seed=0, sim=sur.sim)
     td = env.rollout(3, break_when_any_done=False)  # the second step validated the first's next state
     assert td.batch_size == torch.Size([16, 3])
+
+
+def test_a_dataset_with_nan_rows_is_refused_and_overwrite_keeps_a_users_folder(tmp_path):
+    """A NaN in a fitted field is refused at save (xgb / dt then wrote a model no loader reads back); overwrite=true
+    replaces a dataset, never a user's folder (make_dataset.py out=<any folder> overwrite=true emptied it)."""
+    from anm_torchrl.data import save_dataset
+
+    td, meta = generate("generative", 64, seed=0, sim=ANM6_SIM)
+    bad = td.clone()
+    bad["state"][3, 1] = float("nan")
+    with pytest.raises(DatasetError, match=r"field 'state' is not finite in 1 rows \(first: row 3\)"):
+        save_dataset(bad, tmp_path / "nan", meta)
+    assert not (tmp_path / "nan").exists()
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    (docs / "thesis.txt").write_text("x")
+    with pytest.raises(FileExistsError, match="not a saved"):
+        save_dataset(td, docs, meta, overwrite=True)
+    assert (docs / "thesis.txt").read_text() == "x"
+    save_dataset(td, tmp_path / "ds", meta)
+    save_dataset(td, tmp_path / "ds", meta, overwrite=True)  # a dataset is replaced
+    load_dataset(tmp_path / "ds", sim=ANM6_SIM)
+
+
+def test_a_surrogate_with_non_finite_scalers_is_not_saved(trained, tmp_path):
+    sur = load_surrogate("lr", dataset="generative", sim=network_simulator(ANM6_EASY))
+    sur.x_std = sur.x_std.clone()
+    sur.x_std[0] = float("nan")
+    with pytest.raises(ValueError, match=r"scalers \['x_std'\] are not finite"):
+        save_surrogate(sur, tmp_path / "lr")
+    assert not (tmp_path / "lr").exists()
+
+
+def test_train_surrogate_refuses_a_bad_target_or_dataset_before_training(trained, home, tmp_path):
+    """One line each, before any model trains: a file or a user's folder as surrogate.path (it was deleted and
+    replaced), a folder under a file (a raw error after training), another network's dataset (a traceback whose
+    hint said to delete a valid dataset)."""
+    import subprocess
+    import sys
+
+    from anm_torchrl.networks import save_network
+    from anm_torchrl.networks.random import generate as generate_network
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    case = generate_network(7, n_bus=8)
+    save_network(tmp_path / "feeder.npz", case.network, case.load_p, case.gen_p_max)
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "train_surrogate.py"
+    base = [sys.executable, str(recipe), "surrogate=lr", "progress=false", "n_jobs=1", f"data.size={SIZE}",
+            f"hydra.run.dir={tmp_path / 'run'}"]
+    for args, message in (([f"surrogate.path={victim}"], "is a file: it is not replaced"),
+                          ([f"surrogate.path={victim}/sub"], "surrogate.path="),
+                          ([f"network={tmp_path / 'feeder.npz'}", f"surrogate.path={tmp_path / 'lr'}",
+                            f"data.generative={dataset_dir('generative', SIZE, 0)}"],
+                           "belongs to another network")):
+        proc = subprocess.run([*base, *args], capture_output=True, text=True, timeout=300)
+        assert proc.returncode != 0 and message in proc.stderr and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+        assert "trained in" not in proc.stderr + proc.stdout
+    assert victim.read_text() == "precious" and not (tmp_path / "lr").exists()

@@ -115,7 +115,7 @@ def test_data_driven_surrogates_on_case33bw(case33, tmp_path, monkeypatch):
         # other options is refused (it was silently reused before)
         cfg = compose("make_dataset", ["network=case33bw", f"dataset={kind}", f"size={size}", "progress=false"])
         assert load_recipe("make_dataset").run(cfg) == str(default_dataset_dir(kind, size, 0, case33))
-    with pytest.raises(DatasetError, match="different simulator"):
+    with pytest.raises(DatasetError, match="belongs to another network"):
         load_dataset(default_dataset_dir("agent", size, 0, case33), kind="agent", sim=network_simulator(ANM6_EASY))
     cfg = compose("train_surrogate", ["network=case33bw", "surrogate=xgb", f"data.size={size}", "progress=false",
                                        "n_jobs=1", "overwrite_cache=true", "models.xgb.num_boost_round=5",

@@ -69,8 +69,8 @@ def _bench(make_env, name: str, num_envs: int, n_steps: int, rollouts: int, seed
 
 
 def run(num_envs: int = 64, n_steps: int = 16, rollouts: int = 16, gym_rollouts: int = 1, threads: int = 1,
-        seed: int = 0) -> dict:
-    """Measure both sides in this process; returns the record written by :func:`main`."""
+        seed: int = 0, command: str = "python -m anm_torchrl.cli.bench_sb3") -> dict:
+    """Measure both sides in this process; returns the record (``command``: the command line that made it)."""
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from anm_torchrl.provenance import machine_info, versions
@@ -87,7 +87,7 @@ def run(num_envs: int = 64, n_steps: int = 16, rollouts: int = 16, gym_rollouts:
     ours = _bench(lambda: SB3VecEnv(num_envs=num_envs, seed=seed), "anm_torchrl SB3VecEnv", num_envs, n_steps,
                   rollouts, seed)
     theirs = _bench(gym_anm_env, "gym-anm 2.0.1 ANM6Easy in DummyVecEnv", num_envs, n_steps, gym_rollouts, seed)
-    return {"command": "python -m anm_torchrl.cli.bench_sb3", "settings": {
+    return {"command": command, "settings": {
                 "num_envs": num_envs, "n_steps": n_steps, "batch_size": 512, "n_epochs": 10, "rollouts": rollouts,
                 "gym_rollouts": gym_rollouts, "torch_threads": threads, "seed": seed},
             "rows": [ours, theirs], "ratio_frames_per_s": ours["frames_per_s"] / theirs["frames_per_s"],

@@ -37,6 +37,21 @@ def positive_float(text: str) -> float:
     return value
 
 
+#: what a command reports as one line instead of a traceback: a user's input the library refuses by name (a
+#: ``ValueError``: ``ArtifactError``, ``DatasetError`` and JSON errors included) or a path that is missing, taken
+#: or not writable
+USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError)
+
+
+def run_main(main: Callable[[], Any], module: str) -> None:
+    """Run a command's ``main()`` as ``python -m <module>`` does, with :data:`USER_ERRORS` as one line
+    ``python -m <module>: <message>`` (exit status 1)."""
+    try:
+        main()
+    except USER_ERRORS as err:
+        raise SystemExit(f"python -m {module}: {err}") from None
+
+
 #: a count of at least one (rows, runs, episodes, steps, threads, jobs)
 count = integer(1)
 #: an index or a count that may be zero

@@ -11,7 +11,7 @@ import argparse
 import logging
 
 from anm_torchrl.benchmarks import evaluation
-from anm_torchrl.cli.args import count
+from anm_torchrl.cli.args import count, run_main
 
 log = logging.getLogger(__name__)
 
@@ -32,4 +32,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.cli.bench_evaluation")

@@ -1,4 +1,6 @@
-"""Command line of the SB3 benchmark (:mod:`anm_torchrl.benchmarks.sb3`): writes its JSON record, logs one table.
+"""Command line of the SB3 benchmark (:mod:`anm_torchrl.benchmarks.sb3`): logs one table, and writes its JSON
+record where ``--out`` says (nothing is written without it: a run at other sizes never replaces the committed
+``results/benchmarks/bench_sb3.json``).
 
     python -m anm_torchrl.cli.bench_sb3 [--num-envs 64] [--n-steps 16] [--rollouts 16] [--gym-rollouts 1]
                                         [--threads 1] [--out results/benchmarks/bench_sb3.json]
@@ -8,10 +10,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 from pathlib import Path
 
 from anm_torchrl.benchmarks import sb3
-from anm_torchrl.cli.args import count
+from anm_torchrl.cli.args import count, run_main
 from anm_torchrl.strict_json import json_text
 
 log = logging.getLogger(__name__)
@@ -26,15 +29,19 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--gym-rollouts", type=count, default=1, help="timed rollouts on gym-anm (slow)")
     parser.add_argument("--threads", type=count, default=1)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="results/benchmarks/bench_sb3.json")
+    parser.add_argument("--out", default=None, help="write the JSON record here (default: print the table only)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    record = sb3.run(args.num_envs, args.n_steps, args.rollouts, args.gym_rollouts, args.threads, args.seed)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json_text(record, indent=2) + "\n")
-    log.info("%s\n\nwritten to %s", sb3.table(record), out)
+    command = " ".join([parser.prog, *(sys.argv[1:] if argv is None else argv)])
+    record = sb3.run(args.num_envs, args.n_steps, args.rollouts, args.gym_rollouts, args.threads, args.seed,
+                     command=command)
+    log.info("%s", sb3.table(record))
+    if args.out is not None:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json_text(record, indent=2) + "\n")
+        log.info("written to %s", out)
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.cli.bench_sb3")

@@ -13,7 +13,7 @@ import time
 import torch
 
 from anm_torchrl.benchmarks.surrogates import DATASETS, KINDS, markdown_table, measure
-from anm_torchrl.cli.args import count, positive_float
+from anm_torchrl.cli.args import count, positive_float, run_main
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -28,12 +28,17 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=count, default=1, help="torch.set_num_threads")
     args = parser.parse_args(argv)
+    try:
+        batches = [count(b) for b in args.batch_sizes.split(",") if b.strip()]
+    except argparse.ArgumentTypeError as err:
+        parser.error(f"argument --batch-sizes: {err}")
+    kinds, datasets = [k for k in args.surrogates.split(",") if k], [d for d in args.datasets.split(",") if d]
+    for option, given, known in (("--surrogates", kinds, KINDS), ("--datasets", datasets, DATASETS)):
+        if set(given) - set(known):
+            parser.error(f"argument {option}: {sorted(set(given) - set(known))} not among {list(known)}")
     torch.set_num_threads(args.threads)
-    batches = [int(b) for b in args.batch_sizes.split(",") if b.strip()]
     start = time.perf_counter()
-    results, missing = measure(batches, [k for k in args.surrogates.split(",") if k],
-                               [d for d in args.datasets.split(",") if d], args.min_time, args.min_steps, args.rounds,
-                               args.device)
+    results, missing = measure(batches, kinds, datasets, args.min_time, args.min_steps, args.rounds, args.device)
     table = markdown_table(results, batches)
     print(table)
     for note in missing:
@@ -45,4 +50,4 @@ def main(argv: list[str] | None = None) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.cli.bench_surrogates")

@@ -12,7 +12,7 @@ import argparse
 import logging
 
 from anm_torchrl.benchmarks import training
-from anm_torchrl.cli.args import count
+from anm_torchrl.cli.args import count, run_main
 
 log = logging.getLogger(__name__)
 
@@ -41,4 +41,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.cli.bench_training")

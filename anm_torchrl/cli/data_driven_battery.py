@@ -8,15 +8,16 @@ import logging
 
 import torch
 
-from anm_torchrl.cli.args import count
+from anm_torchrl.cli.args import count, run_main
 from anm_torchrl.experiments.data_driven_battery import PINN_RECORD, run
+from anm_torchrl.surrogates.regressors.defaults import KINDS
 
 
 def main(argv: list[str] | None = None) -> dict:
     """Parse ``argv``, measure, write the record and its table, print the table."""
     ap = argparse.ArgumentParser(description="data-driven surrogates built on first use on random networks")
     ap.add_argument("--seeds", type=int, nargs="+", required=True, help="battery seeds (-1: issue 23's network)")
-    ap.add_argument("--kinds", nargs="+", default=["lr", "dt", "xgb", "dnn"])
+    ap.add_argument("--kinds", nargs="+", default=["lr", "dt", "xgb", "dnn"], choices=KINDS)
     ap.add_argument("--n-random", type=count, default=4000)
     ap.add_argument("--n-jobs", type=count, default=2, help="threads of xgboost / forests")
     ap.add_argument("--pinn-record", default=str(PINN_RECORD))
@@ -32,4 +33,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 if __name__ == "__main__":
     logging.basicConfig(level=logging.INFO)
-    main()
+    run_main(main, "anm_torchrl.cli.data_driven_battery")

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from anm_torchrl.cli.args import count, index
+from anm_torchrl.cli.args import count, index, run_main
 from anm_torchrl.evaluation import EVAL_MAX_STEPS
 from anm_torchrl.experiments.gap import ANM6, DEFAULT_ROWS, markdown, measure, write_record
 
@@ -96,4 +96,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.cli.gap")

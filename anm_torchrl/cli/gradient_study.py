@@ -14,7 +14,8 @@ import json
 import logging
 from pathlib import Path
 
-from anm_torchrl.cli.args import add_study_arguments, finish_study, read_kept
+from anm_torchrl.networks import check_network_name
+from anm_torchrl.cli.args import add_study_arguments, finish_study, read_kept, run_main
 from anm_torchrl.experiments import gradient_study
 
 log = logging.getLogger(__name__)
@@ -32,6 +33,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--keep", default=None, help="an earlier record of this campaign: the rows of the methods "
                         "not in --methods are kept (one method's cells re-made)")
     args = parser.parse_args(argv)
+    check_network_name(args.network)  # before its gap record is looked for under that name
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     record = gradient_study.campaign(args.network, args.methods, args.seeds, Path(args.runs_dir), jobs=args.jobs,
                                      overrides=tuple(args.override), keep=read_kept(args.keep),
@@ -52,4 +54,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.cli.gradient_study")

@@ -10,7 +10,7 @@ import argparse
 import logging
 import sys
 
-from anm_torchrl.cli.args import count, index
+from anm_torchrl.cli.args import count, index, run_main
 from anm_torchrl.experiments import imitation
 
 
@@ -47,4 +47,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.cli.imitation")

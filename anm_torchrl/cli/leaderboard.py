@@ -13,7 +13,8 @@ import logging
 import sys
 from pathlib import Path
 
-from anm_torchrl.cli.args import count, read_kept
+from anm_torchrl.networks import check_network_name
+from anm_torchrl.cli.args import count, read_kept, run_main
 from anm_torchrl.experiments import leaderboard
 from anm_torchrl.strict_json import json_text
 
@@ -31,6 +32,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", default=None, help="write <out>.json and <out>.md")
     parser.add_argument("--readme", nargs="*", default=[], help="pages whose leaderboard block is re-rendered")
     args = parser.parse_args(argv)
+    check_network_name(args.network)  # before its gap record is looked for under that name
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     import torch
 
@@ -50,4 +52,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.cli.leaderboard")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from anm_torchrl.cli.args import run_main
 from anm_torchrl.experiments.io import read_json
 from anm_torchrl.experiments.payoff import merge_cost, merge_ppo, reread_accuracy
 from anm_torchrl.experiments.payoff_report import markdown
@@ -42,4 +43,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.cli.payoff")

@@ -8,7 +8,7 @@ import logging
 
 import torch
 
-from anm_torchrl.cli.args import count
+from anm_torchrl.cli.args import count, run_main
 from anm_torchrl.experiments.pinn_gradients import run
 
 
@@ -38,4 +38,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 if __name__ == "__main__":
     logging.basicConfig(level=logging.INFO)
-    main()
+    run_main(main, "anm_torchrl.cli.pinn_gradients")

@@ -13,6 +13,7 @@ from typing import Any
 
 import torch
 
+from anm_torchrl.cli.args import run_main
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.surrogates.pinn.io import apply_refine_rule
 
@@ -33,4 +34,4 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 if __name__ == "__main__":
     logging.basicConfig(level=logging.INFO)
-    main()
+    run_main(main, "anm_torchrl.cli.pinn_refine")

@@ -13,7 +13,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from anm_torchrl.cli.args import add_study_arguments, finish_study, read_kept
+from anm_torchrl.cli.args import add_study_arguments, finish_study, read_kept, run_main
 from anm_torchrl.experiments import unseen
 
 log = logging.getLogger(__name__)
@@ -57,4 +57,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.cli.unseen_networks")

@@ -8,7 +8,7 @@ import logging
 
 import torch
 
-from anm_torchrl.cli.args import count, index
+from anm_torchrl.cli.args import count, index, run_main
 from anm_torchrl.experiments.where_they_differ import GAP_RECORD, run
 
 
@@ -32,4 +32,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 if __name__ == "__main__":
     logging.basicConfig(level=logging.INFO)
-    main()
+    run_main(main, "anm_torchrl.cli.where_they_differ")

@@ -3,8 +3,9 @@
 A reproduction writes only into its own run directory. :func:`publish` copies its records (``<name>.json``, the CSV
 tables) into the target folder and merges its ``run.json`` there; the caller then redraws the figures and pages
 from the target's records. :func:`check_publish` refuses, before anything runs, a run that would replace the
-committed record with a smaller one: another preset (a ``quick`` run over the ``full`` record), or a run of only
-some experiments that does not ask to be merged (``merge=true``) — unless ``force``.
+committed record with a smaller one: another preset (a ``quick`` run over the ``full`` record), a run of only
+some experiments that does not ask to be merged (``merge=true``), or any run over records another command assembled
+(a folder without ``run.json``: ``results/payoff/``) — unless ``force``.
 """
 
 from __future__ import annotations
@@ -39,7 +40,14 @@ def check_publish(target: str | Path, preset: str, experiments: list[str], merge
         force: publish anyway.
     """
     earlier = committed_run(target)
-    if force or earlier is None:
+    if force:
+        return
+    if earlier is None:  # records assembled by another command (results/payoff/: python -m anm_torchrl.cli.payoff)
+        present = sorted(n for n in experiments if record_files(target, n))
+        if present:
+            raise PublishRefused(f"publish: {target} holds committed records of {present} without a run.json (made by "
+                                 "the command results/INDEX.json names for it); this run does not replace them "
+                                 "(force=true to do so, or publish_dir=<another folder>)")
         return
     if earlier.get("preset") != preset:
         raise PublishRefused(f"publish: {target}/run.json holds a preset={earlier.get('preset')!r} record and this "

@@ -101,6 +101,9 @@ def run(checkpoint: str, out: str | Path, gap_record: str | Path = GAP_RECORD, s
     gap = json.loads(Path(gap_record).read_text())
     proto = gap["protocol"]
     network, gamma, steps = proto.get("network", "anm6_easy"), float(proto["gamma"]), int(proto["steps"])
+    if state_index is not None and not 0 <= int(state_index) < int(proto["episodes"]):
+        raise ValueError(f"state {state_index}: the gap record {gap_record} holds test states "
+                         f"0..{proto['episodes'] - 1}")
     if (gamma, steps) != (EVAL_GAMMA, EVAL_MAX_STEPS):
         raise ValueError(f"{gap_record}: protocol γ={gamma}, T={steps} differs from the evaluation's "
                          f"({EVAL_GAMMA}, {EVAL_MAX_STEPS})")

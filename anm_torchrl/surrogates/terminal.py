@@ -174,7 +174,7 @@ class TerminalClassifier:
     # ------------------------------------------------------------------------------------------ save/load
     def save(self, path: str | os.PathLike, overwrite: bool = True) -> Path:
         """Write the classifier as its own artifact folder ``path`` (atomic, with a manifest)."""
-        with atomic_folder(path, overwrite=overwrite) as tmp:
+        with atomic_folder(path, overwrite=overwrite, kind=KIND) as tmp:
             self.write_files(tmp)
             write_manifest(tmp, KIND)
         return Path(path)

@@ -40,11 +40,16 @@ def save_surrogate(sur: RegressorSurrogate, path: str | os.PathLike, extra: dict
         files: more content of the folder, name -> ``str``/``bytes`` (written) or a ``Path`` (a file or folder
             copied), e.g. ``metrics.json``, ``config.yaml``, ``tb``.
     """
+    scalers = {k: getattr(sur, k) for k in ("x_mean", "x_std", "y_mean", "y_std")}
+    bad = sorted(k for k, v in scalers.items() if not bool(torch.isfinite(v).all()))
+    if bad:  # written as JSON null, no loader would read the model back (a NaN in its training data)
+        raise ValueError(f"refusing to save the {sur.kind} surrogate to {path}: its scalers {bad} are not finite "
+                         "(NaN or infinite values in its training data)")
     meta = {**sur.meta, **(extra or {}), "format": FORMAT, "format_version": FORMAT_VERSION, "kind": sur.kind,
             "package_version": __version__, "layout": sur.layout(),
             "foresight": sur.featurizer.foresight, "clip": sur.clip, "simulator": simulator_settings(sur.sim),
             "scalers": {k: getattr(sur, k).cpu().tolist() for k in ("x_mean", "x_std", "y_mean", "y_std")}}
-    with atomic_folder(path, overwrite=overwrite) as tmp:
+    with atomic_folder(path, overwrite=overwrite, kind=FORMAT) as tmp:
         sur.backend.save(tmp)
         if sur.classifier is not None:
             sur.classifier.write_files(tmp)

@@ -152,12 +152,13 @@ def check_train_request(cfg: DictConfig, default_size: int):
     return network_simulator(cfg.network)
 
 
-def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int, sim=None) -> list[dict]:
+def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int, sim=None,
+                     data: dict | None = None) -> list[dict]:
     """Train what ``cfg`` (``recipes/conf/train_surrogate.yaml``) asks for: one surrogate, or all ten with
     ``all=true``; returns the metrics. ``make_cfg``: the dataset recipe's config (options of missing datasets);
     ``default_size``: the default ``data.size``, below which a model never replaces the default one unless
     ``overwrite_cache``; ``sim``: the network's simulator as :func:`check_train_request` returned it (None: the
-    checks run here)."""
+    checks run here); ``data``: :func:`load_datasets`'s (None: loaded here)."""
     from anm_torchrl.artifacts import atomic_write
     from anm_torchrl.data import for_network
     from anm_torchrl.paths import artifact_home
@@ -167,7 +168,8 @@ def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int, s
     if sim is None:  # fail before loading or generating data
         sim = check_train_request(cfg, default_size)
     start = time.perf_counter()
-    data = load_datasets(cfg, sim, make_cfg)
+    if data is None:
+        data = load_datasets(cfg, sim, make_cfg)
     if cfg.all:
         jobs = [(k, d) for d in DATASETS for k in KINDS]
         results = [train_one(cfg, k, d, None, data, sim, default_size)
