@@ -133,6 +133,7 @@ def render(out_dir: Path, results_md: Path | None, run_info: dict, write_run: bo
     else:  # a run directory: its own records (issue 15's gap tables are records of python -m anm_torchrl.cli.gap)
         results = load_results(out_dir)
         results["optimal_gap_tables"] = {f.stem: read_json(f) for f in sorted(out_dir.glob("optimal_gap_table*.json"))}
+        results["records_dir"] = str(out_dir)  # the pages name these records, not the published ones
     figs = plots.make_all(results, out_dir / "figures")
     if write_run:
         run_info["figures"] = {k: os.path.relpath(v, out_dir) if v else None for k, v in figs.items()}
@@ -202,6 +203,12 @@ def main(cfg: DictConfig) -> dict:
         if cfg.publish:
             for study, names in by_study(experiments).items():
                 check_publish(target / study, str(p.get("name")), names, bool(cfg.merge), bool(cfg.force))
+        earlier = _run_dir(cfg) / "run.json" if cfg.out_dir is not None else None
+        if earlier is not None and earlier.is_file() and not cfg.merge:  # its page would mix both runs' records
+            left = sorted(set(json.loads(earlier.read_text()).get("experiments", {})) - set(experiments))
+            if left:
+                raise FileExistsError(f"out_dir={_run_dir(cfg)} holds an earlier run's records of {left}, which this "
+                                      "run does not redo; add merge=true to merge into it, or choose another out_dir")
     import torch
 
     from anm_torchrl.experiments.common import RunContext

@@ -50,6 +50,8 @@ def test_reproduce_writes_every_record(results: Path):
 def test_results_md_is_generated(results: Path):
     md = (results / "RESULTS.md").read_text()
     assert "do not edit by hand" in md and md.count("| **") >= 4
+    # a run's own page names its own records (it named the published results/reproduction/ ones)
+    assert f"records under `{results}`" in md and "_From `results/" not in md
     for title in ("Fig. 5", "Fig. 6", "Fig. 7", "Figs. 8–9", "Figs. 10–11", "PPO training curves"):
         assert title in md
 
@@ -65,6 +67,19 @@ def test_report_only_rewrites_the_page_from_the_records(results: Path):
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert records == {p.name: p.read_bytes() for p in results.glob("*.json")}
     assert md.read_text().split("\n", 3)[3] == (results / "RESULTS.md").read_text().split("\n", 3)[3]
+
+
+def test_a_partial_rerun_into_a_run_directory_needs_merge(results: Path):
+    """A run of some experiments into a run directory holding an earlier run's records would list only its own in
+    run.json while the page showed both: refused, before anything runs, without merge=true."""
+    before = (results / "run.json").read_bytes()
+    proc = subprocess.run([sys.executable, str(REPO / "recipes" / "reproduce.py"), "preset=tiny",
+                           "preset.experiments=[speed]", f"out_dir={results}"], cwd=REPO,
+                          env={**os.environ, "ANM_TORCHRL_HOME": str(results / "home")}, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert "holds an earlier run's records of" in proc.stderr and "merge=true" in proc.stderr
+    assert (results / "run.json").read_bytes() == before
 
 
 @pytest.mark.parametrize("notebook", NOTEBOOKS)

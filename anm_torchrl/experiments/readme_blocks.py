@@ -25,7 +25,7 @@ from anm_torchrl.experiments.formatting import md_table, portable_command
 BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)", re.S)
 
 
-def _source(rec: dict | None, run: dict | None) -> str:
+def _source(rec: dict | None, run: dict | None, records_dir: str | None = None) -> str:
     """Where a block's numbers come from: record file, preset, date and git commit."""
     if not rec:
         return "_(no record)_"
@@ -37,7 +37,8 @@ def _source(rec: dict | None, run: dict | None) -> str:
             preset, date = u.get("preset") or preset, u.get("date") or date
     when = f", run on {str(date)[:10]}" if date else ""
     study = EXPERIMENTS[rec["name"]].study if rec["name"] in EXPERIMENTS else "reproduction"
-    return f"_From `results/{study}/{rec['name']}.json` (preset `{preset}`, git commit `{commit[:7]}`{when})._"
+    where = records_dir or f"results/{study}"  # a run directory's page names its own records
+    return f"_From `{where}/{rec['name']}.json` (preset `{preset}`, git commit `{commit[:7]}`{when})._"
 
 
 def block_claims(res: dict[str, Any]) -> str:
@@ -45,7 +46,8 @@ def block_claims(res: dict[str, Any]) -> str:
     for text, fn in CLAIMS:
         what, verdict = fn(res)
         rows.append({"claim (paper)": text, "verdict here": f"**{verdict}**", "measured": what})
-    sources = " ".join(_source(res.get(n), res.get("run")) for n in ("speed", "ppo_curves", "sweep") if res.get(n))
+    sources = " ".join(_source(res.get(n), res.get("run"), res.get("records_dir"))
+                       for n in ("speed", "ppo_curves", "sweep") if res.get(n))
     return md_table(rows, ["claim (paper)", "verdict here", "measured"]) + "\n\n" + sources + _reused_curves(res)
 
 
@@ -81,7 +83,8 @@ def block_test_returns(res: dict[str, Any]) -> str:
         table += (f"\n\nRows measured by earlier runs of this experiment on the same states and protocol (git "
                   f"commit {', '.join(f'`{c}`' for c in reused)}) and merged into this record.")
     na = "; ".join(f"`{k}`: {portable_command(v)[:120]}" for k, v in d.get("not_available", {}).items())
-    return f"{head}\n\n{table}\n\n" + (f"Not available: {na}\n\n" if na else "") + _source(rec, res.get("run"))
+    return (f"{head}\n\n{table}\n\n" + (f"Not available: {na}\n\n" if na else "")
+            + _source(rec, res.get("run"), res.get("records_dir")))
 
 
 def block_adaptability(res: dict[str, Any]) -> str:
@@ -101,7 +104,8 @@ def block_adaptability(res: dict[str, Any]) -> str:
     missing = (f"Not in this record (no trained model when it ran): {', '.join(f'`{k}`' for k in na)}.\n\n"
                if na else "")
     return ("One-step (teacher-forced) state MAE along the episodes of each scenario (MW, MVAr, MWh):\n\n"
-            + md_table(table, ["agent", "surrogate", *scenarios]) + "\n\n" + missing + _source(rec, res.get("run")))
+            + md_table(table, ["agent", "surrogate", *scenarios]) + "\n\n" + missing
+            + _source(rec, res.get("run"), res.get("records_dir")))
 
 
 BLOCKS = {"claims": block_claims, "test_returns": block_test_returns, "adaptability": block_adaptability,

@@ -22,7 +22,7 @@ Preset **{preset}**, total wall time {wall:.0f} s, seeds {seeds}.
 **Machine.** {machine}
 **Versions.** {versions}
 
-Which run produced each record (records under `results/reproduction/`; PPO learning curves are evaluated after every update on
+Which run produced each record (records under `{records_where}`; PPO learning curves are evaluated after every update on
 the fixed states named in their section, the `test_returns` figures on the held-out test states):
 
 {provenance}
@@ -280,7 +280,7 @@ def write_results_md(res: dict, figs: dict, path: str | Path, run_info: dict) ->
     md = TEMPLATE.format(provenance=md_table(prov, ["experiment", "status", "command", "date", "git commit",
                                                   "wall_s"], {"wall_s": ".0f"}),
                          command=run_info.get("command", "python recipes/reproduce.py"), date=run_info.get("date"),
-                         updates=updates,
+                         updates=updates, records_where=res.get("records_dir") or "results/reproduction/",
                          preset=run_info.get("preset"), wall=run_info.get("wall_s", 0.0),
                          seeds=run_info.get("seeds"), machine=machine,
                          versions=", ".join(f"{k} {val}" for k, val in v.items() if val),
