@@ -737,3 +737,21 @@ def test_killed_training_resumes_from_its_finished_stages(tmp_path, sim, monkeyp
     file = tmp_path / "m" / "pinn.safetensors"
     cache.train_and_save(cfg, sim, path=file)
     assert file.is_file() and not (file.parent / ".pinn.stages").exists()
+
+
+def test_loading_a_model_that_failed_its_acceptance_bar_names_the_file(sim, tmp_path, caplog):
+    """PPO on a PINN file that failed its bar (a smoke preset given by path) said nothing of it: only the
+    termination-rate heuristic could hint at it. The load names the file and the failures."""
+    import logging
+
+    cfg = tr.preset("smoke", generator={"max_steps": 2}, storage={"max_steps": 2}, power_balance={"max_steps": 2})
+    modules, report = tr.train_pinn(cfg, sim)
+    bad = tr.save_pinn(tmp_path / "bad.safetensors", modules, cfg,
+                       {**report, "accepted": False, "acceptance_failures": ["generator.val_mae_pu = 0.3 > 0.001"]},
+                       sim)
+    good = tr.save_pinn(tmp_path / "good.safetensors", modules, cfg, {**report, "accepted": True}, sim)
+    with caplog.at_level(logging.WARNING):
+        load_pinn(sim, path=good, train_if_missing=False)
+        assert "acceptance bar" not in caplog.text
+        load_pinn(sim, path=bad, train_if_missing=False)
+    assert f"the PINN at {bad} failed its acceptance bar when it was trained (generator.val_mae_pu" in caplog.text

@@ -90,7 +90,12 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
                     "logged at INFO)", file, preset, sum(getattr(cfg, m).max_steps for m in MODULES))
         cache.train_and_save(cfg, sim, path=file, overwrite_cache=overwrite_cache,
                              log_dir=log_dir if log_dir is not None else file.parent / "tb", progress=progress)
-    modules, _, _ = tr.load_modules(file, sim)
+    modules, _, report = tr.load_modules(file, sim)
+    if report.get("accepted") is False:  # e.g. a smoke preset given by path: say so here, naming the file
+        failures = list(report.get("acceptance_failures") or [])
+        log.warning("the PINN at %s failed its acceptance bar when it was trained (%s%s): a policy trained on it "
+                    "learns from an inaccurate model; train one with python recipes/train_pinn.py (default preset)",
+                    file, "; ".join(map(str, failures[:3])) or "no bar", " ..." if len(failures) > 3 else "")
     return build_chain(sim, modules["generator"], modules["storage"], modules["power_balance"], terminal=terminal,
                        classifier=classifier, residual_threshold=residual_threshold, v_range=v_range,
                        duals=duals)
