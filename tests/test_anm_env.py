@@ -437,3 +437,52 @@ def test_surrogate_env_names_a_model_that_terminates_far_too_often(every, caplog
         assert len(warned) == 1 and "EndsEvery ended 50 % of its first 60 steps" in warned[0], warned
     else:
         assert warned == []
+
+
+def test_a_terminated_row_stays_terminal_when_stepped_again():
+    """gym-anm keeps a terminated env terminal (zero state and observation, reward 0, terminated); a row stepped
+    again after its termination came back to life from its zero state with a made-up reward. The other rows step as
+    they would alone."""
+    from tensordict import TensorDict
+
+    from anm_torchrl.envs import ANM6Env
+
+    env = ANM6Env(2, seed=0)
+    s = torch.tensor([[25.34521365, -5, 4, -10, 11, -25, 0, 10.48302624, -1, -0.13812797, -2, -0.45902648, -5, 0,
+                       0.01652764, 4, 11, 81]], dtype=torch.float64).expand(2, 18).clone()
+    td = env.reset(TensorDict({"state": s}, [2]), set_state=True)
+    td["action"] = torch.tensor([[30.0, 50, -30, -50, 0, -50], [30.0, 50, 0, 0, 0, 0]])  # row 0 collapses
+    first = env.step(td)["next"]
+    assert first["terminated"].reshape(-1).tolist() == [True, False]
+    again = first.clone().set("action", torch.zeros(2, 6))
+    second = env.step(again)["next"]
+    assert second["terminated"].reshape(-1).tolist() == [True, False] and second["reward"][0].item() == 0.0
+    assert not second["state"][0].any() and not second["observation"][0].any()
+    assert second["grid", "e_loss"][0].item() == 0.0 and second["grid", "v_magn"][0].isnan().all()
+    alone = ANM6Env(1, seed=0)
+    one = alone.reset(TensorDict({"state": first["state"][1:]}, [1]), set_state=True).set("action", torch.zeros(1, 6))
+    torch.testing.assert_close(env.step(again)["next", "state"][1], alone.step(one)["next", "state"][0], rtol=0,
+                               atol=0)
+
+
+def test_a_next_vars_hooks_time_variable_is_observed_as_it_is():
+    """With a next_vars hook the time variable is the hook's (e.g. a step counter past the profiles' length): its
+    observation was capped at T - 1 while the state held the true value (gym-anm's aux_bounds=None: unbounded)."""
+    from anm_torchrl.envs import ANMEnv
+    from anm_torchrl.networks import get_network
+
+    case = get_network("anm6_easy")
+    load, pot = torch.as_tensor(case.load_p), torch.as_tensor(case.gen_p_max)
+
+    def hook(state):
+        t = state[:, -1:] + 1
+        i = t.squeeze(1).long() % load.shape[0]
+        return load[i].double(), pot[i].double(), t
+
+    env = ANMEnv(network=case.network, load_p=case.load_p, gen_p_max=case.gen_p_max, num_envs=1, seed=0,
+                 next_vars=hook)
+    td = env.reset()
+    for _ in range(load.shape[0] + 5):
+        td = env.step_mdp(env.step(td.set("action", torch.zeros(1, 6))))
+    assert td["state"][0, -1].item() > load.shape[0] - 1
+    assert td["observation"][0, -1].item() == pytest.approx(td["state"][0, -1].item())

@@ -106,6 +106,19 @@ def test_gym_anm_is_anm6_only():
         check_evaluate_config(cfg)
 
 
+def test_gym_anms_own_env_refuses_options_it_would_ignore():
+    """surrogate=gym_anm trained from gym-anm's own start whatever env.init said (summary.json recorded the init given),
+    and ignored action_mode; both are refused, in the config check and in make_env."""
+    from anm_torchrl import make_env
+
+    with pytest.raises(ValueError, match="env.init='uniform': surrogate=gym_anm starts every episode from gym-anm's"):
+        check_ppo_config(ppo_config("surrogate=gym_anm", "env.init=uniform"))
+    with pytest.raises(ValueError, match="env.action_mode='clip': gym-anm's own env asserts"):
+        check_ppo_config(ppo_config("surrogate=gym_anm", "env.action_mode=clip"))
+    with pytest.raises(ValueError, match="init='bogus'"):
+        make_env("gym_anm", num_envs=1, seed=0, init="bogus")
+
+
 def test_evaluate_defaults_to_the_recipes_test_states():
     """evaluate.py's episodes, seed and steps default to the test protocol's (recipes/evaluate.py test_protocol; its
     behaviour: tests/test_recipes_evaluate.py), whose seed is not the validation seed (model selection)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Literal
 
@@ -93,7 +94,9 @@ class ANMEnv(EnvBase):
                                  f"init='uniform' or a callable sampler")
         self.sim = sim
         self.action_mode, self.init = action_mode, init
-        self.obs_map = ObservationMap(sim, observation, (0.0, float(sim.n_time - 1)))
+        # the time variable's bounds: with a next_vars hook its own (gym-anm's aux_bounds=None: unbounded)
+        aux_bounds = (0.0, float(sim.n_time - 1)) if sim.next_vars_hook is None else (-math.inf, math.inf)
+        self.obs_map = ObservationMap(sim, observation, aux_bounds)
         # the "state" observation's bounds in the form the backend's output pass reads (None: the map clips)
         self._obs_bounds = sim.physics.output_bounds(self.obs_map.low, self.obs_map.high) if self.obs_map.is_state \
             else None
@@ -127,13 +130,38 @@ class ANMEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = check_action(tensordict.get("action"), self._a_box, clip=self.action_mode == "clip")
-        state = self.validate_state(tensordict.get("state"))
+        state = tensordict.get("state")
+        ended = tensordict.get("terminated", None)
+        ended = None if ended is None or not bool(ended.any()) else ended.reshape(-1, 1).to(self.device)
+        if ended is not None:  # stepped from a stand-in, then written back as gym-anm keeps them (below)
+            state = torch.where(ended, self._stand_in().to(self.device), state.to(self.device, torch.float64))
+        state = self.validate_state(state)
         next_state, tr = self.sim.step(state, action)
         out, reward, terminated = self._output(next_state, tr)
+        if ended is not None:
+            reward, terminated = self._keep_terminal(out, reward, terminated, ended)
         out.set("reward", reward)
         out.set("terminated", terminated)
         out.set("done", terminated.clone())
         return out
+
+    def _stand_in(self) -> torch.Tensor:
+        """A valid state (1, state_dim) to step a terminated row from (its zero state may fail the SoC check)."""
+        if getattr(self, "_stand_in_state", None) is None:
+            self._stand_in_state = grid_reset.random_state(self.sim, 1, torch.Generator().manual_seed(0))[0]
+        return self._stand_in_state
+
+    def _keep_terminal(self, out: TensorDict, reward: torch.Tensor, terminated: torch.Tensor,
+                       ended: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A row terminated before this step stays terminal, as in gym-anm: zero state and observation, reward 0,
+        ``terminated`` (no energy, penalty or curtailment; voltages and flows missing). Returns (reward,
+        terminated)."""
+        for key in ("state", "observation"):
+            out.set(key, out.get(key).masked_fill(ended, 0.0))
+        for key, value in out.get("grid").items():
+            missing = 0.0 if key in ("e_loss", "penalty", "curtailment") else float("nan")
+            out.set(("grid", key), value.masked_fill(ended, missing))
+        return reward.masked_fill(ended, 0.0), terminated | ended
 
     def _sample(self, rows: int) -> tuple[torch.Tensor, Transition]:
         if callable(self.init):

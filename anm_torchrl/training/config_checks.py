@@ -93,13 +93,27 @@ def _cells(cfg: Mapping, key: str) -> None:
         raise ValueError(f"{key} must be a list of positive layer widths, got {value!r}")
 
 
+def check_gym_anm_options(init, action_mode, prefix: str = "") -> None:
+    """gym-anm's own env starts from its own distribution and asserts its actions lie in the box: another ``init``
+    or ``action_mode`` would be ignored (a ``ValueError`` naming the option)."""
+    if init not in (None, "gym_anm"):
+        raise ValueError(f"{prefix}init={init!r}: surrogate=gym_anm starts every episode from gym-anm's own initial "
+                         "distribution (leave init unset, or 'gym_anm')")
+    if action_mode != "raise":
+        raise ValueError(f"{prefix}action_mode={action_mode!r}: gym-anm's own env asserts its actions lie in the box "
+                         "(only 'raise')")
+
+
 def _check_surrogate(cfg: Mapping) -> None:
     """The surrogate group's choices that would otherwise fail once the run has started (a traceback)."""
     surrogate = cfg.get("surrogate")
     if not isinstance(surrogate, Mapping):
         return
-    if surrogate.get("name") == "gym_anm" and _get(cfg, "network") != "anm6_easy":
-        raise gym_anm_only("surrogate", _get(cfg, "network"))
+    if surrogate.get("name") == "gym_anm":
+        if _get(cfg, "network") != "anm6_easy":
+            raise gym_anm_only("surrogate", _get(cfg, "network"))
+        env = cfg.get("env") if isinstance(cfg.get("env"), Mapping) else {}
+        check_gym_anm_options(env.get("init"), env.get("action_mode", "raise"), prefix="env.")
     if "dataset" in surrogate:
         from anm_torchrl.surrogates.regressors.defaults import DATASETS
 

@@ -12,7 +12,7 @@ from anm_torchrl._extras import require
 from anm_torchrl.console import plain_torchrl_console
 from anm_torchrl.envs import ANM6Env, ANMEnv, SurrogateEnv
 from anm_torchrl.envs.specs import check_integer
-from anm_torchrl.training.config_checks import TRUE_SIMULATORS, gym_anm_only
+from anm_torchrl.training.config_checks import TRUE_SIMULATORS, check_gym_anm_options, gym_anm_only
 from anm_torchrl.networks import ANM6_EASY
 from anm_torchrl.networks import simulator as network_simulator
 from anm_torchrl.paths import artifact_home
@@ -164,6 +164,7 @@ def make_env(surrogate: str = "none", num_envs: int = 1, max_steps: int | None =
     elif surrogate == "gym_anm":
         if network_arguments(network, load_p, gen_p_max) is not None:
             raise gym_anm_only("surrogate", network)
+        check_gym_anm_options(init, action_mode)
         env = make_gym_anm_env(num_envs, device=device, seed=seed)
     else:
         # the surrogate runs on this network's simulator (its tables and profiles); None = ANM6-Easy's. Built as
