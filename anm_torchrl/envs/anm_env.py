@@ -43,7 +43,8 @@ class ANMEnv(EnvBase):
         observation: ``"state"`` or gym-anm's list of ``(quantity, ids | "all", unit)``
             (:class:`~anm_torchrl.envs.observation.ObservationMap`); float32, clipped to gym-anm's bounds.
         delta_t, gamma, lamb, costs_clipping: as gym-anm (h; discount; penalty factor; clipping of |ΔE| and λΦ).
-        seed: seed of the reset sampler (``None``: random).
+        seed: seed of the reset sampler (``None``: random); one generator draws the whole batch, so the state env i
+            starts from depends on ``num_envs`` too.
         device: torch device of the physics and the TensorDicts.
         backend: ``"auto"`` (numba on the CPU), ``"numba"`` or ``"torch"``; the same transitions to round-off.
         action_mode: ``"raise"`` (as gym-anm's assert) or ``"clip"``.
