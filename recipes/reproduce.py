@@ -198,8 +198,9 @@ def main(cfg: DictConfig) -> dict:
         refuse_appended_keys("reproduce.py", HydraConfig.get().overrides.task, allowed=("preset",))
         if isinstance(cfg.threads, bool) or not isinstance(cfg.threads, int) or cfg.threads < 1:
             raise ValueError(f"threads must be an integer >= 1, got {cfg.threads!r}")
-        for name in experiments:  # an unknown name is refused
+        for name in experiments:  # an unknown name is refused, a count below 1 too
             registry.check(name)
+            registry.check_section(name, p.get(name))
         if cfg.publish:
             for study, names in by_study(experiments).items():
                 check_publish(target / study, str(p.get("name")), names, bool(cfg.merge), bool(cfg.force))

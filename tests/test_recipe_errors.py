@@ -128,6 +128,8 @@ def test_a_damaged_network_file_is_one_line(recipe, tmp_path):
     # a user's folder is never replaced (overwrite=true emptied any folder named by out=)
     ("make_dataset", "dataset=agent size=100 out={tmp} overwrite=true", r"is a folder that is not a saved"),
     ("reproduce", "threads=0", "threads must be an integer >= 1, got 0"),  # a RuntimeError traceback before
+    ("reproduce", "preset=tiny preset.experiments=[speed] preset.speed.repeats=-1",  # no median, after the run
+     r"preset.speed.repeats must be an integer >= 1 \(or a list of them\), got -1"),
     ("reproduce", "report_only=true out_dir={tmp}/norun", r"out_dir=.*/norun holds no run.json"),
     ("evaluate", "policy=mpc_perfect policy_kwargs.bogus=1 steps=5 episodes=1",
      r"MPC options \['bogus'\] are not settings of the '\w+' solver"),  # was an AttributeError at the first step

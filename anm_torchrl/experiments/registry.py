@@ -57,6 +57,30 @@ def check(name: str) -> None:
         raise ValueError(f"unknown experiment {name!r}; expected one of {list(EXPERIMENTS)}")
 
 
+#: preset entries that count something (at least 1) or last a time (seconds, more than 0), in any experiment's
+#: section; recipe keys (``base``, ``per_env``) and baseline options are checked where they are used
+COUNTS = ("n_transitions", "gym_steps", "repeats", "episodes", "steps", "test_episodes", "max_steps", "last_k",
+          "batch_sizes", "n_envs", "buffer")
+DURATIONS = ("timeout_s", "baseline_budget_s", "expert_budget_s")
+
+
+def check_section(name: str, section: Any) -> None:
+    """Raise ``ValueError`` naming ``preset.<name>.<key>`` for a count below 1 or a duration not above 0 in an
+    experiment's preset section (they failed only after the run had started, e.g. ``repeats=-1``: no median)."""
+    if not isinstance(section, dict):
+        return
+    for key, value in section.items():
+        values = value if isinstance(value, list) else [value]
+        if value is None or key not in COUNTS + DURATIONS:
+            continue
+        for v in values:
+            ok = (isinstance(v, int) and not isinstance(v, bool) and v >= 1 if key in COUNTS
+                  else isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0)
+            if not ok:
+                what = "an integer >= 1 (or a list of them)" if key in COUNTS else "a number of seconds > 0"
+                raise ValueError(f"preset.{name}.{key} must be {what}, got {value!r}")
+
+
 def get(name: str) -> Experiment:
     """The ``run`` function of experiment ``name``.
 
