@@ -227,16 +227,16 @@ def atomic_folder(path: str | os.PathLike, overwrite: bool = False, kind: str | 
 def check_replaceable(path: Path, kind: str) -> None:
     """``FileExistsError`` unless ``path`` is an empty folder or one saved as a ``kind`` artifact (its manifest says
     so; its files may be damaged: a corrupted artifact may be replaced)."""
-    if path.is_dir() and not any(path.iterdir()):
-        return
-    try:
-        found = json.loads((path / MANIFEST).read_text()).get("kind") if path.is_dir() else None
-    except (OSError, ValueError, AttributeError):
-        found = None
-    if found != kind:
-        what = "a file" if not path.is_dir() else f"a folder that is not a saved {kind!r} artifact"
-        raise FileExistsError(f"{path} exists and is {what}: it is not replaced; remove it yourself or choose "
-                              "another path")
+    if path.is_dir():
+        if not any(path.iterdir()):
+            return
+        try:
+            if json.loads((path / MANIFEST).read_text()).get("kind") == kind:
+                return
+        except (OSError, ValueError, AttributeError):  # no manifest, or not one of ours
+            pass
+    what = f"a folder that is not a saved {kind!r} artifact" if path.is_dir() else "a file"
+    raise FileExistsError(f"{path} exists and is {what}: it is not replaced; remove it yourself or choose another path")
 
 
 # ------------------------------------------------------------------------------------------- disk space

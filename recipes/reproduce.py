@@ -191,13 +191,13 @@ def main(cfg: DictConfig) -> dict:
     experiments = list(p.get("experiments", []))
     from anm_torchrl.experiments import registry
 
+    from anm_torchrl.training.config_checks import check_reproduce_config
     from anm_torchrl.training.recipe_errors import refuse_appended_keys, user_errors
 
     with user_errors("reproduce.py", HydraConfig.get().runtime.output_dir):  # one line, before anything runs
         # a study's options (preset.<study>.reuse, ...) are added with +preset.<...>=, as docs/RESULTS.md shows
         refuse_appended_keys("reproduce.py", HydraConfig.get().overrides.task, allowed=("preset",))
-        if isinstance(cfg.threads, bool) or not isinstance(cfg.threads, int) or cfg.threads < 1:
-            raise ValueError(f"threads must be an integer >= 1, got {cfg.threads!r}")
+        check_reproduce_config(cfg)
         for name in experiments:  # an unknown name is refused, a count below 1 too
             registry.check(name)
             registry.check_section(name, p.get(name))

@@ -45,14 +45,9 @@ def run(cfg: DictConfig, sim=None, data: dict | None = None) -> list[dict]:
 def load_data(cfg: DictConfig, sim) -> dict:
     """Both datasets, loaded (or generated) and checked: an explicit folder of another network, a damaged one or
     one below the default size without ``surrogate.path`` is refused here, before any model trains."""
-    from anm_torchrl.surrogates.regressors.requests import check_default_slot
     from anm_torchrl.surrogates.regressors.train import load_datasets
 
-    data = load_datasets(cfg, sim, OmegaConf.load(CONF / "make_dataset.yaml"))
-    if not cfg.all:
-        check_default_slot(data[cfg.surrogate.dataset][1]["size"], cfg.surrogate.get("path"),
-                           bool(cfg.overwrite_cache), default_size())
-    return data
+    return load_datasets(cfg, sim, OmegaConf.load(CONF / "make_dataset.yaml"), default_size())
 
 
 def check_target(path: Path) -> None:

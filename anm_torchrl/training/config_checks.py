@@ -353,6 +353,16 @@ def check_shac_config(cfg: Mapping) -> None:
     _in_range(cfg, "optim.anneal_start", 0, 1, False, True)
 
 
+def check_reproduce_config(cfg: Mapping) -> None:
+    """Check ``recipes/conf/reproduce.yaml``'s own keys (``recipes/reproduce.py``; an experiment's preset section is
+    :func:`anm_torchrl.experiments.registry.check_section`'s).
+
+    Raises:
+        ValueError: the first offending key, with the expected range and the value received.
+    """
+    _int(cfg, "threads")
+
+
 def check_evaluate_config(cfg: Mapping) -> None:
     """Check the ranges of ``recipes/conf_evaluate/evaluate.yaml`` (``recipes/evaluate.py``).
 

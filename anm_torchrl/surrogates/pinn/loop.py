@@ -123,7 +123,9 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
                 writer.add_scalar(f"{tag}/{k}", v.item(), step)
             writer.add_scalar(f"{tag}/loss", loss.item(), step)
             writer.add_scalar(f"{tag}/lr", opt.param_groups[0]["lr"], step)
-        if step % cfg.eval_every == 0 or step == cfg.max_steps:
+        capped = cfg.max_time_s is not None and time.perf_counter() - t0 > cfg.max_time_s
+        # the weights the time cap stops at are evaluated too: they may be the best, or the only trained ones
+        if step % cfg.eval_every == 0 or step == cfg.max_steps or capped:
             v = log_eval(step)["val_loss"]
             n_evals += 1
             if v < best:
@@ -132,14 +134,9 @@ def train_module(name: str, module: nn.Module, sim: GridSimulator, cfg: ModuleTr
                 log.info("%s: early stop at step %d (best held-out loss %.3e at step %d)", name, step, best,
                          best_step)
                 break
-        if cfg.max_time_s is not None and time.perf_counter() - t0 > cfg.max_time_s:
+        if capped:
             log.info("%s: time cap %.0f s reached at step %d", name, cfg.max_time_s, step)
             break
-    if step % cfg.eval_every and step != cfg.max_steps:  # stopped by the time cap between evaluations
-        v = log_eval(step)["val_loss"]
-        n_evals += 1
-        if v < best:
-            best, best_step, best_state = v, step, copy.deepcopy(module.state_dict())
     if not math.isfinite(best):  # restoring best_state would save the untrained weights as trained
         raise RuntimeError(f"PINN module {name!r} diverged: its held-out loss was not finite at any of its {n_evals} "
                            f"evaluations ({step} Adam steps at lr {cfg.lr:g}); lower {name}.lr or check the preset")

@@ -48,7 +48,7 @@ def save_surrogate(sur: RegressorSurrogate, path: str | os.PathLike, extra: dict
     meta = {**sur.meta, **(extra or {}), "format": FORMAT, "format_version": FORMAT_VERSION, "kind": sur.kind,
             "package_version": __version__, "layout": sur.layout(),
             "foresight": sur.featurizer.foresight, "clip": sur.clip, "simulator": simulator_settings(sur.sim),
-            "scalers": {k: getattr(sur, k).cpu().tolist() for k in ("x_mean", "x_std", "y_mean", "y_std")}}
+            "scalers": {k: v.cpu().tolist() for k, v in scalers.items()}}
     with atomic_folder(path, overwrite=overwrite, kind=FORMAT) as tmp:
         sur.backend.save(tmp)
         if sur.classifier is not None:

@@ -23,9 +23,11 @@ from anm_torchrl.surrogates.regressors.requests import check_default_slot, check
 log = logging.getLogger("train_surrogate")
 
 
-def load_datasets(cfg: DictConfig, sim, make_cfg: DictConfig) -> dict:
+def load_datasets(cfg: DictConfig, sim, make_cfg: DictConfig, default_size: int) -> dict:
     """``{kind: (td, meta)}`` for both datasets (generated first when missing and allowed, with ``make_cfg``'s
-    per-kind options and split ``fractions``: the dataset recipe's config)."""
+    per-kind options and split ``fractions``: the dataset recipe's config), with the default slot's size rule
+    checked on each dataset a model is trained on (an explicit data folder may be small too; ``default_size``: the
+    default ``data.size``)."""
     from anm_torchrl.data import available_datasets, ensure_dataset, load_dataset
 
     out = {}
@@ -41,6 +43,9 @@ def load_datasets(cfg: DictConfig, sim, make_cfg: DictConfig) -> dict:
                                        fractions=tuple(make_cfg.fractions), **options)
         log.info("%s dataset ready (%d rows, %d terminal) in %.1f s", kind, out[kind][0].shape[0],
                  out[kind][1].get("n_terminal", -1), time.perf_counter() - start)
+    path = None if cfg.all else cfg.surrogate.get("path")
+    for kind in (available_datasets() if cfg.all else [cfg.surrogate.dataset]):
+        check_default_slot(out[kind][1]["size"], path, bool(cfg.overwrite_cache), default_size)
     return out
 
 
@@ -82,7 +87,7 @@ def fit_terminal(cfg: DictConfig, dataset: str, data: dict, sim):
     return clf
 
 
-def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: dict, sim, default_size: int) -> dict:
+def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: dict, sim) -> dict:
     """Train, save and evaluate surrogate ``name`` on ``dataset``; returns its metrics."""
     from anm_torchrl.data import for_network, split
     from anm_torchrl.paths import surrogate_dir
@@ -92,7 +97,6 @@ def train_one(cfg: DictConfig, name: str, dataset: str, path: str | None, data: 
     out = Path(path) if path else for_network(surrogate_dir(name, dataset), sim)
     total = time.perf_counter()
     td, meta = data[dataset]
-    check_default_slot(meta["size"], path, bool(cfg.overwrite_cache), default_size)  # an explicit data folder may be small too
     clf = fit_terminal(cfg, dataset, data, sim)
     params = OmegaConf.to_container(cfg.models[name], resolve=True) if name in cfg.models else {}
     log.info("training %s on the %s dataset -> %s", name, dataset, out)
@@ -169,10 +173,10 @@ def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int, s
         sim = check_train_request(cfg, default_size)
     start = time.perf_counter()
     if data is None:
-        data = load_datasets(cfg, sim, make_cfg)
+        data = load_datasets(cfg, sim, make_cfg, default_size)
     if cfg.all:
         jobs = [(k, d) for d in DATASETS for k in KINDS]
-        results = [train_one(cfg, k, d, None, data, sim, default_size)
+        results = [train_one(cfg, k, d, None, data, sim)
                    for k, d in tqdm(jobs, desc="surrogates", unit="model", disable=not cfg.progress)]
         table = summary_table(results)
         out = for_network(artifact_home() / "surrogates", sim)
@@ -182,4 +186,4 @@ def train_surrogates(cfg: DictConfig, make_cfg: DictConfig, default_size: int, s
                  out / "summary.md", table)
         return results
     dataset = cfg.surrogate.get("dataset")
-    return [train_one(cfg, cfg.surrogate.name, dataset, cfg.surrogate.get("path"), data, sim, default_size)]
+    return [train_one(cfg, cfg.surrogate.name, dataset, cfg.surrogate.get("path"), data, sim)]
