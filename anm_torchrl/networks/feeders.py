@@ -67,15 +67,19 @@ CASE33_V_BAND = (0.95, 1.05)  # MAPDN's (p.u., non-slack buses)
 CASE33_STORAGE = [(17, 0.5, 2.0), (32, 0.5, 2.0)]  # (bus index, MW, MWh)
 
 
-def _rows() -> slice:
-    start = START_DAY * STEPS_PER_DAY
-    return slice(start, start + N_DAYS * STEPS_PER_DAY)
+def _rows(start_day: int = START_DAY, days: int = N_DAYS) -> slice:
+    start = start_day * STEPS_PER_DAY
+    return slice(start, start + days * STEPS_PER_DAY)
 
 
-def _simbench_net():
+def _simbench_net(code: str = SIMBENCH_CODE):
     sb = require("simbench")
 
-    return sb.get_simbench_net(SIMBENCH_CODE)
+    try:
+        return sb.get_simbench_net(code)
+    except Exception as err:  # simbench raises bare Exceptions / assertion errors for an unknown code
+        raise ValueError(f"SimBench has no grid {code!r} ({type(err).__name__}: {err}); codes look like "
+                         "1-LV-rural1--0-sw (simbench.collect_all_simbench_codes())") from None
 
 
 def _library() -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -135,13 +139,31 @@ def _cigre_profiles(net):
     return load_mw, _by_class(net.sgen.loc[ren_idx], sgen_prof, ren, peak=False)
 
 
-def _simbench_profiles(net):
+def _simbench_profiles(net, start_day: int = START_DAY, days: int = N_DAYS):
     sb = require("simbench")
 
     absolute = sb.get_absolute_values(net, profiles_instead_of_study_cases=True)
-    load_mw = absolute[("load", "p_mw")].iloc[_rows()].reset_index(drop=True)
-    sgen_mw = absolute[("sgen", "p_mw")].iloc[_rows()].reset_index(drop=True)
+    rows = _rows(start_day, days)
+    load_mw = absolute[("load", "p_mw")].iloc[rows].reset_index(drop=True)
+    sgen_mw = absolute[("sgen", "p_mw")].iloc[rows].reset_index(drop=True)
     return load_mw, sgen_mw
+
+
+def simbench_grid(code: str, start_day: int = START_DAY, days: int = N_DAYS):
+    """Any SimBench grid with ``days`` days of its own 15-minute profiles (year 2016) from day ``start_day``.
+
+    Returns:
+        ``(pandapower net, load MW (T, loads), sgen MW (T, sgens))``, T = 96 ``days``.
+
+    Raises:
+        ValueError: an unknown code, or a slice outside the year.
+    """
+    if not (0 <= start_day and days >= 1 and start_day + days <= 366):
+        raise ValueError(f"SimBench's profiles cover the 366 days of 2016: days {start_day} to {start_day + days} "
+                         "are not inside it")
+    net = _simbench_net(code)
+    load_mw, sgen_mw = _simbench_profiles(net, start_day, days)
+    return net, load_mw, sgen_mw
 
 
 def _source(name: str) -> str:
@@ -169,10 +191,7 @@ def build(name: str, defaults: ppi.ImportDefaults = ppi.ImportDefaults()):
     """
     raw = raw_net(name)
     load_mw, sgen_mw = BUILDERS[name][1](raw)
-    net = ppi.prepare(raw)
-    in_service = net.load.index[net.load.in_service]
-    res = ppi.convert(net, load_mw[in_service].max(axis=0).to_numpy(), defaults)
-    load_p, gen_p_max = ppi.profiles(res, load_mw, sgen_mw)
+    net, res, load_p, gen_p_max = ppi.from_pandapower(raw, load_mw, sgen_mw, defaults)
     return net, res, load_p, gen_p_max, _source(name)
 
 

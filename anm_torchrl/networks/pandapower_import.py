@@ -28,7 +28,9 @@ What gym-anm can represent, and the defaults used where pandapower has no value 
   inverter polygon (QMAX = −QMIN = 0.6 S, corners P+ = 0.8 S, Q+ = Q− = 0: a linearised S circle through
   (0.8, ±0.6) and (1, 0)); classical ones Q within ±0.62·PMAX (power factor 0.85), no corners.
 * **Storage** (3): PMAX = −min_p_mw, PMIN = −max_p_mw (pandapower counts charging positive), the same
-  inverter polygon on both sides, SOC_MAX = max_e_mwh or 4 h × PMAX, SOC_MIN = min_e_mwh or 0, EFF 0.95.
+  inverter polygon on both sides (its corners P± = ±0.8 S cut to [PMIN, PMAX]; a unit that can only charge or only
+  discharge, as SimBench's home batteries with max_p_mw 0, is imported as given and logged), SOC_MAX = max_e_mwh
+  or 4 h × PMAX, SOC_MIN = min_e_mwh or 0, EFF 0.95.
 * **Branch RATE**: lines max_i_ka·df·parallel·√3·vn_kv, transformers sn_mva·df·parallel (MVA); ratings above
   10⁴ MVA (pandapower's "unlimited" 99999 kA) become NaN = no limit.
 * The slack device's P/Q bounds are ext_grid's min/max if given, else ±2× the installed load and generation.
@@ -292,16 +294,25 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
                 devices.append([-1, bus_map[row.bus], 1, NAN, s, 0.0, qmax if np.isfinite(qmax) else q,
                                 qmin if np.isfinite(qmin) else -q, *[NAN] * 7])
             gen_elements.append((table, int(i), renewable))
+    one_way = {"charge": [], "discharge": []}  # pandapower storage indices of units that work one way only
     for i, row in on_grid("storage").iterrows():
         pmax = -row.min_p_mw if np.isfinite(row.get("min_p_mw", NAN)) else abs(row.p_mw)
         pmin = -row.max_p_mw if np.isfinite(row.get("max_p_mw", NAN)) else -abs(row.p_mw)
         s = max(pmax, -pmin)
         inv = _inverter(s, defaults)
-        inv[3] = -defaults.inverter_corner_p * s
+        # the polygon's corners inside the P range: gym-anm wants PMIN <= P- <= P+ <= PMAX, and a one-way unit
+        # (SimBench's home batteries: max_p_mw 0) or a lopsided one has one side shorter than 0.8 S
+        inv[2], inv[3] = min(inv[2], pmax), max(-defaults.inverter_corner_p * s, pmin)
+        if pmax <= 0 or pmin >= 0:
+            one_way["charge" if pmax <= 0 else "discharge"].append(int(i))
         emax = row.max_e_mwh if np.isfinite(row.get("max_e_mwh", NAN)) else defaults.storage_hours * pmax
         emin = row.min_e_mwh if np.isfinite(row.get("min_e_mwh", NAN)) else 0.0
         devices.append([-1, bus_map[row.bus], 3, NAN, pmax, pmin, *inv, emax, emin, defaults.storage_eff])
         storage_idx.append(int(i))
+    for way, idx in one_way.items():
+        if idx:
+            logger.warning("%d pandapower storage units can only %s (min_p_mw or max_p_mw 0), imported as given: "
+                           "indices %s", len(idx), way, idx)
 
     if not devices:
         raise ValueError("the pandapower net has no load, generator or storage unit besides its ext_grid")
@@ -341,6 +352,36 @@ def profiles(res: ImportResult, load_mw, sgen_mw) -> tuple[np.ndarray, np.ndarra
     for (table, i, renewable), p in zip(res.gen_elements, pmax):
         cols.append(sgen_mw[i].to_numpy(dtype=np.float64) if renewable else np.full(len(load_p), p))
     return load_p, np.column_stack(cols) if cols else np.zeros((len(load_p), 0))
+
+
+def from_pandapower(net, load_mw, sgen_mw, defaults: ImportDefaults = ImportDefaults()):
+    """A pandapower net and its element profiles as gym-anm tables and profiles (:func:`prepare`, :func:`convert`,
+    :func:`profiles`).
+
+    Args:
+        net: the pandapower net (not modified).
+        load_mw: DataFrame (T, loads) MW consumption (>= 0) with a column for every in-service load (its
+            pandapower index); its maxima set the loads' PMIN.
+        sgen_mw: DataFrame (T, sgens) MW potential with a column for every in-service renewable sgen.
+
+    Returns:
+        ``(prepared net, ImportResult, load_p (T, n_load) MW, gen_p_max (T, n_gen) MW)``.
+
+    Raises:
+        ValueError: what :func:`prepare` / :func:`convert` refuse, or a profile without a column an element needs
+            (naming the elements).
+    """
+    prepared = prepare(net)
+    in_service = prepared.load.index[prepared.load.in_service]
+    missing = [int(i) for i in in_service if i not in load_mw.columns]
+    if missing:
+        raise ValueError(f"the load profile has no column for pandapower loads {missing}")
+    res = convert(prepared, load_mw[in_service].max(axis=0).to_numpy(dtype=np.float64), defaults)
+    missing = [i for table, i, renewable in res.gen_elements if renewable and i not in sgen_mw.columns]
+    if missing:
+        raise ValueError(f"the renewable profile has no column for pandapower sgens {missing}")
+    load_p, gen_p_max = profiles(res, load_mw, sgen_mw)
+    return prepared, res, load_p, gen_p_max
 
 
 def defaults_record(defaults: ImportDefaults) -> dict:

@@ -1,0 +1,105 @@
+"""Any SimBench grid or a user's pandapower net as a network file (``python -m anm_torchrl.cli.import_network``):
+written only when gym-anm's power flow lands on pandapower's, loadable by every recipe, and the storage units of
+SimBench's scenarios (which charge or discharge only) convert instead of failing gym-anm's checks."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+pp = pytest.importorskip("pandapower")
+pytest.importorskip("simbench")
+
+from anm_torchrl.cli import import_network  # noqa: E402
+from anm_torchrl.networks import pandapower_import as ppi  # noqa: E402
+from anm_torchrl.networks.user import load_network_file  # noqa: E402
+from tests.test_pandapower_import import _feeder  # noqa: E402
+
+
+def _feeder_json(tmp_path):
+    """test_pandapower_import's feeder (a load at bus 1, a PV sgen at bus 2) and a battery at bus 2, as JSON."""
+    net, b = _feeder()
+    pp.create_storage(net, b[2], p_mw=0.0, max_e_mwh=1.0, min_p_mw=-0.25, max_p_mw=0.25)
+    path = tmp_path / "net.json"
+    pp.to_json(net, str(path))
+    return path
+
+
+def test_pandapower_net_with_profiles_becomes_a_network_file(tmp_path, capsys):
+    net = _feeder_json(tmp_path)
+    t = np.arange(8)
+    (tmp_path / "loads.csv").write_text("0\n" + "\n".join(f"{0.5 + 0.05 * i}" for i in t))
+    (tmp_path / "pv.csv").write_text("0\n" + "\n".join(f"{0.06 * i}" for i in t))
+    out = import_network.main(["--pandapower", str(net), "--loads", str(tmp_path / "loads.csv"), "--sgens",
+                               str(tmp_path / "pv.csv"), "--out", str(tmp_path / "mine.npz"), "--check-rows", "8"])
+    assert out["devices"] == {"load": 1, "classical generator": 0, "renewable": 1, "storage unit": 1}
+    assert out["rows"] == 8 and out["vm_max_diff"] < 1e-9  # the same equations solved to round-off
+    case = load_network_file(tmp_path / "mine.npz")
+    np.testing.assert_allclose(case.load_p[:, 0], -(0.5 + 0.05 * t))  # gym-anm counts a load's P negative
+    np.testing.assert_allclose(case.gen_p_max[:, 0], 0.06 * t)
+    assert "net.json" in case.source and "train on it: python recipes/ppo.py network=" in capsys.readouterr().out
+    # the file is a user network every env builds on
+    from anm_torchrl import make_env
+
+    env = make_env("none", network=str(tmp_path / "mine.npz"), num_envs=2)
+    td = env.rollout(3)
+    assert td["next", "reward"].isfinite().all() and not td["next", "terminated"].any()
+
+
+def test_refusals_name_what_is_wrong(tmp_path):
+    net = _feeder_json(tmp_path)
+    (tmp_path / "taken.npz").write_bytes(b"a user's file")
+    with pytest.raises(FileExistsError, match="exists"):
+        import_network.main(["--pandapower", str(net), "--out", str(tmp_path / "taken.npz")])
+    assert (tmp_path / "taken.npz").read_bytes() == b"a user's file"  # nothing lost
+    with pytest.raises(ValueError, match="ends with .npz"):
+        import_network.main(["--pandapower", str(net), "--out", str(tmp_path / "x.csv")])
+    (tmp_path / "bad.csv").write_text("7\n0.5\n")  # no load 7 in the net; load 0 has no column
+    with pytest.raises(ValueError, match=r"no column for pandapower loads \[0\]"):
+        import_network.main(["--pandapower", str(net), "--loads", str(tmp_path / "bad.csv"), "--out",
+                             str(tmp_path / "y.npz")])
+    (tmp_path / "nan.csv").write_text("0\nnan\n")
+    with pytest.raises(ValueError, match="finite MW"):
+        import_network.main(["--pandapower", str(net), "--loads", str(tmp_path / "nan.csv"), "--out",
+                             str(tmp_path / "y.npz")])
+    with pytest.raises(ValueError, match="not a pandapower net"):
+        import_network.main(["--pandapower", str(tmp_path / "taken.npz"), "--out", str(tmp_path / "y.npz")])
+    with pytest.raises(SystemExit):  # argparse: a SimBench option with a pandapower net
+        import_network.main(["--pandapower", str(net), "--days", "2", "--out", str(tmp_path / "y.npz")])
+    assert not (tmp_path / "y.npz").exists()
+
+
+def test_one_way_storage_converts_inside_its_range(caplog):
+    """SimBench's home batteries have max_p_mw 0 (discharge only): the inverter polygon's charging corner (-0.8 S)
+    fell below PMIN = 0 and gym-anm refused the device table ("P- outside [PMIN, PMAX]")."""
+    net = pp.create_empty_network(sn_mva=1)
+    b = [pp.create_bus(net, 0.4) for _ in range(2)]
+    pp.create_ext_grid(net, b[0])
+    pp.create_line_from_parameters(net, b[0], b[1], 0.1, 0.2, 0.1, 100, 0.3)
+    pp.create_load(net, b[1], p_mw=0.02, q_mvar=0.005)
+    pp.create_storage(net, b[1], p_mw=-0.05, max_e_mwh=0.1, min_p_mw=-0.05, max_p_mw=0.0, name="home battery")
+    import pandas as pd
+
+    with caplog.at_level(logging.WARNING):
+        _, res, load_p, gen_p_max = ppi.from_pandapower(net, pd.DataFrame({0: [0.02, 0.03]}), pd.DataFrame())
+    assert "1 pandapower storage units can only discharge" in caplog.text
+    dev = res.network["device"][-1]
+    pmax, pmin, p_plus, p_minus = dev[4], dev[5], dev[8], dev[9]
+    assert (pmax, pmin) == (0.05, 0.0) and pmin <= p_minus <= p_plus <= pmax
+    from anm_torchrl.networks.user import checked_case
+
+    checked_case("one_way", res.network, load_p, gen_p_max)  # gym-anm's checks pass
+
+
+@pytest.mark.slow
+def test_simbench_grid_imports_and_trains(tmp_path):
+    """A SimBench grid nobody registered (15 buses, 13 loads, 4 PV units), one day of its own profiles."""
+    out = import_network.main(["--simbench", "1-LV-rural1--0-sw", "--days", "1", "--out", str(tmp_path / "r1.npz")])
+    assert out["buses"] == 15 and out["devices"]["renewable"] == 4 and out["rows"] == 96
+    assert out["vm_max_diff"] < 1e-9
+    from anm_torchrl import make_env
+
+    td = make_env("none", network=str(tmp_path / "r1.npz"), num_envs=4).rollout(96)
+    assert td["next", "reward"].isfinite().all() and not td["next", "terminated"].any()
