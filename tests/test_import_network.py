@@ -103,3 +103,23 @@ def test_simbench_grid_imports_and_trains(tmp_path):
 
     td = make_env("none", network=str(tmp_path / "r1.npz"), num_envs=4).rollout(96)
     assert td["next", "reward"].isfinite().all() and not td["next", "terminated"].any()
+
+
+def test_own_reactive_limits_replace_the_defaults():
+    """An sgen's or a battery's own min/max_q_mvar were ignored (the inverter polygon's +-0.6 S taken instead)."""
+    net, b = _feeder()
+    net.sgen.loc[0, ["max_q_mvar", "min_q_mvar"]] = 0.1, -0.05
+    pp.create_storage(net, b[2], p_mw=0.0, max_e_mwh=1.0, min_p_mw=-0.25, max_p_mw=0.25, max_q_mvar=0.2,
+                      min_q_mvar=0.05)
+    import pandas as pd
+
+    _, res, load_p, gen_p_max = ppi.from_pandapower(net, pd.DataFrame({0: [1.0]}), pd.DataFrame({0: [0.4]}))
+    pv, battery = res.network["device"][2], res.network["device"][3]
+    assert (pv[6], pv[7], pv[10], pv[11]) == (0.1, -0.05, 0.0, 0.0)  # QMAX, QMIN, Q+, Q-
+    assert (battery[6], battery[7], battery[10], battery[11]) == (0.2, 0.05, 0.05, 0.05)  # 0 outside: nearest
+    from anm_torchrl.networks.user import checked_case
+
+    checked_case("own_q", res.network, load_p, gen_p_max)
+    net.sgen.loc[0, "min_q_mvar"] = 0.3
+    with pytest.raises(ValueError, match=r"sgen 0: min_q_mvar 0.3 > max_q_mvar 0.1"):
+        ppi.from_pandapower(net, pd.DataFrame({0: [1.0]}), pd.DataFrame({0: [0.4]}))

@@ -26,7 +26,9 @@ What gym-anm can represent, and the defaults used where pandapower has no value 
 * **Static generators**: renewable (DEV_TYPE 2) when ``type`` names PV, wind, hydro or aggregated LV RES,
   else classical (1, e.g. CHP, fuel cell, biomass). Rating S = max(p_mw·scaling, sn_mva). Renewables get an
   inverter polygon (QMAX = −QMIN = 0.6 S, corners P+ = 0.8 S, Q+ = Q− = 0: a linearised S circle through
-  (0.8, ±0.6) and (1, 0)); classical ones Q within ±0.62·PMAX (power factor 0.85), no corners.
+  (0.8, ±0.6) and (1, 0)); classical ones Q within ±0.62·PMAX (power factor 0.85), no corners. An element's own
+  ``max_q_mvar`` / ``min_q_mvar`` (sgen, storage), where given, replace these Q limits (the corners' Q then 0, or
+  the limit nearest 0 when 0 is outside them).
 * **Storage** (3): PMAX = −min_p_mw, PMIN = −max_p_mw (pandapower counts charging positive), the same
   inverter polygon on both sides (its corners P± = ±0.8 S cut to [PMIN, PMAX]; a unit that can only charge or only
   discharge, as SimBench's home batteries with max_p_mw 0, is imported as given and logged), SOC_MAX = max_e_mwh
@@ -215,9 +217,22 @@ def _sgen_rating(row) -> float:
     return float(max(s, sn)) if np.isfinite(sn) else float(s)
 
 
-def _inverter(s: float, d: ImportDefaults) -> list[float]:
-    """QMAX, QMIN, P+, P-, Q+, Q- of an inverter of rating s (MVA); P- is set by the caller for storage."""
-    return [d.inverter_q * s, -d.inverter_q * s, d.inverter_corner_p * s, NAN, 0.0, 0.0]
+def _q_range(table: str, i, row, qmax: float, qmin: float) -> tuple[float, float]:
+    """The element's own ``max_q_mvar`` / ``min_q_mvar`` where pandapower has them (finite), else ``qmax`` /
+    ``qmin``; an empty range is refused by name."""
+    hi, lo = row.get("max_q_mvar", NAN), row.get("min_q_mvar", NAN)
+    hi, lo = float(hi) if np.isfinite(hi) else qmax, float(lo) if np.isfinite(lo) else qmin
+    if lo > hi:
+        raise ValueError(f"pandapower {table} {i}: min_q_mvar {lo} > max_q_mvar {hi}")
+    return hi, lo
+
+
+def _inverter(table: str, i, row, s: float, d: ImportDefaults) -> list[float]:
+    """QMAX, QMIN, P+, P-, Q+, Q- of an inverter of rating s (MVA): its own Q limits where it has them, else
+    +-0.6 S; P- is set by the caller for storage."""
+    qmax, qmin = _q_range(table, i, row, d.inverter_q * s, -d.inverter_q * s)
+    q_corner = min(max(0.0, qmin), qmax)  # the polygon's corners at |P| = 0.8 S reach Q = 0, or the nearest limit
+    return [qmax, qmin, d.inverter_corner_p * s, NAN, q_corner, q_corner]
 
 
 def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefaults()) -> ImportResult:
@@ -286,20 +301,18 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
             s = _sgen_rating(row) if table == "sgen" else float(np.nanmax([row.p_mw, row.get("sn_mva", NAN)]))
             renewable = table == "sgen" and bool(RENEWABLE_TYPE.search(str(row.get("type", ""))))
             if renewable:
-                devices.append([-1, bus_map[row.bus], 2, NAN, s, 0.0, *_inverter(s, defaults), NAN, NAN, NAN])
+                inv = _inverter(table, i, row, s, defaults)
+                devices.append([-1, bus_map[row.bus], 2, NAN, s, 0.0, *inv, NAN, NAN, NAN])
             else:
-                q = defaults.classical_q * s
-                qmax = row.get("max_q_mvar", NAN) if table == "gen" else NAN
-                qmin = row.get("min_q_mvar", NAN) if table == "gen" else NAN
-                devices.append([-1, bus_map[row.bus], 1, NAN, s, 0.0, qmax if np.isfinite(qmax) else q,
-                                qmin if np.isfinite(qmin) else -q, *[NAN] * 7])
+                qmax, qmin = _q_range(table, i, row, defaults.classical_q * s, -defaults.classical_q * s)
+                devices.append([-1, bus_map[row.bus], 1, NAN, s, 0.0, qmax, qmin, *[NAN] * 7])
             gen_elements.append((table, int(i), renewable))
     one_way = {"charge": [], "discharge": []}  # pandapower storage indices of units that work one way only
     for i, row in on_grid("storage").iterrows():
         pmax = -row.min_p_mw if np.isfinite(row.get("min_p_mw", NAN)) else abs(row.p_mw)
         pmin = -row.max_p_mw if np.isfinite(row.get("max_p_mw", NAN)) else -abs(row.p_mw)
         s = max(pmax, -pmin)
-        inv = _inverter(s, defaults)
+        inv = _inverter("storage", i, row, s, defaults)
         # the polygon's corners inside the P range: gym-anm wants PMIN <= P- <= P+ <= PMAX, and a one-way unit
         # (SimBench's home batteries: max_p_mw 0) or a lopsided one has one side shorter than 0.8 S
         inv[2], inv[3] = min(inv[2], pmax), max(-defaults.inverter_corner_p * s, pmin)
