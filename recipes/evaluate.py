@@ -112,8 +112,9 @@ def main(argv: list[str] | None = None) -> dict:
         from anm_torchrl.training.config_checks import gym_anm_only
 
         raise SystemExit(f"evaluate.py: {gym_anm_only('env', network)} (this policy's network)")
-    test_episodes, test_seed, test_steps = test_protocol(ckpt, network)
+    test_episodes, test_seed, test_steps, test_gamma = test_protocol(ckpt, network)
     cfg.seed = test_seed if cfg.seed is None else cfg.seed
+    cfg.gamma = test_gamma if cfg.gamma is None else cfg.gamma
     cfg.steps = test_steps if cfg.steps is None else cfg.steps
     episodes = int(cfg.episodes) if cfg.episodes is not None else (test_episodes if cfg.env == "exact" else 2)
     with user_errors("evaluate.py"):  # a network file that exists but is not a valid network: one line
@@ -181,10 +182,10 @@ def network_of(cfg, ckpt: dict | None) -> str:
     return cfg.network or trained or "anm6_easy"
 
 
-def test_protocol(ckpt: dict | None, network: str) -> tuple[int, int, int]:
-    """``(episodes, seed, steps)`` of the test episodes figures are reported on: the checkpoint's run's
-    (``eval.test_episodes``, ``eval.test_seed``, ``eval.test_max_steps``), or for a baseline the network's protocol
-    (``recipes/conf/per_network_eval.yaml``, as a training run on ``network`` would get it)."""
+def test_protocol(ckpt: dict | None, network: str) -> tuple[int, int, int, float]:
+    """``(episodes, seed, steps, gamma)`` of the test episodes figures are reported on: the checkpoint's run's
+    (``eval.test_episodes``, ``eval.test_seed``, ``eval.test_max_steps``, ``eval.gamma``), or for a baseline the
+    network's protocol (``recipes/conf/per_network_eval.yaml``, as a training run on ``network`` would get it)."""
     if ckpt is not None:
         ev = ckpt["config"].get("eval", {})
     else:
@@ -192,7 +193,7 @@ def test_protocol(ckpt: dict | None, network: str) -> tuple[int, int, int]:
 
         ev = OmegaConf.to_container(compose_recipe_config([f"network={network}"])[0].eval, resolve=True)
     steps = ev.get("test_max_steps") or ev.get("max_steps", 3000)
-    return int(ev.get("test_episodes", 16)), int(ev.get("test_seed", 0)), int(steps)
+    return int(ev.get("test_episodes", 16)), int(ev.get("test_seed", 0)), int(steps), float(ev.get("gamma", 0.995))
 
 
 def write_output(path: Path, line: str) -> None:

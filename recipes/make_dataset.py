@@ -77,10 +77,10 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 def main(cfg: DictConfig) -> str:
     from hydra.core.hydra_config import HydraConfig
 
-    from anm_torchrl.training.recipe_errors import refuse_appended_keys, user_errors
+    from anm_torchrl.training.recipe_errors import defined_keys, refuse_appended_keys, user_errors
 
     with user_errors("make_dataset.py", HydraConfig.get().runtime.output_dir):  # one line naming the key
-        refuse_appended_keys("make_dataset.py", HydraConfig.get().overrides.task)
+        refuse_appended_keys("make_dataset.py", HydraConfig.get().overrides.task, defined=defined_keys())
         sim = check(cfg)
     return run(cfg, sim)
 

@@ -192,11 +192,12 @@ def main(cfg: DictConfig) -> dict:
     from anm_torchrl.experiments import registry
 
     from anm_torchrl.training.config_checks import check_reproduce_config
-    from anm_torchrl.training.recipe_errors import refuse_appended_keys, user_errors
+    from anm_torchrl.training.recipe_errors import defined_keys, refuse_appended_keys, user_errors
 
     with user_errors("reproduce.py", HydraConfig.get().runtime.output_dir):  # one line, before anything runs
         # a study's options (preset.<study>.reuse, ...) are added with +preset.<...>=, as docs/RESULTS.md shows
-        refuse_appended_keys("reproduce.py", HydraConfig.get().overrides.task, allowed=("preset",))
+        refuse_appended_keys("reproduce.py", HydraConfig.get().overrides.task, allowed=("preset",),
+                             defined=defined_keys())
         check_reproduce_config(cfg)
         for name in experiments:  # an unknown name is refused, a count below 1 too
             registry.check(name)

@@ -41,14 +41,15 @@ register_help()  # --help lists only this recipe's config groups (recipes/conf/h
 def main(cfg: DictConfig) -> dict:
     from anm_torchrl.networks import ANM6_EASY, check_network_name, list_networks
     from anm_torchrl.surrogates.pinn.presets import check_default_target, from_composed as check_preset, preset_keys
-    from anm_torchrl.training.recipe_errors import refuse_appended_keys, user_errors
+    from anm_torchrl.training.recipe_errors import defined_keys, refuse_appended_keys, user_errors
 
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     composed = OmegaConf.to_container(cfg.pinn_preset, resolve=True)
     explicit = preset_keys(HydraConfig.get().overrides.task)  # kept even where equal to the named preset's
     with user_errors("train_pinn.py", run_dir):  # an unknown network or a preset value out of range: before torch
         # the preset's added keys are checked against its dataclasses
-        refuse_appended_keys("train_pinn.py", HydraConfig.get().overrides.task, allowed=("pinn_preset",))
+        refuse_appended_keys("train_pinn.py", HydraConfig.get().overrides.task, allowed=("pinn_preset",),
+                             defined=defined_keys())
         check_network_name(cfg.network)
         if cfg.network in list_networks():  # a network file's kind is known once it is built (below)
             checked = check_preset(composed, anm6=cfg.network == ANM6_EASY, explicit=explicit, seed=int(cfg.seed))

@@ -76,12 +76,13 @@ def main(cfg: DictConfig) -> list[dict]:
     from hydra.core.hydra_config import HydraConfig
 
     from anm_torchrl.surrogates.regressors.requests import check_train_config
-    from anm_torchrl.training.recipe_errors import refuse_appended_keys, user_errors
+    from anm_torchrl.training.recipe_errors import defined_keys, refuse_appended_keys, user_errors
 
     run_dir = HydraConfig.get().runtime.output_dir
     with user_errors("train_surrogate.py", run_dir):  # one line naming the key, before torch is imported
         # models.<kind>.* go to the estimator (scikit-learn, XGBoost), which names a parameter it does not take
-        refuse_appended_keys("train_surrogate.py", HydraConfig.get().overrides.task, allowed=("models",))
+        refuse_appended_keys("train_surrogate.py", HydraConfig.get().overrides.task, allowed=("models",),
+                             defined=defined_keys())
         check_train_config(cfg, default_size())
     from anm_torchrl.surrogates.regressors.train import check_train_request
 

@@ -85,7 +85,7 @@ def test_sac_takes_a_contextual_bandit_s_discount_of_zero():
 
 
 @pytest.mark.parametrize("key, value, message", [
-    ("gamma", 1.5, "gamma must be in (0, 1], got 1.5"),
+    ("gamma", 1.5, "gamma must be in (0, 1] or null, got 1.5"),
     ("steps", 0, "steps must be an integer >= 1 or null, got 0"),
     ("episodes", 0, "episodes must be an integer >= 1 or null, got 0"),
     ("env", "gym", "env must be one of exact, gym_anm, anm6; got 'gym'"),

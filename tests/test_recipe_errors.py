@@ -138,6 +138,16 @@ def test_a_damaged_network_file_is_one_line(recipe, tmp_path):
        rf"added key is not read\); python recipes/{recipe}.py --help")
       for recipe, extra in [("ppo", ""), ("sac", ""), ("shac", ""), ("make_dataset", ""), ("train_pinn", ""),
                             ("train_surrogate", " surrogate=lr"), ("reproduce", "")]],
+    # ``++`` (set or add) added a misspelt key without a word, recorded in summary.json as if it had been used
+    ("shac", "++loss.horizn=8", r"\+\+loss.horizn=8: 'loss.horizn' is not one of this recipe's keys"),
+    ("make_dataset", "++generative.chnk=2", r"'generative.chnk' is not one of this recipe's keys"),
+    # the PINN's options: a traceback from inside the run (and its directory left) before
+    ("shac", "model=pinn surrogate=pinn surrogate.terminal=nosuch", "terminal must be one of"),
+    ("ppo", "surrogate=pinn surrogate.residual_threshold=-1", "residual_threshold"),
+    ("ppo", "surrogate=pinn +surrogate.terminall=physics", "'terminall' is not an option of the PINN surrogate"),
+    # another recipe's model group: a 30-line Hydra traceback (the run directory names model.dynamics)
+    ("shac", "model=sac", "shac.py takes model=exact or model=pinn"),
+    ("shac", "model=default", "shac.py takes model=exact or model=pinn"),
 ])
 def test_recipe_prints_one_line(recipe, args, message, tmp_path):
     """``args`` as typed after ``python recipes/<recipe>.py`` (``NAME=value`` of an upper-case NAME sets that

@@ -202,10 +202,13 @@ def test_defaults_are_the_test_states_the_recipes_report_on(evaluate, capsys):
     from anm_torchrl.evaluation import draw_initial_states, evaluate_policy
     from anm_torchrl.training.factory import make_true_env
 
-    assert evaluate.test_protocol(None, "anm6_easy") == (16, 0, 3000)
-    assert evaluate.test_protocol(None, "case33bw") == (4, 0, 3000)
+    assert evaluate.test_protocol(None, "anm6_easy") == (16, 0, 3000, 0.995)
+    assert evaluate.test_protocol(None, "case33bw") == (4, 0, 3000, 0.995)
     ckpt = {"config": {"eval": {"test_episodes": 3, "test_seed": 7, "max_steps": 50, "test_max_steps": None}}}
-    assert evaluate.test_protocol(ckpt, "case33bw") == (3, 7, 50)
+    assert evaluate.test_protocol(ckpt, "case33bw") == (3, 7, 50, 0.995)
+    # a run's own eval.gamma (evaluate.py re-scored a run of eval.gamma=0.9 with 0.995: -20.5 against its -4.9)
+    ckpt["config"]["eval"]["gamma"] = 0.9
+    assert evaluate.test_protocol(ckpt, "case33bw")[3] == 0.9
     out = evaluate.main(["policy=do_nothing", "network=case33bw", "steps=2"])
     env = make_true_env(4, network="case33bw", seed=0)
     assert out["episodes"] == 4 and out["seed"] == 0

@@ -61,6 +61,9 @@ def test_shac_writes_the_protocols_run_directory(shac_run, evaluate_recipe):
     ("env.power_flow=gpu", "env.power_flow must be one of torch, numba; got 'gpu'"),
     ("env.device=cuda", "env.power_flow=numba (the default) runs the exact model's power flow on the CPU; with "
                         "env.device=cuda add env.power_flow=torch"),
+    # ANM6-Easy's exact-model entry sets the worker: it failed inside the run (a traceback, a run directory left)
+    ("env.device=cuda env.power_flow=torch loss.critic_worker=true", "loss.critic_worker=true runs SHAC's critic "
+     "in a CPU process; with env.device=cuda add loss.critic_worker=false"),
 ])
 def test_shac_config_errors_name_the_key(override, message):
     from recipe_utils import compose
@@ -276,6 +279,33 @@ def test_a_dead_critic_worker_is_named():
     with pytest.raises(RuntimeError, match=r"SHAC's critic worker process ended \(exit code -9\)"):
         algo.iterate(10 ** 6)
     algo.close()
+
+
+def test_a_signal_to_the_whole_group_leaves_the_critic_worker_running():
+    """Ctrl-C in a terminal (and ``timeout``, a scheduler's group kill) signals the worker too: it inherited the
+    run's handler and died with a KeyboardInterrupt, and the training process, finishing its iteration, failed on
+    the dead worker with no summary. The worker ignores both signals; the run's own handler decides."""
+    import os
+    import signal
+
+    import torch
+
+    from anm_torchrl.training.signals import graceful, stop_requested, stop_signals
+
+    torch.manual_seed(0)
+    with stop_signals():
+        algo = _tiny_shac("loss.critic_worker=true")
+        try:
+            with graceful():
+                algo.iterate(10 ** 6)
+                for sig in (signal.SIGINT, signal.SIGTERM):
+                    os.kill(algo.worker._proc.pid, sig)
+                os.kill(os.getpid(), signal.SIGINT)  # the training process's own: a request to stop
+                _, metrics = algo.iterate(10 ** 6)  # the iteration in flight finishes with the worker
+            assert algo.worker._proc.is_alive() and stop_requested() == "SIGINT"
+            assert math.isfinite(float(metrics["train/loss_critic"]))
+        finally:
+            algo.close()
 
 
 def test_the_critic_worker_says_where_it_cannot_run(monkeypatch):

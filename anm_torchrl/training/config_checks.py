@@ -224,6 +224,19 @@ def _model_group(cfg: Mapping, recipe: str, group: str, foreign: tuple[str, ...]
                          "(model=exact|pinn are recipes/shac.py's, model=sac recipes/sac.py's)")
 
 
+def check_model_group(cfg: Mapping) -> None:
+    """Refuse another recipe's model group for ``cfg.algorithm`` (before the per-network defaults, whose conditions
+    read the group's keys)."""
+    algorithm = _get(cfg, "algorithm")
+    if algorithm == "ppo":
+        _model_group(cfg, "ppo.py", "default", ("dynamics",))
+    elif algorithm == "sac":
+        _model_group(cfg, "sac.py", "sac", ("dynamics", "state_dependent_scale"))
+    elif algorithm == "shac" and not (isinstance(_get(cfg, "model"), Mapping) and "dynamics" in _get(cfg, "model")):
+        raise ValueError("shac.py takes model=exact or model=pinn (the group that names model.dynamics); model=default "
+                         "is ppo.py's, model=sac sac.py's")
+
+
 def check_ppo_config(cfg: Mapping) -> None:
     """Check every numeric range and choice of ``recipes/conf/config.yaml`` (``recipes/ppo.py``): the shared keys
     (:func:`check_protocol_config`) and PPO's model, collector, loss and optimiser.
@@ -232,7 +245,7 @@ def check_ppo_config(cfg: Mapping) -> None:
         ValueError: the first offending key, with the expected range and the value received.
     """
     check_protocol_config(cfg)
-    _model_group(cfg, "ppo.py", "default", ("dynamics",))
+    check_model_group(cfg)
     _check_model(cfg)
     _choice(cfg, "model.state_dependent_scale", (False, True))
     fpb = _check_collector(cfg)
@@ -259,7 +272,7 @@ def check_sac_config(cfg: Mapping) -> None:
         ValueError: the first offending key, with the expected range and the value received.
     """
     check_protocol_config(cfg)
-    _model_group(cfg, "sac.py", "sac", ("dynamics", "state_dependent_scale"))
+    check_model_group(cfg)
     _check_model(cfg)
     fpb = _check_collector(cfg)
     if _get(cfg, "collector.num_workers") != 1:
@@ -324,6 +337,7 @@ def check_shac_config(cfg: Mapping) -> None:
         ValueError: the first offending key, with the expected range and the value received.
     """
     check_protocol_config(cfg)
+    check_model_group(cfg)
     _check_model(cfg)
     _choice(cfg, "model.state_dependent_scale", (False, True))
     _choice(cfg, "model.dynamics", ("exact", "pinn"))
@@ -333,6 +347,10 @@ def check_shac_config(cfg: Mapping) -> None:
     if compiled and not device.startswith("cpu"):
         raise ValueError(f"env.power_flow=numba (the default) runs the exact model's power flow on the CPU; with "
                          f"env.device={device} add env.power_flow=torch")
+    _bool(cfg, "loss.critic_worker")
+    if _get(cfg, "loss.critic_worker") and not device.startswith("cpu"):  # ANM6-Easy's exact-model entry sets it
+        raise ValueError(f"loss.critic_worker=true runs SHAC's critic in a CPU process; with env.device={device} add "
+                         "loss.critic_worker=false")
     _in_range(cfg, "env.short_rows", 0, 1, False, True)
     _int(cfg, "env.short_steps")
     if _get(cfg, "env.short_rows") and _get(cfg, "env.max_steps") is None:
@@ -379,6 +397,6 @@ def check_evaluate_config(cfg: Mapping) -> None:
     _int(cfg, "seed", low=0, optional=True)
     _int(cfg, "steps", optional=True)
     _int(cfg, "episodes", optional=True)
-    _in_range(cfg, "gamma", 0, 1, True, False)
+    _in_range(cfg, "gamma", 0, 1, True, False, optional=True)
     _int(cfg, "threads")
     _bool(cfg, "render", "progress")

@@ -466,21 +466,23 @@ def run_recipe(cfg: DictConfig) -> dict:
     from anm_torchrl.networks import check_network_name
     from anm_torchrl.networks.user import network_argument
     from anm_torchrl.training.algorithms import check_algorithm_config
-    from anm_torchrl.training.recipe_errors import (check_artifact_cache, check_device, refuse_appended_keys,
-                                                    user_errors)
+    from anm_torchrl.training.config_checks import check_model_group
+    from anm_torchrl.training.recipe_errors import (check_artifact_cache, check_device, defined_keys,
+                                                    refuse_appended_keys, user_errors)
     from anm_torchrl.training.network_defaults import apply_network_defaults, explicit_keys, log_network_defaults
 
     run_dir = Path.cwd()
     with user_errors(f"{HydraConfig.get().job.name}.py", run_dir):
         # the surrogate group's keys go to its loader, which names one it does not take
         refuse_appended_keys(f"{HydraConfig.get().job.name}.py", HydraConfig.get().overrides.task,
-                             allowed=("surrogate",))
+                             allowed=("surrogate",), defined=defined_keys())
         # a network file's path is relative to where the command was typed, not to the run directory
         cfg.network = network_argument(cfg.network, hydra.utils.get_original_cwd())
         check_network_name(cfg.network)  # before its defaults are applied (and logged)
         hydra_cfg = HydraConfig.get()
         conf_dir = next((src.path for src in hydra_cfg.runtime.config_sources
                          if src.provider == "main" and src.schema == "file"), None)
+        check_model_group(cfg)  # another recipe's model group lacks the keys the per-network conditions read
         # logged once the config has passed its checks: a wrong value is then the only line printed
         defaults = apply_network_defaults(cfg, explicit_keys(hydra_cfg.overrides.task, conf_dir), log_now=False)
         check_algorithm_config(cfg)
@@ -502,9 +504,13 @@ def run_recipe(cfg: DictConfig) -> dict:
         sim = check_controllable(cfg.network)
         surrogate = OmegaConf.to_container(cfg.surrogate, resolve=True)
         if surrogate["name"] == "pinn" or cfg.model.get("dynamics") == "pinn":  # before it is trained on first use
+            from anm_torchrl.surrogates.pinn.load import check_pinn_options
             from anm_torchrl.surrogates.pinn.model import check_pinn_network
+            from anm_torchrl.training.factory import surrogate_options
 
             check_pinn_network(sim)
+            if surrogate["name"] == "pinn":  # its keys go to load_pinn (SHAC's model=pinn: the same surrogate group)
+                check_pinn_options(**surrogate_options(surrogate))
         if surrogate.get("path") and surrogate["name"] not in TRUE_SIMULATORS:
             # a given model of another network, kind or a damaged file: one line now, not a traceback in train()
             from anm_torchrl.training.factory import load_surrogate_in_home, surrogate_options

@@ -12,7 +12,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 
 from anm_torchrl._extras import MissingExtraError
@@ -69,7 +69,29 @@ def user_errors(recipe: str, run_dir: str | os.PathLike | None = None) -> Iterat
         raise SystemExit(f"{recipe}: {message}") from None
 
 
-def refuse_appended_keys(recipe: str, overrides: Iterable[str], allowed: tuple[str, ...] = ()) -> None:
+def defined_keys() -> Callable[[str], bool]:
+    """Inside a recipe (a running Hydra app): whether a key is in its config as composed from the command line
+    without its ``++`` overrides (composed on the first question)."""
+    from hydra import compose
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
+
+    base = []
+
+    def defined(key: str) -> bool:
+        if not base:
+            hc = HydraConfig.get()
+            base.append(compose(hc.job.config_name, [o for o in hc.overrides.task if not o.startswith("++")]))
+        return OmegaConf.select(base[0], key, default=_ABSENT) is not _ABSENT
+
+    return defined
+
+
+_ABSENT = object()
+
+
+def refuse_appended_keys(recipe: str, overrides: Iterable[str], allowed: tuple[str, ...] = (),
+                         defined: Callable[[str], bool] | None = None) -> None:
     """Refuse Hydra's ``+key=value`` (a key added to the config) outside the groups whose every key the recipe
     passes on (``allowed``): elsewhere no recipe reads a key it does not define, so the value was ignored without a
     word. Hydra itself answers ``key=value`` for an unknown key with "To append to your config use +key=value",
@@ -80,13 +102,17 @@ def refuse_appended_keys(recipe: str, overrides: Iterable[str], allowed: tuple[s
         overrides: the command line's overrides (``HydraConfig.get().overrides.task``).
         allowed: key prefixes whose added keys the recipe passes on and checks there (``pinn_preset``: its
             dataclasses; ``surrogate``: the surrogate's loader's options; ``models``: the regressors' estimators).
+        defined: whether a key exists without the ``++`` overrides (:func:`defined_keys`): ``++key=value`` (set or
+            add) is then refused as ``+key`` is where it adds a key; None: ``++`` is not checked.
 
     Raises:
         ValueError: naming the first such override.
     """
     for item in overrides:
         prefix, key, _ = parse_override(item)
-        if prefix != "+":  # ``++key`` sets a key that may exist: Hydra's override
+        if prefix == "++" and (defined is None or defined(key)):  # Hydra's override of a key that exists
+            continue
+        if prefix not in ("+", "++"):
             continue
         if any(key == a or key.startswith(a + ".") for a in allowed):
             continue

@@ -79,6 +79,23 @@ def ignore_stop_signals() -> None:
         signal.signal(s, signal.SIG_IGN)
 
 
+@contextlib.contextmanager
+def stop_signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM held back (blocked) in this thread while the block runs, delivered after it: a helper
+    process forked inside the block starts with them blocked too, so none reaches it before it calls
+    :func:`ignore_stop_signals` and :func:`release_stop_signals`."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+
+
+def release_stop_signals() -> None:
+    """Unblock SIGINT and SIGTERM in a helper forked under :func:`stop_signals_held` (after ignoring them)."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+
+
 def stop_when_orphaned(poll_s: float = 1.0) -> threading.Thread:
     """Send this process SIGTERM once its parent process has gone (checked every ``poll_s`` seconds in a daemon
     thread, which is returned); under :func:`stop_signals` it then stops as a run does on SIGTERM."""

@@ -6,6 +6,7 @@ so neither imports the other. Registry name ``"pinn"`` (:mod:`anm_torchrl.surrog
 
 from __future__ import annotations
 
+import inspect
 import logging
 from pathlib import Path
 
@@ -22,6 +23,27 @@ from anm_torchrl.surrogates.pinn.chain import (DEFAULT_RESIDUAL_THRESHOLD, DEFAU
 from anm_torchrl.surrogates.pinn.presets import MODULES
 
 log = logging.getLogger(__name__)
+
+
+def check_pinn_options(terminal: str = "physics", classifier_path=None, residual_threshold: float | None = None,
+                       v_range: tuple[float, float] | None = None, **options) -> None:
+    """Refuse, before any work, options :func:`load_pinn` would refuse (a recipe's ``surrogate=pinn`` keys): an
+    unknown key, a bad ``terminal``, a classifier terminal without its folder, a bad threshold or voltage range
+    (``options``: load_pinn's others, checked by name).
+
+    Raises:
+        ValueError: naming the option.
+    """
+    unknown = sorted(set(options) - set(inspect.signature(load_pinn).parameters))
+    if unknown:
+        raise ValueError(f"{unknown[0]!r} is not an option of the PINN surrogate (load_pinn takes "
+                         f"{', '.join(inspect.signature(load_pinn).parameters)})")
+    if terminal not in TERMINALS:
+        raise ValueError(f"terminal must be one of {TERMINALS}, got {terminal!r}")
+    if terminal == "classifier" and classifier_path is None:
+        raise ValueError("terminal='classifier' needs classifier_path (a folder saved by TerminalClassifier)")
+    PhysicsTerminal(DEFAULT_RESIDUAL_THRESHOLD if residual_threshold is None else residual_threshold,
+                    DEFAULT_V_RANGE if v_range is None else v_range)
 
 
 def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | None = None,
@@ -61,19 +83,15 @@ def load_pinn(sim: GridSimulator | None = None, device=None, path: str | Path | 
         FileNotFoundError: nothing at ``path`` and training not requested.
         CacheRejectedError: a training for the default cache failed its acceptance bar.
     """
-    if terminal not in TERMINALS:
-        raise ValueError(f"terminal must be one of {TERMINALS}, got {terminal!r}")
+    check_pinn_options(terminal, classifier_path, residual_threshold, v_range)  # before any work
     residual_threshold = DEFAULT_RESIDUAL_THRESHOLD if residual_threshold is None else residual_threshold
     v_range = DEFAULT_V_RANGE if v_range is None else v_range
-    PhysicsTerminal(residual_threshold, v_range)  # validate before any work
     if sim is None:
         sim = network_simulator(ANM6_EASY, device=device if device is not None else "cpu")
     elif device is not None and torch.device(device) != sim.net.dev.device:
         raise ValueError(f"device={device!r} differs from the simulator's device {sim.net.dev.device}; pass one")
     classifier = None
     if terminal == "classifier":
-        if classifier_path is None:
-            raise ValueError("terminal='classifier' needs classifier_path (a folder saved by TerminalClassifier)")
         from anm_torchrl.surrogates.terminal import TerminalClassifier
 
         classifier = TerminalClassifier.load(classifier_path, sim=sim)

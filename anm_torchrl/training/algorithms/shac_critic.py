@@ -98,7 +98,12 @@ def update_critic(critic, target_critic, optim, rollout: Rollout, s: CriticSetti
 
 def _serve(conn, critic, target_critic, optim, settings: CriticSettings, seed: int) -> None:
     """The worker process: answers each ``(rollout, lr)`` with (critic, target critic and optimiser state dicts,
-    metrics) until ``None``."""
+    metrics) until ``None``. It ignores Ctrl-C and SIGTERM (a terminal's or a scheduler's signal reaches the whole
+    process group): the training process finishes its iteration, then stops it."""
+    from anm_torchrl.training.signals import ignore_stop_signals, release_stop_signals
+
+    ignore_stop_signals()
+    release_stop_signals()  # forked with them held back (CriticWorker): none arrived before the line above
     torch.set_num_threads(1)
     torch.manual_seed(seed)
     while (msg := pickle.loads(conn.recv_bytes())) is not None:
@@ -124,11 +129,14 @@ class CriticWorker:
         if any(p.device.type != "cpu" for p in critic.parameters()):
             raise ValueError("loss.critic_worker=true runs the critic on the CPU only; set loss.critic_worker=false "
                              "on a GPU")
+        from anm_torchrl.training.signals import stop_signals_held
+
         ctx = multiprocessing.get_context("fork")
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(target=_serve, args=(child, critic, target_critic, optim, settings, seed),
                                  daemon=True, name="anm_torchrl-shac-critic")
-        self._proc.start()
+        with stop_signals_held():  # the worker ignores them before any can reach it
+            self._proc.start()
         child.close()
         self.critic, self.target_critic, self.optim_state = critic, target_critic, optim.state_dict()
 
