@@ -16,7 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "anm_torchrl"
 # floors, bottom first: a module may import its own floor's and lower floors' modules only
 LAYERS = [
     ("artifacts", "strict_json", "paths", "_extras", "console", "provenance", "processes", "_version", "lazy",
-     "overrides"),
+     "overrides", "argtypes"),
     ("grid",),
     ("networks",),
     ("envs",),

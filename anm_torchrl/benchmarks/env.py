@@ -32,10 +32,12 @@ import argparse
 import numpy as np
 import torch
 
+from anm_torchrl.argtypes import count, index, int_list, name_list, positive_float, run_main
 from anm_torchrl.benchmarks.timing import _timed, time_env_steps, time_gym_steps
 from anm_torchrl.grid import reset as grid_reset
 
 DEFAULT_BATCH_SIZES = (1, 16, 256, 1024, 4096, 16384)
+BACKENDS = ("auto", "numba", "torch")  # the physics backends ANM6Env takes
 
 
 def bench_gym_anm(n_steps: int, seed: int = 0) -> dict:
@@ -118,20 +120,24 @@ def anm6_main(argv: list[str] | None = None) -> str:
         # the other tables take their own options: --network NAME [--out ...] or --solver-sweep, listed by --help
         epilog="Other networks: python -m anm_torchrl.benchmarks.env --network <name> --help; the linear-solver sweep: "
                "python -m anm_torchrl.benchmarks.env --solver-sweep --help")
-    parser.add_argument("--batch-sizes", default=",".join(map(str, DEFAULT_BATCH_SIZES)),
+    parser.add_argument("--batch-sizes", type=int_list(1), default=list(DEFAULT_BATCH_SIZES),
                         help="comma-separated batch sizes")
-    parser.add_argument("--gym-steps", type=int, default=200, help="gym-anm steady-state steps (0: skip)")
+    parser.add_argument("--gym-steps", type=index, default=200, help="gym-anm steady-state steps (0: skip)")
     parser.add_argument("--no-gym", action="store_true", help="skip gym-anm")
-    parser.add_argument("--min-time", type=float, default=2.0, help="seconds of steady state per measurement")
-    parser.add_argument("--min-steps", type=int, default=3, help="at least this many batched steps")
+    parser.add_argument("--min-time", type=positive_float, default=2.0,
+                        help="seconds of steady state per measurement")
+    parser.add_argument("--min-steps", type=count, default=3, help="at least this many batched steps")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
+    parser.add_argument("--threads", type=count, default=1, help="torch.set_num_threads")
     parser.add_argument("--skip-grid", action="store_true", help="skip the raw GridSimulator rows")
-    parser.add_argument("--backends", default="auto",
+    parser.add_argument("--backends", type=name_list(BACKENDS), default=["auto"],
                         help="comma-separated physics backends to measure: auto, numba, torch (e.g. numba,torch)")
     args = parser.parse_args(argv)
+    from anm_torchrl.training.recipe_errors import check_device
+
+    check_device(args.device, "--device")
     torch.set_num_threads(args.threads)
-    batches = [int(b) for b in args.batch_sizes.split(",") if b.strip()]
+    batches = args.batch_sizes
 
     rows = []
     gym_rate = None
@@ -142,7 +148,7 @@ def anm6_main(argv: list[str] | None = None) -> str:
             gym_rate = g["rate"]
         except ImportError:
             pass
-    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    backends = args.backends
     for backend in backends:
         for b in batches:
             rows.append(bench_env(b, args.min_time, args.min_steps, args.device, backend=backend))
@@ -158,4 +164,4 @@ def anm6_main(argv: list[str] | None = None) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    run_main(main, "anm_torchrl.benchmarks.env")

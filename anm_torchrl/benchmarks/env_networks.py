@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from anm_torchrl.argtypes import count, index, int_list, name_list, positive_float, run_main
 from anm_torchrl.benchmarks.timing import _timed, time_env_steps, time_gym_steps
 from anm_torchrl.grid import reset as grid_reset
 from anm_torchrl.strict_json import json_text
@@ -304,58 +305,53 @@ def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description="ANMEnv throughput vs network size, gym-anm, pandapower")
     parser.add_argument("--network", default=None, help="registered name, radial70, radial120, or 'all'")
     parser.add_argument("--solver-sweep", action="store_true", help="dense vs band LU crossover")
-    parser.add_argument("--sweep-sizes", default="6,10,16,24,33,50,70,120")
-    parser.add_argument("--sweep-batch", type=int, default=128)
-    parser.add_argument("--batch-sizes", default="1,256,4096,16384")
-    parser.add_argument("--backends", default="numba,torch")
-    parser.add_argument("--gym-steps", type=int, default=30, help="gym-anm steady-state steps (0: skip)")
-    parser.add_argument("--pf-runs", type=int, default=20, help="pandapower runpp repetitions (0: skip)")
-    parser.add_argument("--min-time", type=float, default=1.0)
-    parser.add_argument("--min-steps", type=int, default=2)
-    parser.add_argument("--max-step-s", type=float, default=20.0, help="skip rows predicted slower per step")
-    parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (numba slices too)")
+    parser.add_argument("--sweep-sizes", type=int_list(2), default=[6, 10, 16, 24, 33, 50, 70, 120])
+    parser.add_argument("--sweep-batch", type=count, default=128)
+    parser.add_argument("--batch-sizes", type=int_list(1), default=[1, 256, 4096, 16384])
+    parser.add_argument("--backends", type=name_list(("numba", "torch")), default=["numba", "torch"])
+    parser.add_argument("--gym-steps", type=index, default=30, help="gym-anm steady-state steps (0: skip)")
+    parser.add_argument("--pf-runs", type=index, default=20, help="pandapower runpp repetitions (0: skip)")
+    parser.add_argument("--min-time", type=positive_float, default=1.0)
+    parser.add_argument("--min-steps", type=count, default=2)
+    parser.add_argument("--max-step-s", type=positive_float, default=20.0, help="skip rows predicted slower per step")
+    parser.add_argument("--threads", type=count, default=1, help="torch.set_num_threads (numba slices too)")
     parser.add_argument("--out", default=None, help="write <out>.json and <out>.md")
     args = parser.parse_args(argv)
+    names = []
+    if args.network:
+        from anm_torchrl.networks import list_networks
+
+        known = [*list_networks(), *SYNTHETIC]
+        names = known if args.network == "all" else args.network.split(",")
+        unknown = [n for n in names if n not in known]
+        if unknown:  # was a warning, an empty table and a record written
+            raise ValueError(f"--network: unknown network {unknown[0]!r}; known: {', '.join(known)}, all")
+    if args.out:  # now, not after the measurement
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
-    args.batch_sizes = [int(b) for b in args.batch_sizes.split(",") if b.strip()]
-    args.backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     record = {"machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} thread(s)",
               "torch": torch.__version__, "numpy": np.__version__, "argv": argv, "time": time.ctime()}
     parts = []
     if args.solver_sweep:
-        sizes = [int(s) for s in args.sweep_sizes.split(",") if s.strip()]
-        record["solver_sweep"] = solver_sweep(sizes, args.sweep_batch, args.min_time)
+        record["solver_sweep"] = solver_sweep(args.sweep_sizes, args.sweep_batch, args.min_time)
         parts.append(sweep_markdown(record["solver_sweep"]))
     if args.network:
-        if args.network == "all":
-            from anm_torchrl.networks import list_networks
-
-            names = [*list_networks(), *SYNTHETIC]
-        else:
-            names = args.network.split(",")
         rows = []
         for name in names:
-            try:
-                case = load_case(name)
-            except ValueError as err:  # a registered feeder whose case file is not committed yet
-                log.warning("network %s left out: %s", name, err)
-                record.setdefault("left_out", {})[name] = str(err)
-                continue
-            rows.extend(network_rows(case, args))
+            rows.extend(network_rows(load_case(name), args))
         record["rows"] = rows
         parts.append(markdown(rows))
     text = "\n\n".join(parts) + (f"\n\n<!-- {record['machine']}, torch {record['torch']}, numpy {record['numpy']}; "
                                  "warm-up = construction + first reset + first step; ratios measured in one run "
                                  "on a shared machine -->")
+    print(text)  # noqa: T201  (the benchmark's one table, as the ANM6 benchmark prints its table; before the write)
     if args.out:
         out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
         out.with_suffix(".json").write_text(json_text(record, indent=1))
         out.with_suffix(".md").write_text(text + "\n")
-    print(text)  # noqa: T201  (the benchmark's one table, as the ANM6 benchmark prints its table)
     return text
 
 
 if __name__ == "__main__":
     logging.basicConfig(level=logging.INFO)
-    main()
+    run_main(main, "anm_torchrl.benchmarks.env")

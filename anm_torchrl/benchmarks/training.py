@@ -35,16 +35,35 @@ ALGORITHMS = {"ppo": ("config", "time/collect", "time/update"), "sac": ("sac", "
               "shac": ("shac", "time/rollout", "time/update")}
 
 
+#: keys the benchmark sets from its own options
+BENCH_KEYS = ("network", "env.num_envs", "collector.frames_per_batch")
+
+
 def _config(algorithm: str, network: str, n_envs: int, overrides: list[str]):
     """``algorithm``'s recipe config on ``network`` with N envs, its network entry applied to the keys not set here."""
+    from hydra.errors import HydraException
+
+    from anm_torchrl.overrides import parse_override
+    from anm_torchrl.training.algorithms import check_algorithm_config
     from anm_torchrl.training.network_defaults import compose_recipe_config
 
     if algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algorithm!r}; choose from {sorted(ALGORITHMS)}")
+    own = [o for o in overrides if parse_override(o).key in BENCH_KEYS]
+    if own:  # the rows are labelled by --network and --envs; an override of them measured another batch
+        raise ValueError(f"--override {own[0]}: the benchmark sets {', '.join(BENCH_KEYS)} itself (--network, --envs)")
     over = [f"network={network}", f"env.num_envs={n_envs}",
             *([f"collector.frames_per_batch={n_envs * STEPS}"] if algorithm != "shac" else []),
             *(["collector.init_random_frames=0"] if algorithm == "sac" else []), *overrides]  # time the actor's frames
-    return compose_recipe_config(over, ALGORITHMS[algorithm][0])[0]
+    try:
+        cfg = compose_recipe_config(over, ALGORITHMS[algorithm][0])[0]
+    except HydraException as err:
+        raise ValueError(f"--override: {str(err).strip().splitlines()[0]}") from None
+    given = {parse_override(o).key for o in overrides}
+    if algorithm == "ppo" and "loss.mini_batch_size" not in given:  # one minibatch per epoch on a small batch
+        cfg.loss.mini_batch_size = min(int(cfg.loss.mini_batch_size), n_envs * STEPS)
+    check_algorithm_config(cfg)  # what the recipe would refuse is not measured either
+    return cfg
 
 
 def _children_cpu() -> float:

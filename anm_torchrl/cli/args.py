@@ -1,61 +1,29 @@
-"""argparse types shared by the command lines: a count or a duration out of range is refused by the parser, naming
-the option (``error: argument --rows: must be an integer >= 1, got 0``), before any work starts; and the options
-and the failure rule of the studies of training cells."""
+"""What the command lines share: the argparse types and the one-line error rule (:mod:`anm_torchrl.argtypes`, here
+for every ``cli`` module), the output check, and the options and the failure rule of the studies of training cells."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import logging
-import math
 import sys
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+
+from anm_torchrl.argtypes import (USER_ERRORS, count, index, int_list, integer, name_list, positive_float,
+                                  run_main)
+
+__all__ = ["USER_ERRORS", "count", "index", "int_list", "integer", "name_list", "positive_float", "run_main",
+           "check_out", "add_study_arguments", "read_kept", "finish_study"]
 
 
-def integer(minimum: int) -> Callable[[str], int]:
-    """An argparse ``type``: an integer ``>= minimum``."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, got {value}")
-        return value
-    return parse
+def check_out(out: str | None, option: str = "--out") -> None:
+    """An output path stem (``<out>.json``, ``<out>.md``) whose folder can be written, checked before a measurement
+    (not after it: its table was lost)."""
+    if out:
+        from anm_torchrl.training.recipe_errors import check_writable
 
-
-def positive_float(text: str) -> float:
-    """An argparse ``type``: a finite float > 0 (seconds, a tolerance)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
-
-
-#: what a command reports as one line instead of a traceback: a user's input the library refuses by name (a
-#: ``ValueError``: ``ArtifactError``, ``DatasetError`` and JSON errors included) or a path that is missing, taken
-#: or not writable
-USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError)
-
-
-def run_main(main: Callable[[], Any], module: str) -> None:
-    """Run a command's ``main()`` as ``python -m <module>`` does, with :data:`USER_ERRORS` as one line
-    ``python -m <module>: <message>`` (exit status 1)."""
-    try:
-        main()
-    except USER_ERRORS as err:
-        raise SystemExit(f"python -m {module}: {err}") from None
-
-
-#: a count of at least one (rows, runs, episodes, steps, threads, jobs)
-count = integer(1)
-#: an index or a count that may be zero
-index = integer(0)
+        check_writable(Path(out).parent, option)
 
 
 def add_study_arguments(parser: argparse.ArgumentParser, seeds: list[int], runs_dir: str, out: str) -> None:

@@ -11,7 +11,7 @@ import argparse
 import logging
 
 from anm_torchrl.benchmarks import evaluation
-from anm_torchrl.cli.args import count, run_main
+from anm_torchrl.cli.args import check_out, count, run_main
 
 log = logging.getLogger(__name__)
 
@@ -25,6 +25,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--repeats", type=count, default=3, help="passes per path (the best is reported)")
     parser.add_argument("--out", default=None, help="write <out>.json and <out>.md (default: print only)")
     args = parser.parse_args(argv)
+    from anm_torchrl.networks import check_network_name
+
+    check_network_name(args.network)  # before the per-network defaults are composed (and logged) for it
+    check_out(args.out)  # before the measurement
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     record = evaluation.run(args.network, args.episodes, args.steps, args.repeats, args.out, argv)
     log.info("%s", "\n".join(evaluation.markdown(record)))

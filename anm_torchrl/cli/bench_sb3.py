@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from anm_torchrl.benchmarks import sb3
-from anm_torchrl.cli.args import count, run_main
+from anm_torchrl.cli.args import check_out, count, index, run_main
 from anm_torchrl.strict_json import json_text
 
 log = logging.getLogger(__name__)
@@ -28,9 +28,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--rollouts", type=count, default=16, help="timed rollouts on our env")
     parser.add_argument("--gym-rollouts", type=count, default=1, help="timed rollouts on gym-anm (slow)")
     parser.add_argument("--threads", type=count, default=1)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=index, default=0)
     parser.add_argument("--out", default=None, help="write the JSON record here (default: print the table only)")
     args = parser.parse_args(argv)
+    if args.num_envs * args.n_steps < 2:  # SB3's PPO asserts it (a traceback after the env was built)
+        raise ValueError("--num-envs x --n-steps must be at least 2 (SB3's PPO needs a rollout of 2 frames or more)")
+    check_out(args.out)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     command = " ".join([parser.prog, *(sys.argv[1:] if argv is None else argv)])
     record = sb3.run(args.num_envs, args.n_steps, args.rollouts, args.gym_rollouts, args.threads, args.seed,

@@ -13,13 +13,13 @@ import time
 import torch
 
 from anm_torchrl.benchmarks.surrogates import DATASETS, KINDS, markdown_table, measure
-from anm_torchrl.cli.args import count, positive_float, run_main
+from anm_torchrl.cli.args import count, int_list, positive_float, run_main
 
 
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.bench_surrogates",
                                      description="data-driven surrogate envs vs ANM6Env, transitions/s")
-    parser.add_argument("--batch-sizes", default="1,4096", help="comma-separated batch sizes")
+    parser.add_argument("--batch-sizes", type=int_list(1), default=[1, 4096], help="comma-separated batch sizes")
     parser.add_argument("--surrogates", default=",".join(KINDS), help="comma-separated surrogate names")
     parser.add_argument("--datasets", default=",".join(DATASETS), help="comma-separated training datasets")
     parser.add_argument("--min-time", type=positive_float, default=2.0, help="seconds of steady state per measurement")
@@ -28,10 +28,10 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=count, default=1, help="torch.set_num_threads")
     args = parser.parse_args(argv)
-    try:
-        batches = [count(b) for b in args.batch_sizes.split(",") if b.strip()]
-    except argparse.ArgumentTypeError as err:
-        parser.error(f"argument --batch-sizes: {err}")
+    from anm_torchrl.training.recipe_errors import check_device
+
+    check_device(args.device, "--device")  # was an AssertionError / RuntimeError traceback at the first model
+    batches = args.batch_sizes
     kinds, datasets = [k for k in args.surrogates.split(",") if k], [d for d in args.datasets.split(",") if d]
     for option, given, known in (("--surrogates", kinds, KINDS), ("--datasets", datasets, DATASETS)):
         if set(given) - set(known):

@@ -12,7 +12,7 @@ import argparse
 import logging
 
 from anm_torchrl.benchmarks import training
-from anm_torchrl.cli.args import count, run_main
+from anm_torchrl.cli.args import check_out, count, run_main
 
 log = logging.getLogger(__name__)
 
@@ -32,12 +32,13 @@ def main(argv: list[str] | None = None) -> None:
                              "loss.compile=true")
     parser.add_argument("--out", default=None, help="write <out>.json and <out>.md (default: print only)")
     args = parser.parse_args(argv)
+    check_out(args.out)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     record = training.measure(args.network, tuple(args.envs), tuple(args.algorithms), args.iterations,
                               tuple(args.override), tuple(args.compare))
+    log.info("%s", training.markdown(record))  # first: a failed write loses no measurement
     if args.out:
         training.write(record, args.out)
-    log.info("%s", training.markdown(record))
 
 
 if __name__ == "__main__":

@@ -137,11 +137,11 @@ def check_device(device: str, key: str = "env.device") -> None:
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise ValueError(f"{key}={device}: this torch build ({torch.__version__}) has no usable CUDA device; "
-                             "use env.device=cpu, or install a CUDA build of torch on a machine with a GPU")
+                             f"use {key}=cpu, or install a CUDA build of torch on a machine with a GPU")
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise ValueError(f"{key}={device}: only {torch.cuda.device_count()} CUDA device(s) here")
     elif dev.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"{key}={device}: MPS is not available here; use env.device=cpu")
+        raise ValueError(f"{key}={device}: MPS is not available here; use {key}=cpu")
     elif dev.type not in ("cuda", "mps"):
         raise ValueError(f"{key}={device}: expected cpu, cuda[:i] or mps")
 
