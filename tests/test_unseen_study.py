@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from anm_torchrl.experiments import cells, unseen
@@ -108,6 +109,23 @@ def test_a_malformed_spec_is_refused_by_name(capsys):
     with pytest.raises(SystemExit):
         cli.main(["--networks", "9101:18:ring"])
     assert "network spec '9101:18:ring': expected SEED:BUSES:radial|meshed" in capsys.readouterr().err
+
+
+def test_a_network_file_is_a_spec(tmp_path):
+    """A user's file (e.g. a SimBench grid from ``python -m anm_torchrl.cli.import_network``) takes a random spec's
+    place: copied beside the runs, described from its own tables; a missing one is refused by name."""
+    from anm_torchrl.networks.random import generate
+    from anm_torchrl.networks.user import save_network
+
+    case = generate(7, n_bus=6, meshed=False)
+    src = save_network(tmp_path / "mine.npz", case.network, case.load_p, case.gen_p_max)
+    path, meta = unseen.write_network(str(src), tmp_path / "runs")
+    assert path == tmp_path / "runs" / "mine.npz" and path.read_bytes() == src.read_bytes()
+    kinds = np.asarray(case.network["device"], dtype=float)[:, 2]
+    assert (meta["n_bus"], meta["n_storage"], meta["topology"]) == (6, int((kinds == 3).sum()), "file")
+    assert meta["network_key"] and meta["n_load"] == int((kinds == -1).sum())
+    with pytest.raises(ValueError, match=r"network spec '.*gone.npz': no such network file"):
+        unseen.parse_spec(str(tmp_path / "gone.npz"))
 
 
 def test_the_committed_record_matches_its_block():

@@ -32,7 +32,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(prog="python -m anm_torchrl.cli.unseen_networks",
                                      description=unseen.__doc__.splitlines()[0])
     parser.add_argument("--networks", nargs="+", type=spec, required=True,
-                        help="random networks SEED:BUSES:radial|meshed (anm_torchrl.networks.random.generate)")
+                        help="random networks SEED:BUSES:radial|meshed (anm_torchrl.networks.random.generate), or "
+                             "network files (.npz)")
     parser.add_argument("--algorithms", nargs="+", default=["ppo", "shac"], choices=list(unseen.RECIPE))
     add_study_arguments(parser, seeds=[0], runs_dir="outputs/unseen",  # also the network files and baselines
                         out="folder of unseen_networks.json / .md (e.g. results/unseen)")

@@ -2,7 +2,8 @@
 
 A network is a spec ``SEED:BUSES:radial|meshed`` of :func:`anm_torchrl.networks.random.generate` (every device
 type, daily profiles), written to ``<runs_dir>/<name>.npz`` with
-:func:`~anm_torchrl.networks.user.save_network`, as a user saves theirs. On each one:
+:func:`~anm_torchrl.networks.user.save_network`, as a user saves theirs; or a network file (``<path>.npz``, e.g. a
+SimBench grid written by ``python -m anm_torchrl.cli.import_network``), copied there. On each one:
 
 * the baselines on the test states every recipe reports on (the per-network protocol's ``default`` entry: the
   ``eval.test_*`` keys of the PPO recipe's config for that file), the perfect-foresight AC optimum and do-nothing,
@@ -49,15 +50,21 @@ RECIPE: dict[str, tuple[str, tuple[str, ...], str]] = {
 MARKERS = ("<!-- unseen:networks -->", "<!-- /unseen:networks -->")
 
 
-def parse_spec(spec: str) -> tuple[int, int, bool]:
-    """``"SEED:BUSES:radial|meshed"`` -> (seed, bus count, meshed).
+def parse_spec(spec: str) -> tuple[int, int, bool] | Path:
+    """``"SEED:BUSES:radial|meshed"`` -> (seed, bus count, meshed); a network file's path (``.npz``, e.g. written by
+    ``python -m anm_torchrl.cli.import_network``) -> that path.
 
     Raises:
-        ValueError: another form, naming the spec.
+        ValueError: another form, or a network file that does not exist, naming the spec.
     """
+    if spec.endswith(".npz"):
+        if not Path(spec).is_file():
+            raise ValueError(f"network spec {spec!r}: no such network file")
+        return Path(spec)
     parts = spec.split(":")
     if len(parts) != 3 or parts[2] not in ("radial", "meshed") or not all(p.isdigit() for p in parts[:2]):
-        raise ValueError(f"network spec {spec!r}: expected SEED:BUSES:radial|meshed, e.g. 9101:18:radial")
+        raise ValueError(f"network spec {spec!r}: expected SEED:BUSES:radial|meshed, e.g. 9101:18:radial, or a "
+                         "network file (.npz)")
     return int(parts[0]), int(parts[1]), parts[2] == "meshed"
 
 
@@ -69,7 +76,10 @@ def write_network(spec: str, folder: Path) -> tuple[Path, dict[str, Any]]:
     from anm_torchrl.networks.random import generate
     from anm_torchrl.networks.user import save_network
 
-    seed, n_bus, meshed = parse_spec(spec)
+    parsed = parse_spec(spec)
+    if isinstance(parsed, Path):
+        return _copy_network(parsed, folder)
+    seed, n_bus, meshed = parsed
     case = generate(seed, n_bus=n_bus, meshed=meshed)
     path = folder / f"random{seed}_{n_bus}_{'meshed' if meshed else 'radial'}.npz"
     folder.mkdir(parents=True, exist_ok=True)
@@ -83,6 +93,27 @@ def write_network(spec: str, folder: Path) -> tuple[Path, dict[str, Any]]:
     # the generator's n_gen counts classical and renewable generators, n_des its storage units
     return path, {**meta, "n_renewable": meta["n_gen"] - meta["n_classical"], "n_storage": meta.pop("n_des"),
                   "network_key": key}
+
+
+def _copy_network(src: Path, folder: Path) -> tuple[Path, dict[str, Any]]:
+    """A user's network file copied to ``folder`` (its name kept); (path, its meta as :func:`write_network`'s)."""
+    import shutil
+
+    from anm_torchrl.grid.identity import network_key
+    from anm_torchrl.networks import simulator
+    from anm_torchrl.networks.user import load_network_file
+
+    case = load_network_file(src)  # checked as every recipe checks it
+    path = folder / src.name
+    folder.mkdir(parents=True, exist_ok=True)
+    if path.resolve() != src.resolve():
+        shutil.copyfile(src, path)
+    kind = case.network["device"][:, 2]
+    meta = {"n_bus": int(case.network["bus"].shape[0]), "topology": "file", "n_load": int((kind == -1).sum()),
+            "n_classical": int((kind == 1).sum()), "n_renewable": int((kind == 2).sum()),
+            "n_storage": int((kind == 3).sum()), "n_branch": int(case.network["branch"].shape[0]),
+            "source": case.source}
+    return path, {**meta, "network_key": network_key(simulator(str(path)))}
 
 
 def reported_states(path: Path, overrides: tuple[str, ...] = ()) -> dict[str, Any]:
@@ -284,8 +315,10 @@ def markdown(record: dict) -> str:
     """The study as a Markdown table: one line per network, each algorithm's test return and gain share."""
     algos = record["algorithms"]
     p = record["networks"][0]["protocol"]
-    intro = [f"Random networks (`SEED:BUSES:topology`, `anm_torchrl.networks.random.generate`) saved as a user's "
-             f"files; {p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, γ = {p['gamma']}; each "
+    kinds = ("random networks (`SEED:BUSES:topology`, `anm_torchrl.networks.random.generate`) saved as a user's "
+             "files" if all(n.get("topology") != "file" for n in record["networks"]) else
+             "networks given as files (random specs `SEED:BUSES:topology` saved as a user's files, and network files)")
+    intro = [f"{kinds[0].upper()}{kinds[1:]}; {p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, γ = {p['gamma']}; each "
              f"algorithm's `best.pt` (chosen on its validation states) after "
              + ", ".join(f"`{' '.join(['python', f'recipes/{RECIPE[a][0]}', 'network=<file>', *RECIPE[a][1]])}`"
                          for a in algos)
@@ -295,7 +328,7 @@ def markdown(record: dict) -> str:
     head += [RECIPE[a][2] for a in algos]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * 3 + "---:|" * (2 + len(algos))]
     for n in record["networks"]:
-        cells = [f"`{n['spec']}`", str(n["n_bus"]),
+        cells = [f"`{n['file'] if n.get('topology') == 'file' else n['spec']}`", str(n["n_bus"]),
                  f"{n['n_load']} / {n['n_classical']} / {n['n_renewable']} / {n['n_storage']}",
                  _num(n["do_nothing"]), _num(n["optimum"])]
         for a in n["algorithms"]:
