@@ -175,6 +175,13 @@ def test_resume_with_another_architecture_is_an_error(ppo_checkpoint):
         assert key in str(err.value)
     new = OmegaConf.to_container(ppo_config("optim.lr=1e-3"), resolve=True)
     assert check_resume_config(saved, new) == ["optim.lr"]  # other changes are the caller's to warn about
+    # a network file by another path (moved, copied, or typed as ../x/f.npz) was refused as another architecture:
+    # a checkpoint with its network's key is matched by that key (check_network), not by the path as typed
+    at = {**saved, "network": "/data/feeder.npz"}
+    moved = {**OmegaConf.to_container(ppo_config(), resolve=True), "network": "/elsewhere/feeder_copy.npz"}
+    assert check_resume_config(at, moved, network_by_key=True) == ["network"]
+    with pytest.raises(ValueError, match="network: checkpoint '/data/feeder.npz'"):
+        check_resume_config(at, moved)
     # a checkpoint written before an architecture flag existed had it off: resuming with it off is no change of
     # architecture, with it on is one
     older = {**saved, "model": {k: v for k, v in saved["model"].items() if k != "state_dependent_scale"}}

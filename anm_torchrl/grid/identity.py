@@ -64,6 +64,11 @@ def network_key(sim) -> str:
                        [sim.n_time, net.base_mva, net.delta_t, sim.gamma, sim.lamb, *sim.costs_clipping])[:16]
 
 
+def profiles_key(sim) -> str:
+    """The load and generation profiles ``sim`` steps through (16 hex chars): what :func:`network_key` leaves out."""
+    return hash_arrays(sim.load_series, sim.p_max_series)[:16]
+
+
 def simulator_fingerprint(sim) -> str:
     """The network tables and time series that define ``sim``'s transitions (16 hex chars), as a dataset
     records them (raw bytes, without dtypes or shapes: the format datasets were written with)."""

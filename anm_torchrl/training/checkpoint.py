@@ -12,7 +12,8 @@ Layout (format version 3)::
      "frames": int, "update": int, "logger_step": int,
      "best_eval": {metric: float, "frames": int, "update": int} | None,
      "evals_since_best": int, "wall_time": float,
-     "network_key": str}                   # the trained network's identity (anm_torchrl.grid.identity.network_key)
+     "network_key": str,                   # the trained network's identity (anm_torchrl.grid.identity.network_key)
+     "profiles_key": str}                  # its load and generation profiles (identity.profiles_key; optional)
 
 Version 2 files (``kind: anm_torchrl.ppo``, PPO's ``critic`` and ``optimizer`` at the top level) are read as PPO
 checkpoints of this layout, after the same checks.
@@ -27,6 +28,7 @@ run), then checks the kind, the version, the hash and that every float tensor is
 from __future__ import annotations
 
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Any
@@ -190,19 +192,27 @@ def load_actor(checkpoint: str | os.PathLike | dict[str, Any], env=None, map_loc
 
 def check_network(ckpt: dict[str, Any], sim, source: str = "the checkpoint") -> None:
     """Refuse a checkpoint trained on another network than ``sim``'s (a :class:`GridSimulator`): its
-    ``network_key`` (tables and reward constants, not the profiles) against ``sim``'s. A network file rewritten under
-    the same name is caught here; checkpoints that predate the key pass.
+    ``network_key`` (tables and reward constants) against ``sim``'s; a network file rewritten under the same name
+    with other tables is caught here. Other profiles (``profiles_key``: the same grid under other loads and
+    generation) are allowed, with a warning: figures on them are not the run's. Checkpoints that predate a key pass
+    its check.
 
     Raises:
         ValueError: naming both keys and the network the checkpoint's config names.
     """
-    from anm_torchrl.grid.identity import network_key
+    from anm_torchrl.grid.identity import network_key, profiles_key
 
     saved = ckpt.get("network_key")
     if saved is not None and saved != network_key(sim):
         raise ValueError(f"{source} was trained on another network (key {saved}) than this one (key "
-                         f"{network_key(sim)}), though its config names network={ckpt['config'].get('network')!r}: "
-                         "the network's tables or reward constants changed since (a rewritten network file?)")
+                         f"{network_key(sim)}); its config names network={ckpt['config'].get('network')!r}: another "
+                         "network, or that file with its tables or reward constants changed since")
+    saved = ckpt.get("profiles_key")
+    if saved is not None and saved != profiles_key(sim):
+        logging.getLogger(__name__).warning(
+            "%s was trained on other load and generation profiles of this network (key %s, now %s: a network file "
+            "rewritten with new profiles?): what is measured here is on the profiles it holds now, not the run's",
+            source, saved, profiles_key(sim))
 
 
 def config_diff(old: dict, new: dict, prefix: str = "") -> list[str]:
@@ -218,8 +228,13 @@ def config_diff(old: dict, new: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def check_resume_config(saved: dict, config: dict, source: str = "checkpoint") -> list[str]:
+def check_resume_config(saved: dict, config: dict, source: str = "checkpoint", network_by_key: bool = False
+                        ) -> list[str]:
     """Compare the config saved in a checkpoint with the config of the run that resumes from it.
+
+    ``network_by_key``: the checkpoint holds its network's key, which the caller compares
+    (:func:`check_network`): the ``network`` entries (a name or a file's path as typed) are then not compared, so
+    the same file by another path, moved or copied, resumes.
 
     Returns:
         The dotted keys that differ (the caller decides what to ignore and what to warn about).
@@ -240,7 +255,8 @@ def check_resume_config(saved: dict, config: dict, source: str = "checkpoint") -
     changed = config_diff(saved, config)
     # an architecture flag or count added after the checkpoint was written (absent there) was off (0) when it was
     arch = [k for k in changed if k in get_algorithm(saved["algorithm"]).architecture_keys
-            and not (value(saved, k) is None and value(config, k) in (False, 0))]
+            and not (value(saved, k) is None and value(config, k) in (False, 0))
+            and not (k == "network" and network_by_key)]
     if arch:
         details = "; ".join(f"{k}: checkpoint {value(saved, k)!r}, this run {value(config, k)!r}" for k in arch)
         raise ValueError(f"cannot resume from {source}: its networks were built with another architecture "

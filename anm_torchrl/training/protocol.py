@@ -65,8 +65,9 @@ def read_resume(cfg: DictConfig, algorithm: str, device="cpu") -> tuple[Path, di
     if resume["algorithm"] != algorithm:
         raise ValueError(f"cannot resume from {path}: it was trained by {resume['algorithm']!r}, this run is "
                          f"{algorithm!r}")
+    # a checkpoint with its network's key is matched by it (check_network, where the run builds its network)
     changed = [k for k in check_resume_config(resume["config"], OmegaConf.to_container(cfg, resolve=True),
-                                              source=str(path))
+                                              source=str(path), network_by_key=resume.get("network_key") is not None)
                if not any(k == e or k.startswith(e + ".") for e in EXCLUDED_CONFIG_DIFF)]
     return path, resume, changed
 
@@ -124,7 +125,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     from torchrl.record.loggers import generate_exp_name, get_logger
     from tqdm import tqdm
 
-    from anm_torchrl.grid.identity import network_key
+    from anm_torchrl.grid.identity import network_key, profiles_key
     from anm_torchrl.training.checkpoint import check_network, load_checkpoint, save_checkpoint
     from anm_torchrl.evaluation import draw_initial_states
     from anm_torchrl.training.factory import make_true_env
@@ -167,7 +168,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     test_states = draw_initial_states(int(cfg.eval.test_episodes), int(cfg.eval.test_seed), test_env.sim,
                                       test_env.init)
     reward_scale = reward_scale_of(cfg, eval_env, val_states)
-    trained_network = network_key(eval_env.sim)
+    trained_network, trained_profiles = network_key(eval_env.sim), profiles_key(eval_env.sim)
     if resume:
         check_network(resume, eval_env.sim, str(resume_path))
 
@@ -217,7 +218,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                 "obs_norm": algo.normalizer.stats(), "state": algo.state_dict(), "frames": frames, "update": update,
                 "logger_step": frames, "best_eval": best, "evals_since_best": evals_since_best, "last_eval": last_eval,
                 "wall_time": wall_before + time.perf_counter() - t_start, "curve": curve, "track_seconds": track_s,
-                "network_key": trained_network}
+                "network_key": trained_network, "profiles_key": trained_profiles}
 
     test_max_steps = int(cfg.eval.max_steps if cfg.eval.test_max_steps is None else cfg.eval.test_max_steps)
 
