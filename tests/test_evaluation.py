@@ -271,6 +271,6 @@ def test_evaluation_resets_a_terminated_row_as_the_rollout_does(caplog):
             torch.manual_seed(0)
             result = evaluate_policy(make_ppo_models(env)[0], states, 20, env=env, reference=reference)
             assert result.steps.tolist() == [3, 20, 20, 20]
-            counts.append((env._rows_terminated, env._rows_stepped))
+            counts.append((env.termination_watch.terminated, env.termination_watch.stepped))
     assert counts == [(1, 80), (1, 80)]
     assert not [r for r in caplog.records if "termination" in r.getMessage()]

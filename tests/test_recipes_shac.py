@@ -325,3 +325,30 @@ def test_the_exact_model_solves_in_the_compiled_kernel_by_default_on_every_netwo
 
     cfg, _ = compose_recipe_config([f"network={network}"], "shac")
     assert cfg.model.dynamics == "exact" and cfg.env.power_flow == "numba"
+
+
+def test_shac_names_a_pinn_that_terminates_far_too_often(monkeypatch, caplog):
+    """PPO's surrogate env names a model ending more than one step in ten; SHAC through the PINN (no surrogate env)
+    said nothing while a smoke PINN ended every step of its rollouts."""
+    import logging
+
+    import torch
+    from recipe_utils import compose
+
+    from anm_torchrl.surrogates.pinn import chain
+    from anm_torchrl.training import factory
+    from anm_torchrl.training.algorithms.shac import PINNModel
+    from anm_torchrl.training.factory import make_true_env
+
+    monkeypatch.setattr(factory, "load_surrogate_in_home", lambda *a, **k: torch.nn.Linear(1, 1))
+    monkeypatch.setattr(chain, "run_chain", lambda c, td: {
+        "next_state": td["state"].clone(), "reward": torch.zeros(td["state"].shape[0]),
+        "terminated": torch.ones(td["state"].shape[0], dtype=torch.bool)})
+    env = make_true_env(4, seed=0)
+    model = PINNModel(env, compose("shac", ["model=pinn"]))
+    state = env.reset()["state"]
+    with caplog.at_level(logging.WARNING, logger="anm_torchrl.envs.surrogate"):
+        for _ in range(25):
+            model(state, torch.zeros(4, 6))
+    warned = [r.getMessage() for r in caplog.records if "termination" in r.getMessage()]
+    assert len(warned) == 1 and "(the PINN) ended 100 % of its first 80 steps" in warned[0], warned

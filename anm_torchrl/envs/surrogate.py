@@ -21,6 +21,33 @@ log = logging.getLogger(__name__)
 TERMINATION_CHECK = (20, 0.1)
 
 
+class TerminationWatch:
+    """Counts a model's terminations over its first :data:`TERMINATION_CHECK` steps per row and warns once if they
+    are far too many (a surrogate env's steps, SHAC's rollouts through the PINN)."""
+
+    def __init__(self, name: str, rows: int):
+        self.name, self.rows = name, int(rows)
+        self.stepped, self.terminated, self.done = 0, 0, False
+
+    def __call__(self, terminated: torch.Tensor) -> None:
+        """Count ``terminated`` (any shape, bool) until the check has run."""
+        if self.done:
+            return
+        self.stepped += terminated.numel()
+        self.terminated += int(terminated.sum())
+        steps, share = TERMINATION_CHECK
+        if self.stepped < steps * self.rows:
+            return
+        self.done = True
+        rate = self.terminated / self.stepped
+        if rate > share:
+            log.warning("the surrogate model %s ended %.0f %% of its first %d steps in a termination (an episode "
+                        "every %.1f steps); the true simulator ends one only where the power flow has no solution: "
+                        "its terminal predictions are likely wrong (an inaccurate model, e.g. a smoke preset), and "
+                        "a policy trained on it learns from episodes that short", self.name, 100 * rate,
+                        self.stepped, 1 / rate)
+
+
 class SurrogateEnv(ANMEnv):
     """An env whose transition is a learned ``model`` instead of the simulator; specs equal the true env's.
 
@@ -64,7 +91,7 @@ class SurrogateEnv(ANMEnv):
                              f"{self.transition_key[:12]}…")
         self.model = model.to(self.device).requires_grad_(False)
         self._grid_sizes = grid_sizes(self.sim)
-        self._rows_stepped, self._rows_terminated, self._termination_checked = 0, 0, False
+        self.termination_watch = TerminationWatch(type(model).__name__, self.batch_size.numel())
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = check_action(tensordict.get("action"), self._a_box, clip=self.action_mode == "clip")
@@ -90,8 +117,7 @@ class SurrogateEnv(ANMEnv):
         except ValueError as err:
             raise ValueError(f"the surrogate model {name} predicted a next state no transition can start from "
                              f"(among its non-terminated rows): {err}") from None
-        if not self._termination_checked:
-            self._check_terminations(terminated)
+        self.termination_watch(terminated)
         reward = torch.where(terminated.squeeze(1), torch.full_like(reward, self.sim.terminal_reward), reward)
         next_state = torch.where(terminated, torch.zeros_like(next_state), next_state)
         nan = float("nan")
@@ -103,20 +129,3 @@ class SurrogateEnv(ANMEnv):
              "grid": grid, "reward": reward.to(torch.float32).unsqueeze(-1), "terminated": terminated,
              "done": terminated.clone()},
             batch_size=self.batch_size, device=self.device)
-
-    def _check_terminations(self, terminated: torch.Tensor) -> None:
-        """Count the model's terminations over its first steps; warn once if they are far too many
-        (:data:`TERMINATION_CHECK`)."""
-        self._rows_stepped += terminated.numel()
-        self._rows_terminated += int(terminated.sum())
-        steps, share = TERMINATION_CHECK
-        if self._rows_stepped < steps * self.batch_size.numel():
-            return
-        self._termination_checked = True
-        rate = self._rows_terminated / self._rows_stepped
-        if rate > share:
-            log.warning("the surrogate model %s ended %.0f %% of its first %d steps in a termination (an episode "
-                        "every %.1f steps); the true simulator ends one only where the power flow has no solution: "
-                        "its terminal predictions are likely wrong (an inaccurate model, e.g. a smoke preset), and "
-                        "a policy trained on it learns from episodes that short", type(self.model).__name__,
-                        100 * rate, self._rows_stepped, 1 / rate)

@@ -87,6 +87,7 @@ class PINNModel:
     def __init__(self, env, cfg):
         from omegaconf import OmegaConf
 
+        from anm_torchrl.envs.surrogate import TerminationWatch
         from anm_torchrl.surrogates.pinn.chain import run_chain
         from anm_torchrl.training.factory import load_surrogate_in_home, surrogate_options
 
@@ -104,10 +105,12 @@ class PINNModel:
         self.obs_map = env.obs_map
         if self.obs_map.needs_grid:
             raise ValueError("model.dynamics=pinn needs an observation computed from the state alone")
+        self.termination_watch = TerminationWatch(f"{type(self.chain).__name__} (the PINN)", env.batch_size.numel())
 
     def __call__(self, state, action):
         out = self._run(self.chain, {"state": state, "action": action.to(state.dtype)})
         term = out["terminated"].reshape(-1)
+        self.termination_watch(term)
         nxt = out["next_state"]
         return nxt, out["reward"].reshape(-1), term, self.obs_map.observe(nxt, None, term)
 
