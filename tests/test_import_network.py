@@ -56,10 +56,17 @@ def test_refusals_name_what_is_wrong(tmp_path):
     assert (tmp_path / "taken.npz").read_bytes() == b"a user's file"  # nothing lost
     with pytest.raises(ValueError, match="ends with .npz"):
         import_network.main(["--pandapower", str(net), "--out", str(tmp_path / "x.csv")])
-    (tmp_path / "bad.csv").write_text("7\n0.5\n")  # no load 7 in the net; load 0 has no column
-    with pytest.raises(ValueError, match=r"no column for pandapower loads \[0\]"):
+    (tmp_path / "bad.csv").write_text("7\n0.5\n")  # no load 7 in the net
+    with pytest.raises(ValueError, match=r"the load profile has columns \[7\] that are no load of net.json"):
         import_network.main(["--pandapower", str(net), "--loads", str(tmp_path / "bad.csv"), "--out",
                              str(tmp_path / "y.npz")])
+    net_obj = pp.from_json(str(net))
+    pp.create_load(net_obj, 1, p_mw=0.1, in_service=True)
+    pp.to_json(net_obj, str(tmp_path / "net2.json"))
+    (tmp_path / "only1.csv").write_text("1\n0.5\n")  # load 0 has no column
+    with pytest.raises(ValueError, match=r"no column for pandapower loads \[0\]"):
+        import_network.main(["--pandapower", str(tmp_path / "net2.json"), "--loads", str(tmp_path / "only1.csv"),
+                             "--out", str(tmp_path / "y.npz")])
     (tmp_path / "nan.csv").write_text("0\nnan\n")
     with pytest.raises(ValueError, match="finite MW"):
         import_network.main(["--pandapower", str(net), "--loads", str(tmp_path / "nan.csv"), "--out",

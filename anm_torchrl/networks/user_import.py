@@ -62,6 +62,12 @@ def read_pandapower(net_path: str | os.PathLike, loads_csv=None, sgens_csv=None,
     except Exception as err:  # pandapower raises what its JSON reader meets
         raise ValueError(f"{net_path} is not a pandapower net in JSON ({type(err).__name__}: {err})") from None
     given = {what: _read_csv(path, what) for path, what in ((loads_csv, "load"), (sgens_csv, "renewable")) if path}
+    for table, what in (("load", "load"), ("sgen", "renewable")):  # a column of no element: another net's file?
+        extra = sorted(set(given[what].columns) - set(net[table].index)) if what in given else []
+        if extra:
+            known = list(net[table].index)
+            raise ValueError(f"the {what} profile has columns {extra[:5]} that are no {table} of {net_path.name} "
+                             f"(its {table} indices: {known[:10]}{' ...' if len(known) > 10 else ''})")
     rows = len(next(iter(given.values()))) if given else rows  # a nominal profile as long as a given one
     profiles = [given[what] if what in given else
                 pd.DataFrame({i: np.full(rows, float(r.p_mw * r.scaling)) for i, r in net[table].iterrows()})
