@@ -101,7 +101,7 @@ def test_bad_options_and_files_fail_clearly(evaluate, tmp_path):
     assert "is not an anm_torchrl training checkpoint" in fails(evaluate, f"checkpoint={tmp_path / 'notes.txt'}")
     assert "checkpoint not found" in fails(evaluate, f"checkpoint={tmp_path / 'missing.pt'}")
     assert "unknown option" in fails(evaluate, "policy=do_nothing", "no_such_option=1")
-    assert "gamma must be in (0, 1], got 1.5" in fails(evaluate, "policy=do_nothing", "gamma=1.5")
+    assert "gamma must be in (0, 1] or null, got 1.5" in fails(evaluate, "policy=do_nothing", "gamma=1.5")
     assert "steps must be an integer >= 1 or null, got 0" in fails(evaluate, "policy=do_nothing", "steps=0")
     # a string is not false: render=no drew the episode
     assert "render must be true or false, got 'no'" in fails(evaluate, "policy=do_nothing", "render=no")
