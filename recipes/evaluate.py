@@ -193,7 +193,9 @@ def test_protocol(ckpt: dict | None, network: str) -> tuple[int, int, int, float
 
         ev = OmegaConf.to_container(compose_recipe_config([f"network={network}"])[0].eval, resolve=True)
     steps = ev.get("test_max_steps") or ev.get("max_steps", 3000)
-    return int(ev.get("test_episodes", 16)), int(ev.get("test_seed", 0)), int(steps), float(ev.get("gamma", 0.995))
+    from anm_torchrl.evaluation import EVAL_GAMMA
+
+    return int(ev.get("test_episodes", 16)), int(ev.get("test_seed", 0)), int(steps), float(ev.get("gamma", EVAL_GAMMA))
 
 
 def write_output(path: Path, line: str) -> None:

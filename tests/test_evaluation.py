@@ -19,13 +19,16 @@ CONF = Path(__file__).resolve().parents[1] / "recipes" / "conf"
 
 @pytest.mark.parametrize("file, gamma_key, steps_key", [
     ("eval/default.yaml", "gamma", "max_steps"),
-    ("../conf_evaluate/evaluate.yaml", "gamma", None),  # steps: the run's or the network's test protocol
+    ("../conf_evaluate/evaluate.yaml", None, None),  # gamma and steps: the run's or the network's test protocol
     ("preset/full.yaml", "test_returns.gamma", "test_returns.max_steps"),
     ("preset/quick.yaml", "test_returns.gamma", None),
     ("preset/tiny.yaml", "test_returns.gamma", None),
 ])
 def test_configs_spell_the_protocol_constants(file, gamma_key, steps_key):
     cfg = OmegaConf.load(CONF / file)
+    if gamma_key is None:  # evaluate.py: null, the test protocol's (recipes/evaluate.py test_protocol)
+        assert cfg.gamma is None and cfg.steps is None
+        return
     assert OmegaConf.select(cfg, gamma_key, throw_on_missing=True) == EVAL_GAMMA, f"{file}: {gamma_key}"
     if steps_key is not None:
         assert OmegaConf.select(cfg, steps_key, throw_on_missing=True) == EVAL_MAX_STEPS, f"{file}: {steps_key}"
