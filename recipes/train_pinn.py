@@ -59,7 +59,7 @@ def main(cfg: DictConfig) -> dict:
 
     from anm_torchrl.surrogates.pinn.cache import check_may_train_into, default_path, train_and_save
     from anm_torchrl.surrogates.pinn.load import load_pinn
-    from anm_torchrl.surrogates.pinn.evaluate import evaluate_sets, format_table
+    from anm_torchrl.surrogates.pinn.evaluate import REWARD_REL_WARN, evaluate_sets, format_table
     from anm_torchrl.surrogates.pinn.train import from_composed, resolve_path
     from anm_torchrl.strict_json import json_text
 
@@ -102,6 +102,12 @@ def main(cfg: DictConfig) -> dict:
         (run_dir / "pinn_eval.md").write_text(table + "\n")
         (run_dir / "pinn_eval.json").write_text(json_text(results, indent=2))
         out["eval"] = results
+        for name, res in results.items():
+            if res.get("reward_rel_mae", 0.0) > REWARD_REL_WARN:
+                log.warning("on its %s transitions the PINN's reward error is %.1fx the rewards' mean size "
+                            "(reward_rel_mae %.3g, reward_mae %.3g): a policy trained on it learns mostly from its "
+                            "error; train on the true simulator (surrogate=none) or through the exact model "
+                            "(recipes/shac.py)", name, res["reward_rel_mae"], res["reward_rel_mae"], res["reward_mae"])
     return out
 
 
