@@ -318,7 +318,8 @@ def markdown(record: dict) -> str:
     kinds = ("random networks (`SEED:BUSES:topology`, `anm_torchrl.networks.random.generate`) saved as a user's "
              "files" if all(n.get("topology") != "file" for n in record["networks"]) else
              "networks given as files (random specs `SEED:BUSES:topology` saved as a user's files, and network files)")
-    intro = [f"{kinds[0].upper()}{kinds[1:]}; {p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, γ = {p['gamma']}; each "
+    intro = [f"{kinds[0].upper()}{kinds[1:]}; {p['episodes']} test states (seed {p['seed']}), T = {p['steps']:,}, "
+             f"γ = {p['gamma']}; each "
              f"algorithm's `best.pt` (chosen on its validation states) after "
              + ", ".join(f"`{' '.join(['python', f'recipes/{RECIPE[a][0]}', 'network=<file>', *RECIPE[a][1]])}`"
                          for a in algos)

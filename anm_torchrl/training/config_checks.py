@@ -122,7 +122,7 @@ def _check_surrogate(cfg: Mapping) -> None:
 
 def check_protocol_config(cfg: Mapping) -> None:
     """Check the keys every algorithm shares (``anm_torchrl.training.protocol``): network, seed, threads, env,
-    budget, logger, eval, checkpoint.
+    budget, logger, eval, checkpoint, and the model group's shared keys (:func:`check_model_group` first).
 
     Raises:
         ValueError: the first offending key, with the expected range and the value received.
@@ -178,6 +178,9 @@ def check_protocol_config(cfg: Mapping) -> None:
                          f"{_get(cfg, 'eval.seed')}: model selection on the reported states biases the figures")
     # checkpoint
     _int(cfg, "checkpoint.interval")
+    # the model: this recipe's group, then the keys every group has
+    check_model_group(cfg)
+    _check_model(cfg)
 
 
 def _check_model(cfg: Mapping) -> None:
@@ -245,8 +248,6 @@ def check_ppo_config(cfg: Mapping) -> None:
         ValueError: the first offending key, with the expected range and the value received.
     """
     check_protocol_config(cfg)
-    check_model_group(cfg)
-    _check_model(cfg)
     _choice(cfg, "model.state_dependent_scale", (False, True))
     fpb = _check_collector(cfg)
     _in_range(cfg, "loss.gamma", 0, 1, False, False)  # 0: a contextual bandit (no storage)
@@ -272,8 +273,6 @@ def check_sac_config(cfg: Mapping) -> None:
         ValueError: the first offending key, with the expected range and the value received.
     """
     check_protocol_config(cfg)
-    check_model_group(cfg)
-    _check_model(cfg)
     fpb = _check_collector(cfg)
     if _get(cfg, "collector.num_workers") != 1:
         raise ValueError(f"collector.num_workers must be 1 for sac (one collector process), got "
@@ -337,8 +336,6 @@ def check_shac_config(cfg: Mapping) -> None:
         ValueError: the first offending key, with the expected range and the value received.
     """
     check_protocol_config(cfg)
-    check_model_group(cfg)
-    _check_model(cfg)
     _choice(cfg, "model.state_dependent_scale", (False, True))
     _choice(cfg, "model.dynamics", ("exact", "pinn"))
     _choice(cfg, "env.power_flow", ("torch", "numba"))
