@@ -461,9 +461,10 @@ def test_evaluate_metrics_against_independent_computation_and_untrained_baseline
     nxt, trans = sim.step(state, action)
     ok = trans.converged
     vmag = (out.get((P, "v_magn")) - trans.v.abs())[ok].abs().mean()
-    assert m["vmag_mae_pu"] == pytest.approx(float(vmag), rel=1e-12)
+    assert m["vmag_mae_pu"] == pytest.approx(float(vmag.detach()), rel=1e-12)
     ref = sim.project_generators(out.get((P, "gen_target")), out.get((P, "p_pot")))
-    assert m["gen_proj_mae_pu"] == pytest.approx(float((out.get((P, "gen_pq")) - ref)[ok].abs().mean()), rel=1e-12)
+    assert m["gen_proj_mae_pu"] == pytest.approx(float((out.get((P, "gen_pq")) - ref)[ok].abs().mean().detach()),
+                                                rel=1e-12)
     assert m["terminal_rate_sim"] == pytest.approx(float((~ok).double().mean()))
     # the reward error against the rewards' size (a low-power grid's absolute error can pass every bar and still
     # exceed its rewards: SimBench 1-LV-semiurb4--0-sw, 6x); the smoke chain's terminal check is loosened so that
@@ -474,7 +475,7 @@ def test_evaluate_metrics_against_independent_computation_and_untrained_baseline
     m = evaluate_pinn(loose, sim, state, action)
     out = loose(TensorDict({"state": state, "action": action}, [400]))
     both = ok & ~out.get("terminated").reshape(-1)
-    err = (out.get("reward").reshape(-1) - trans.reward)[both].abs().mean()
+    err = (out.get("reward").detach().reshape(-1) - trans.reward)[both].abs().mean()
     assert int(both.sum()) > 100
     assert m["reward_rel_mae"] == pytest.approx(float(err / trans.reward[both].abs().mean()), rel=1e-9)
     # baseline: the same architecture before training (seeded as the training was) must be worse
