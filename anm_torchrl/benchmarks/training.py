@@ -49,7 +49,8 @@ def _config(algorithm: str, network: str, n_envs: int, overrides: list[str]):
 
     if algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algorithm!r}; choose from {sorted(ALGORITHMS)}")
-    own = [o for o in overrides if parse_override(o).key in BENCH_KEYS]
+    given = {parse_override(o).key: o for o in overrides}
+    own = [o for key, o in given.items() if key in BENCH_KEYS]
     if own:  # the rows are labelled by --network and --envs; an override of them measured another batch
         raise ValueError(f"--override {own[0]}: the benchmark sets {', '.join(BENCH_KEYS)} itself (--network, --envs)")
     over = [f"network={network}", f"env.num_envs={n_envs}",
@@ -59,7 +60,6 @@ def _config(algorithm: str, network: str, n_envs: int, overrides: list[str]):
         cfg = compose_recipe_config(over, ALGORITHMS[algorithm][0])[0]
     except HydraException as err:
         raise ValueError(f"--override: {str(err).strip().splitlines()[0]}") from None
-    given = {parse_override(o).key for o in overrides}
     if algorithm == "ppo" and "loss.mini_batch_size" not in given:  # one minibatch per epoch on a small batch
         cfg.loss.mini_batch_size = min(int(cfg.loss.mini_batch_size), n_envs * STEPS)
     check_algorithm_config(cfg)  # what the recipe would refuse is not measured either

@@ -77,8 +77,8 @@ def _simbench_net(code: str = SIMBENCH_CODE):
 
     try:
         return sb.get_simbench_net(code)
-    except Exception as err:  # simbench raises bare Exceptions / assertion errors for an unknown code
-        raise ValueError(f"SimBench has no grid {code!r} ({type(err).__name__}: {err}); codes look like "
+    except Exception as err:  # simbench raises bare Exceptions / assertion errors for an unknown code: named here
+        raise ValueError(f"SimBench could not load grid {code!r} ({type(err).__name__}: {err}); codes look like "
                          "1-LV-rural1--0-sw (simbench.collect_all_simbench_codes())") from None
 
 

@@ -18,7 +18,7 @@ from anm_torchrl._extras import require
 from anm_torchrl.networks import pandapower_import as ppi
 from anm_torchrl.networks import pf_check
 from anm_torchrl.networks.feeders import ENV, STEPS_PER_DAY
-from anm_torchrl.networks.user import save_network
+from anm_torchrl.networks.user import SUFFIX, save_network
 
 pd = require("pandas")
 
@@ -31,8 +31,8 @@ def check_out(out: str | os.PathLike, overwrite: bool) -> Path:
     """The output path, refused before any work when it is not ``.npz`` or names an existing file (unless
     ``overwrite``) or a folder."""
     path = Path(out)
-    if path.suffix != ".npz":
-        raise ValueError(f"a network file ends with .npz, got {path}")
+    if path.suffix != SUFFIX:  # save_network's own rule, checked before the work
+        raise ValueError(f"a network file ends with {SUFFIX}, got {path}")
     if path.is_dir():
         raise IsADirectoryError(f"{path} is a folder")
     if path.exists() and not overwrite:
