@@ -69,10 +69,46 @@ def test_rule_picks_the_smallest_k_that_meets_it(monkeypatch):
     assert rec["met"] and rec["rule"] == refine.RULE and 1 < k <= refine.K_MAX and pb.refine_steps == k
     assert len(rec["residual_q_pu"]) == k and rec["seed"] == 5 + refine.SEED_OFFSET and rec["points"] == 512
     before, at = _box_quantiles(pb, sim, rec["seed"], [k - 1, k])
-    bar = refine.MARGIN * rec["threshold_pu"]
+    bar = rec["bar_pu"]
+    assert bar == refine.bar(rec["loss_median_pu"]) <= refine.MARGIN * rec["threshold_pu"]
     assert at <= bar < before, (before, at, bar)
     # the record's quantiles are the module's own at 1..k steps (same points, same residual; float64 round-off)
     assert rec["residual_q_pu"][-2:] == pytest.approx([before, at], rel=1e-9)
+
+
+def _rebased(name, c):
+    """``name``'s network on a ``c`` times larger power base, the same grid: branch R, X x c and B / c (p.u.), the
+    devices' MW / MVAr unchanged; every injection, residual and loss in p.u. is then 1/c of the original's."""
+    import numpy as np
+
+    from anm_torchrl.networks.registry import get_network
+
+    case = get_network(name)
+    net = {k: (np.array(v, copy=True) if k != "baseMVA" else v * c) for k, v in case.network.items()}
+    net["branch"][:, 2:4] *= c
+    net["branch"][:, 4] /= c
+    return network_simulator(net, case.load_p, case.gen_p_max)
+
+
+def test_rule_does_not_depend_on_the_power_base(monkeypatch):
+    """Rule v3's loss-relative bar: case33bw on its own base and on a 1,000 times larger one (a grid whose
+    injections are ~1e-4 p.u., like an LV grid on 1 MVA or a small random network on 100 MVA) gets the same k, its
+    residuals 1/1000 of the original's (exact: the network's normalised inputs are the same). The absolute bar
+    alone (rule v2) stops after one step on the large base, where the residual is still ~10x the losses: the
+    slack-power (reward) error that SimBench's 1-LV-semiurb4--0-sw showed."""
+    monkeypatch.setattr(refine, "POINTS", 512)
+    recs = []
+    for c in (1.0, 1000.0):
+        sim = _rebased("case33bw", c)
+        torch.manual_seed(0)
+        recs.append(refine.choose_refine_steps(PowerBalanceNet(sim, hidden=16, depth=2), sim, seed=5))
+    one, big = recs
+    assert one["met"] and big["met"] and one["k"] == big["k"] >= 2, (one, big)
+    assert big["residual_q_pu"] == pytest.approx([q / 1000 for q in one["residual_q_pu"]], rel=1e-6)
+    assert big["loss_median_pu"] == pytest.approx(one["loss_median_pu"] / 1000, rel=1e-9)
+    assert big["bar_pu"] == pytest.approx(refine.LOSS_FRACTION * big["loss_median_pu"])
+    first = big["residual_q_pu"][0]
+    assert refine.rule_met(first) and first > big["loss_median_pu"]  # v2 stopped here, residual > the losses
 
 
 def test_rule_unmet_is_an_acceptance_failure(monkeypatch):
@@ -205,15 +241,15 @@ def test_newton_refinement_converges_where_the_flat_start_chord_does_not():
         pb = PowerBalanceNet(sim, hidden=16, depth=2, refine_method=method)
         task = TASKS["power_balance"](pb, sim)
         u = torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=5 + refine.SEED_OFFSET).draw(refine.POINTS)
-        out[method] = refine.residual_quantiles(pb, *task.sample(u.double()), k_max=refine.K_MAX)
+        out[method] = refine.residual_quantiles(pb, *task.sample(u.double()), k_max=refine.K_MAX)[0]
     bar = refine.MARGIN * refine.DEFAULT_RESIDUAL_THRESHOLD
     assert len(out["chord"]) == refine.K_MAX and out["chord"][-1] > bar, out["chord"]
     assert len(out["newton"]) <= 4 and out["newton"][-1] <= bar, out["newton"]
-    # and the rule itself: v2 on the same network
+    # and the rule itself (v3, Newton steps like v2) on the same network
     torch.manual_seed(0)
     pb = PowerBalanceNet(sim, hidden=16, depth=2)
     rec = refine.choose_refine_steps(pb, sim, seed=5)
-    assert rec["met"] and rec["rule"] == "sobol_box_quantile_v2" and rec["method"] == "newton" and rec["k"] <= 4
+    assert rec["met"] and rec["rule"] == "sobol_box_quantile_v3" and rec["method"] == "newton" and rec["k"] <= 5
 
 
 def test_a_v1_chord_file_still_loads_and_runs_its_chord_steps(auto_file, tmp_path, case33):
@@ -243,7 +279,7 @@ def test_a_v1_chord_file_still_loads_and_runs_its_chord_steps(auto_file, tmp_pat
     assert tr.load_modules(file, case33)[0]["power_balance"].refine_method == "newton"
     bad = _rewrite(file, tmp_path / "mismatch.safetensors", lambda m: m.update(refine_method="chord"))
     with pytest.raises(ArtifactError, match=r"mismatch.safetensors: its steps were chosen by rule "
-                                            r"sobol_box_quantile_v2 with newton steps.*retrain it"):
+                                            rf"{refine.RULE} with newton steps.*retrain it"):
         tr.load_modules(bad, case33)
     bad = _rewrite(file, tmp_path / "unknown.safetensors", lambda m: m.update(refine_method="secant"))
     with pytest.raises(ArtifactError, match="unknown.safetensors: refine_method must be one of"):

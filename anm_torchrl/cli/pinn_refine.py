@@ -1,4 +1,4 @@
-"""Apply the PINN's refinement rule (v2, :mod:`anm_torchrl.surrogates.pinn.refine`) to a saved model.
+"""Apply the PINN's refinement rule (today's, :mod:`anm_torchrl.surrogates.pinn.refine`) to a saved model.
 
 ``python -m anm_torchrl.cli.pinn_refine --network <name> --path <file>`` chooses the model's Newton steps by the
 rule from physics alone and rewrites the file with its k and record (same weights): the fix a model trained before
@@ -22,7 +22,8 @@ log = logging.getLogger(__name__)
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Parse ``argv``, apply the rule, log and return its record."""
-    ap = argparse.ArgumentParser(description="choose a saved PINN's Newton steps by the rule (v2) and rewrite the file")
+    ap = argparse.ArgumentParser(description="choose a saved PINN's Newton steps by the rule (today's: v3) and "
+                                             "rewrite the file")
     ap.add_argument("--network", required=True, help="the registered network the model was trained on")
     ap.add_argument("--path", required=True, help="the model file (or its folder)")
     args = ap.parse_args(argv)

@@ -152,10 +152,10 @@ def load_modules(path: str | Path, sim: GridSimulator) -> tuple[dict[str, nn.Mod
 
 
 def apply_refine_rule(path: str | Path, sim: GridSimulator) -> dict[str, Any]:
-    """Apply the refinement rule (:mod:`.refine`, v2) to the model saved at ``path`` (trained on ``sim``'s network)
-    and rewrite it with the chosen k and the rule's record (weights unchanged; the config's
-    ``power_balance.refine_steps`` becomes ``auto``; the report's acceptance re-checked, the rule's verdict being part
-    of the bar). Returns the record."""
+    """Apply the refinement rule (:mod:`.refine`, today's :data:`.refine.RULE`) to the model saved at ``path``
+    (trained on ``sim``'s network) and rewrite it with the chosen k and the rule's record (weights unchanged; the
+    config's ``power_balance.refine_steps`` becomes ``auto``; the report's acceptance re-checked, the rule's verdict
+    being part of the bar). Returns the record."""
     payload = read_pinn_file(path)
     cfg = config_of(payload, path, sim)
     cfg.power_balance.refine_steps = REFINE_AUTO

@@ -371,9 +371,11 @@ def check_acceptance(cfg: PINNTrainConfig, report: dict[str, Any]) -> list[str]:
     refine = report.get("power_balance", {}).get("refine")
     if refine is not None and not refine.get("met"):
         kind = "Newton" if refine.get("method") == "newton" else "chord"
+        bar = refine.get("bar_pu")  # rule v3; v1/v2 records: margin x threshold
+        bar = f"{bar:.3g} p.u." if bar is not None else f"{refine.get('margin')} x {refine.get('threshold_pu')} p.u."
         failed.append(f"power_balance.refine: no k <= {refine.get('k_max')} {kind} steps brings the "
-                      f"{refine.get('quantile')} quantile of the power-flow residual to {refine.get('margin')} x "
-                      f"{refine.get('threshold_pu')} p.u. (after {refine.get('k')}: {refine.get('residual_q_pu')}); "
+                      f"{refine.get('quantile')} quantile of the power-flow residual to {bar} "
+                      f"(after {refine.get('k')}: {refine.get('residual_q_pu')}); "
                       "more than 1 % of the devices' injection box may have no power flow (lower the device "
                       "ratings, or strengthen the lines/transformer), or train the power balance longer "
                       "(power_balance.max_steps)")

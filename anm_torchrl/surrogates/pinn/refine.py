@@ -1,6 +1,10 @@
 """How many Newton steps follow a network's power-balance PINN: chosen per network from physics alone.
 
-Rule v2 (:data:`RULE`, ``sobol_box_quantile_v2``): the steps are damped Newton steps with the exact Jacobian at
+Rule v3 (:data:`RULE`, ``sobol_box_quantile_v3``) is rule v2 with a second, unit-free bar (below): v2's bar was
+absolute in p.u., so on a low-power grid (SimBench ``1-LV-semiurb4--0-sw``: ~0.3 kW of losses on a 1 MVA base) a
+residual that met it (2.2e-3 p.u. = 2.2 kW after one step) was a slack-power error larger than every reward; one
+more step brings it to 3e-6 p.u. A v2 file keeps its k (same method; a warning at load names the command that
+re-chooses it). Rule v2 (``sobol_box_quantile_v2``): the steps are damped Newton steps with the exact Jacobian at
 the current estimate (:class:`.power_balance.PowerBalanceNet`, ``refine_method="newton"``). Rule v1
 (``sobol_box_quantile_v1``) used chord steps with the flat-start Jacobian, which diverge on networks whose
 operating points are far from the flat start in Jacobian terms (a 132/33 kV transformer with X = 0.55 p.u. on
@@ -17,7 +21,11 @@ the smallest k in 1…:data:`K_MAX` whose power-flow residual meets :func:`rule_
 * residual: the chain's own terminal statistic (:class:`.chain.SlackAndFlows`), the largest |ΔP|, |ΔQ| (p.u.) at
   the non-slack buses of the network's output followed by k Newton steps;
 * bar: its :data:`QUANTILE` quantile ≤ :data:`MARGIN` × the terminal check's threshold
-  (:data:`.chain.DEFAULT_RESIDUAL_THRESHOLD`, 0.005 p.u.).
+  (:data:`.chain.DEFAULT_RESIDUAL_THRESHOLD`, 0.005 p.u.) and (v3) ≤ :data:`LOSS_FRACTION` × the network's own
+  active losses (the median over the same points of Σᵢ Pᵢ(V) at the k-step estimate, p.u.): the residual is, to first
+  order, the error of the slack injection and so of the energy loss in the reward, and the losses are that term's
+  size. On the registered networks the absolute bar is the one that binds (their losses are ≥ 0.25 p.u. of
+  the box's median point, ``tests/test_pinn_refine.py``), so their k is v2's.
 
 Why these: a transition is flagged terminal when its residual exceeds the threshold, so a k whose residual on
 solvable injections reaches the threshold flags healthy transitions (the 115-bus SimBench feeder with k = 1:
@@ -47,6 +55,7 @@ from typing import Any
 
 import torch
 
+from anm_torchrl.grid.residuals import bus_voltage, power_injection
 from anm_torchrl.grid.simulator import GridSimulator
 from anm_torchrl.surrogates.pinn.chain import DEFAULT_RESIDUAL_THRESHOLD  # the threshold's one home
 from anm_torchrl.surrogates.pinn.power_balance import PowerBalanceNet
@@ -54,26 +63,48 @@ from anm_torchrl.surrogates.pinn.presets import REFINE_AUTO as AUTO, REFINE_MAX,
 
 log = logging.getLogger(__name__)
 
-RULE = "sobol_box_quantile_v2"
+RULE = "sobol_box_quantile_v3"
 #: the refinement each rule's k was chosen with (a file runs its record's method)
-RULE_METHODS = {"sobol_box_quantile_v1": "chord", RULE: "newton"}
+RULE_METHODS = {"sobol_box_quantile_v1": "chord", "sobol_box_quantile_v2": "newton", RULE: "newton"}
 QUANTILE = 0.99
 MARGIN = 0.5
+#: the residual quantile's bar relative to the network's median active losses at the box points (rule v3)
+LOSS_FRACTION = 0.1
 POINTS = 4096
 K_MAX = REFINE_MAX
 SEED_OFFSET = 30_000
 
 
-def rule_met(residual_q: float, threshold: float | None = None) -> bool:
-    """Whether a residual quantile (p.u.) meets the bar ``MARGIN × threshold`` (NaN: not met)."""
+def bar(loss_pu: float | None = None, threshold: float | None = None) -> float:
+    """The rule's bar (p.u.): ``MARGIN × threshold``, and at most ``LOSS_FRACTION × loss_pu`` where the network's
+    median active losses ``loss_pu`` are given (non-finite losses: the absolute bar alone)."""
     thr = DEFAULT_RESIDUAL_THRESHOLD if threshold is None else threshold
-    return bool(residual_q <= MARGIN * thr)
+    b = MARGIN * thr
+    if loss_pu is not None and math.isfinite(loss_pu):
+        b = min(b, LOSS_FRACTION * abs(loss_pu))
+    return b
+
+
+def rule_met(residual_q: float, loss_pu: float | None = None, threshold: float | None = None) -> bool:
+    """Whether a residual quantile (p.u.) meets :func:`bar` (NaN: not met)."""
+    return bool(residual_q <= bar(loss_pu, threshold))
+
+
+def median_losses(pb: PowerBalanceNet, x: torch.Tensor) -> float:
+    """The median over the samples of the network's active losses Σᵢ Pᵢ(V) (p.u.) at ``x`` (N, 2n−2) = [θ, |V|] of
+    the non-slack buses (the slack at 1∠0); non-finite samples ignored (NaN if none is finite)."""
+    n = pb.n_bus - 1
+    one, zero = torch.ones_like(x[:, :1]), torch.zeros_like(x[:, :1])
+    v = bus_voltage(torch.cat([one, x[:, n:]], -1), torch.cat([zero, x[:, :n]], -1))
+    loss = power_injection(v, pb.y_bus.to(v.dtype)).real.sum(-1)
+    loss = loss[torch.isfinite(loss)]
+    return float(loss.median()) if loss.numel() else math.nan
 
 
 def residual_quantiles(pb: PowerBalanceNet, p_bus: torch.Tensor, q_bus: torch.Tensor, k_max: int = K_MAX,
-                       stop_when_met: bool = True) -> list[float]:
+                       stop_when_met: bool = True) -> tuple[list[float], list[float]]:
     """The :data:`QUANTILE` quantile (p.u.) of the per-sample largest |ΔP|, |ΔQ| after k = 1, 2, … refinement
-    steps (``pb``'s :attr:`~.PowerBalanceNet.refine_method`).
+    steps (``pb``'s :attr:`~.PowerBalanceNet.refine_method`), and the network's median losses at each k.
 
     Args:
         pb: the trained power-balance network (its own ``refine_steps`` is not used).
@@ -82,10 +113,11 @@ def residual_quantiles(pb: PowerBalanceNet, p_bus: torch.Tensor, q_bus: torch.Te
         stop_when_met: stop at the first k that meets :func:`rule_met`.
 
     Returns:
-        the quantiles for k = 1 … (the first k meeting the bar, or ``k_max``); non-finite ones as ``inf``.
+        ``(quantiles, losses)`` for k = 1 … (the first k meeting the bar, or ``k_max``), p.u.; non-finite
+        quantiles as ``inf``.
     """
     p64, q64 = p_bus.to(torch.float64), q_bus.to(torch.float64)
-    out = []
+    out, losses = [], []
     with torch.no_grad():
         v_magn, v_ang = pb(p64, q64, refine=False)
         x = torch.cat([v_ang[:, 1:], v_magn[:, 1:]], -1)  # [θ, |V|] of the non-slack buses, as PowerBalanceNet
@@ -95,9 +127,10 @@ def residual_quantiles(pb: PowerBalanceNet, p_bus: torch.Tensor, q_bus: torch.Te
             res = r.abs().amax(-1)
             res = torch.where(torch.isfinite(res), res, torch.full_like(res, math.inf))
             out.append(float(torch.quantile(res, QUANTILE)))
-            if stop_when_met and rule_met(out[-1]):
+            losses.append(median_losses(pb, x))
+            if stop_when_met and rule_met(out[-1], losses[-1]):
                 break
-    return out
+    return out, losses
 
 
 def choose_refine_steps(pb: PowerBalanceNet, sim: GridSimulator, seed: int) -> dict[str, Any]:
@@ -110,25 +143,32 @@ def choose_refine_steps(pb: PowerBalanceNet, sim: GridSimulator, seed: int) -> d
 
     Returns:
         the record stored in the model file: ``rule``, ``k``, ``met``, ``quantile``, ``margin``, ``threshold_pu``,
-        ``points``, ``k_max``, ``seed`` and ``residual_q_pu`` (the quantile after 1 … k steps; null: not finite).
+        ``loss_fraction``, ``loss_median_pu`` (the losses at k steps), ``bar_pu`` (the bar they set), ``points``,
+        ``k_max``, ``seed`` and ``residual_q_pu`` (the quantile after 1 … k steps; null: not finite).
     """
     from anm_torchrl.surrogates.pinn.tasks import TASKS
 
     task = TASKS["power_balance"](pb, sim)
     u = torch.quasirandom.SobolEngine(task.dim, scramble=True, seed=seed + SEED_OFFSET).draw(POINTS).double()
     pb.set_refine_method(RULE_METHODS[RULE])
-    q = residual_quantiles(pb, *task.sample(u), k_max=K_MAX)
-    met = rule_met(q[-1])
+    q, losses = residual_quantiles(pb, *task.sample(u), k_max=K_MAX)
+    met = rule_met(q[-1], losses[-1])
     k = len(q)
     pb.set_refine_steps(k)
     if not met:
         log.warning("no Newton-step count <= %d brings the %.2f quantile of the power-flow residual below %.2g p.u. "
                     "(after %d steps: %.3g p.u.): the model fails its acceptance bar", K_MAX, QUANTILE,
-                    MARGIN * DEFAULT_RESIDUAL_THRESHOLD, k, q[-1])
+                    bar(losses[-1]), k, q[-1])
     return {"rule": RULE, "method": RULE_METHODS[RULE], "k": k, "met": met, "quantile": QUANTILE, "margin": MARGIN,
-            "threshold_pu": DEFAULT_RESIDUAL_THRESHOLD,
+            "threshold_pu": DEFAULT_RESIDUAL_THRESHOLD, "loss_fraction": LOSS_FRACTION,
+            "loss_median_pu": _finite(losses[-1]), "bar_pu": bar(losses[-1]),
             "points": POINTS, "k_max": K_MAX, "seed": seed + SEED_OFFSET,
-            "residual_q_pu": [x if math.isfinite(x) else None for x in q]}
+            "residual_q_pu": [_finite(x) for x in q]}
+
+
+def _finite(x: float) -> float | None:
+    """``x``, or None where it is not finite (JSON has no inf/NaN)."""
+    return x if math.isfinite(x) else None
 
 
 def check_record(file: Path | str, config_k: Any, file_k: Any, record: Any, preset_is_auto: bool) -> int:
@@ -140,6 +180,8 @@ def check_record(file: Path | str, config_k: Any, file_k: Any, record: Any, pres
         file_k: its top-level ``refine_steps`` (None: a file written before the field existed).
         record: its report's ``power_balance.refine`` (the rule's record; None if absent).
         preset_is_auto: whether the preset the file names chooses k by the rule today.
+
+    A record of an earlier rule is served with its k and logged as a warning naming the command that re-chooses it.
 
     Raises:
         ArtifactError: ``file_k`` not an integer in 0…K_MAX; a config that fixes k disagreeing with it; an ``auto``
@@ -163,6 +205,10 @@ def check_record(file: Path | str, config_k: Any, file_k: Any, record: Any, pres
         if not isinstance(record, dict) or record.get("rule") not in RULE_METHODS or record.get("k") != file_k:
             raise bad(f"its refinement steps were chosen by the rule but the record ({record!r}) is not one of rule "
                       f"{RULE} (or {sorted(set(RULE_METHODS) - {RULE})}) with k = refine_steps = {file_k}")
+        if record["rule"] != RULE:  # it runs as chosen; an earlier rule's k may be short of today's bar
+            log.warning("%s: its %d refinement steps were chosen by rule %s, not today's %s (whose bar is also "
+                        "relative to the network's losses); python -m anm_torchrl.cli.pinn_refine --network <name> "
+                        "--path %s re-chooses them (same weights)", file, file_k, record["rule"], RULE, file)
     elif config_k != file_k:
         raise bad(f"its config fixes refine_steps = {config_k!r} but the file says {file_k}")
     return file_k
