@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     from anm_torchrl.networks import feeders, user_import
 
-    user_import.check_out(args.out, args.force)  # before seconds of loading
+    user_import.check_network_out(args.out, args.force)  # before seconds of loading
     t0 = time.perf_counter()
     if args.simbench:
         start, days = (feeders.START_DAY if args.start_day is None else args.start_day,

@@ -27,7 +27,7 @@ pd = require("pandas")
 VM_TOL = 1e-6
 
 
-def check_out(out: str | os.PathLike, overwrite: bool) -> Path:
+def check_network_out(out: str | os.PathLike, overwrite: bool) -> Path:
     """The output path, refused before any work when it is not ``.npz`` or names an existing file (unless
     ``overwrite``) or a folder."""
     path = Path(out)
@@ -108,7 +108,7 @@ def import_network(net, load_mw, sgen_mw, out: str | os.PathLike, *, source: str
         A summary: ``path``, ``buses``, ``devices`` (count by kind), ``rows``, do-nothing ``vm_min``/``vm_max``
         (p.u.) and ``loading_max_percent`` (pandapower's), ``vm_max_diff`` (p.u., gym-anm against pandapower).
     """
-    path = check_out(out, overwrite)
+    path = check_network_out(out, overwrite)
     prepared, res, load_p, gen_p_max = ppi.from_pandapower(net, load_mw, sgen_mw)
     sweep = pf_check.do_nothing_sweep(prepared, res, load_p, gen_p_max)
     network, diff = res.network, 0.0
