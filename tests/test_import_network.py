@@ -98,6 +98,32 @@ def test_one_way_storage_converts_inside_its_range(caplog):
     from anm_torchrl.networks.user import checked_case
 
     checked_case("one_way", res.network, load_p, gen_p_max)  # gym-anm's checks pass
+    # opt-in: the same unit two-way, its P range mirrored, the corners at +-0.8 S, as every two-way unit's
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        _, res, load_p, gen_p_max = ppi.from_pandapower(net, pd.DataFrame({0: [0.02, 0.03]}), pd.DataFrame(),
+                                                        ppi.ImportDefaults(storage_two_way=True))
+    assert "can only discharge" in caplog.text and "made two-way" in caplog.text
+    dev = res.network["device"][-1]
+    assert (dev[4], dev[5]) == (0.05, -0.05) and dev[8] == pytest.approx(0.04) and dev[9] == pytest.approx(-0.04)
+    checked_case("two_way", res.network, load_p, gen_p_max)
+
+
+def test_two_way_storage_option_is_recorded_in_the_file(tmp_path):
+    """``--two-way-storage`` reaches the conversion (a one-way battery gets PMIN = -PMAX) and the file's source."""
+    net = pp.create_empty_network(sn_mva=1)
+    b = [pp.create_bus(net, 0.4) for _ in range(2)]
+    pp.create_ext_grid(net, b[0])
+    pp.create_line_from_parameters(net, b[0], b[1], 0.1, 0.2, 0.1, 100, 0.3)
+    pp.create_load(net, b[1], p_mw=0.02, q_mvar=0.005)
+    pp.create_storage(net, b[1], p_mw=0.0, max_e_mwh=0.1, min_p_mw=-0.05, max_p_mw=0.0)
+    pp.to_json(net, str(tmp_path / "net.json"))
+    for flag, pmin in (([], 0.0), (["--two-way-storage"], -0.05)):
+        out = tmp_path / f"g{len(flag)}.npz"
+        import_network.main(["--pandapower", str(tmp_path / "net.json"), "--rows", "4", "--out", str(out), *flag])
+        case = load_network_file(out)
+        assert case.network["device"][-1, 5] == pmin
+        assert ("made two-way" in case.source) is bool(flag)
 
 
 @pytest.mark.slow

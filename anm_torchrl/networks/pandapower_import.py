@@ -31,7 +31,8 @@ What gym-anm can represent, and the defaults used where pandapower has no value 
   the limit nearest 0 when 0 is outside them).
 * **Storage** (3): PMAX = −min_p_mw, PMIN = −max_p_mw (pandapower counts charging positive), the same
   inverter polygon on both sides (its corners P± = ±0.8 S cut to [PMIN, PMAX]; a unit that can only charge or only
-  discharge, as SimBench's home batteries with max_p_mw 0, is imported as given and logged), SOC_MAX = max_e_mwh
+  discharge, as SimBench's home batteries with max_p_mw 0, is imported as given and logged, or with
+  ``ImportDefaults.storage_two_way`` given the mirrored range PMIN = −PMAX), SOC_MAX = max_e_mwh
   or 4 h × PMAX, SOC_MIN = min_e_mwh or 0, EFF 0.95.
 * **Branch RATE**: lines max_i_ka·df·parallel·√3·vn_kv, transformers sn_mva·df·parallel (MVA); ratings above
   10⁴ MVA (pandapower's "unlimited" 99999 kA) become NaN = no limit.
@@ -70,6 +71,9 @@ class ImportDefaults:
     classical_q: float = 0.62  # |Q| <= 0.62 PMAX: power factor 0.85
     storage_hours: float = 4.0  # SOC_MAX = 4 h x PMAX when max_e_mwh is not given
     storage_eff: float = 0.95  # one-way (dis)charging efficiency (~0.90 round trip)
+    #: a storage unit that works one way only (SimBench's home batteries: max_p_mw 0) gets the mirrored P range
+    #: (PMIN = -PMAX) instead of its own: opt-in (``import_network --two-way-storage``), the source says so
+    storage_two_way: bool = False
     slack_margin: float = 2.0  # slack |P|, |Q| <= 2 x (installed load + generation) when ext_grid has no limits
     unlimited_mva: float = 1e4  # ratings above this are "no limit" (NaN)
 
@@ -312,11 +316,14 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
         pmax = -row.min_p_mw if np.isfinite(row.get("min_p_mw", NAN)) else abs(row.p_mw)
         pmin = -row.max_p_mw if np.isfinite(row.get("max_p_mw", NAN)) else -abs(row.p_mw)
         s = max(pmax, -pmin)
+        if defaults.storage_two_way and (pmax <= 0 or pmin >= 0):
+            one_way["charge" if pmax <= 0 else "discharge"].append(int(i))
+            pmax, pmin = s, -s
         inv = _inverter("storage", i, row, s, defaults)
         # the polygon's corners inside the P range: gym-anm wants PMIN <= P- <= P+ <= PMAX, and a one-way unit
         # (SimBench's home batteries: max_p_mw 0) or a lopsided one has one side shorter than 0.8 S
         inv[2], inv[3] = min(inv[2], pmax), max(-defaults.inverter_corner_p * s, pmin)
-        if pmax <= 0 or pmin >= 0:
+        if pmax <= 0 or pmin >= 0:  # (a two-way reading was counted above)
             one_way["charge" if pmax <= 0 else "discharge"].append(int(i))
         emax = row.max_e_mwh if np.isfinite(row.get("max_e_mwh", NAN)) else defaults.storage_hours * pmax
         emin = row.min_e_mwh if np.isfinite(row.get("min_e_mwh", NAN)) else 0.0
@@ -324,8 +331,10 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
         storage_idx.append(int(i))
     for way, idx in one_way.items():
         if idx:
-            logger.warning("%d pandapower storage units can only %s (min_p_mw or max_p_mw 0), imported as given: "
-                           "indices %s", len(idx), way, idx)
+            how = ("made two-way (--two-way-storage): P range mirrored" if defaults.storage_two_way else
+                   "imported as given (--two-way-storage mirrors their P range)")
+            logger.warning("%d pandapower storage units can only %s (min_p_mw or max_p_mw 0), %s: indices %s",
+                           len(idx), way, how, idx)
 
     if not devices:
         raise ValueError("the pandapower net has no load, generator or storage unit besides its ext_grid")

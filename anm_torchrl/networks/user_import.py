@@ -70,7 +70,8 @@ def read_pandapower(net_path: str | os.PathLike, loads_csv=None, sgens_csv=None,
                              f"(its {table} indices: {known[:10]}{' ...' if len(known) > 10 else ''})")
     rows = len(next(iter(given.values()))) if given else rows  # a nominal profile as long as a given one
     profiles = [given[what] if what in given else
-                pd.DataFrame({i: np.full(rows, float(r.p_mw * r.scaling)) for i, r in net[table].iterrows()})
+                pd.DataFrame({i: np.full(rows, float(r.p_mw * r.scaling)) for i, r in net[table].iterrows()},
+                             index=range(rows))  # rows even where the net has no such element (no sgen: 0 columns)
                 for table, what in (("load", "load"), ("sgen", "renewable"))]
     if profiles[0].shape[0] != profiles[1].shape[0]:
         raise ValueError(f"the load profile has {profiles[0].shape[0]} rows, the renewable profile "
@@ -97,8 +98,9 @@ def _read_csv(path, what: str):
 
 
 def import_network(net, load_mw, sgen_mw, out: str | os.PathLike, *, source: str, check_rows: int = 4,
-                   overwrite: bool = False) -> dict:
-    """Convert, check and save a pandapower net as a network file.
+                   overwrite: bool = False, defaults: ppi.ImportDefaults = ppi.ImportDefaults()) -> dict:
+    """Convert (with ``defaults``, :class:`.pandapower_import.ImportDefaults`), check and save a pandapower net as
+    a network file.
 
     The do-nothing point (loads as profiled, renewables at their potential) must converge in pandapower on every
     profile row, and gym-anm's power flow must land on pandapower's voltages at ``check_rows`` rows spread over the
@@ -109,7 +111,7 @@ def import_network(net, load_mw, sgen_mw, out: str | os.PathLike, *, source: str
         (p.u.) and ``loading_max_percent`` (pandapower's), ``vm_max_diff`` (p.u., gym-anm against pandapower).
     """
     path = check_network_out(out, overwrite)
-    prepared, res, load_p, gen_p_max = ppi.from_pandapower(net, load_mw, sgen_mw)
+    prepared, res, load_p, gen_p_max = ppi.from_pandapower(net, load_mw, sgen_mw, defaults)
     sweep = pf_check.do_nothing_sweep(prepared, res, load_p, gen_p_max)
     network, diff = res.network, 0.0
     for t in np.unique(np.linspace(0, len(load_p) - 1, max(1, check_rows)).astype(int)):
