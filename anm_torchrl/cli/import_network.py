@@ -37,8 +37,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--summary", metavar="JSON", help="also write the summary (and the command line, wall time and "
                     "machine) to this JSON file")
     ap.add_argument("--two-way-storage", action="store_true", help="storage units that can only charge or only "
-                    "discharge (SimBench's home batteries: max_p_mw 0) get the mirrored P range instead (PMIN = -PMAX); "
-                    "the file's source says so")
+                    "discharge (SimBench's home batteries: max_p_mw 0) get the mirrored P range instead "
+                    "(PMIN = -PMAX); the file's source says so")
     ap.add_argument("--check-rows", type=count, default=4, help="profile rows where gym-anm's power flow is "
                     "compared with pandapower's (every row must converge in pandapower)")
     args = ap.parse_args(argv)
@@ -65,7 +65,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.two_way_storage:
         source += "; one-way storage units made two-way (P range mirrored, --two-way-storage)"
     out = user_import.import_network(net, load_mw, sgen_mw, args.out, source=source, check_rows=args.check_rows,
-                                     overwrite=args.force, defaults=ImportDefaults(storage_two_way=args.two_way_storage))
+                                     overwrite=args.force,
+                                     defaults=ImportDefaults(storage_two_way=args.two_way_storage))
     if args.summary:
         from anm_torchrl.artifacts import atomic_write
         from anm_torchrl.provenance import machine_info
