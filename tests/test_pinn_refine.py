@@ -111,6 +111,27 @@ def test_rule_does_not_depend_on_the_power_base(monkeypatch):
     assert refine.rule_met(first) and first > big["loss_median_pu"]  # v2 stopped here, residual > the losses
 
 
+def test_a_lossless_network_meets_the_rule(monkeypatch):
+    """A valid network without resistance (R = 0 on every branch: losses are round-off, ~1e-17 p.u.) meets rule v3
+    at the k the absolute bar picks or one step later: the loss bar is floored at LOSS_FLOOR of the injection
+    scale (without it no float64 residual met it and a sound model was refused)."""
+    import numpy as np
+
+    from anm_torchrl.networks.registry import get_network
+
+    monkeypatch.setattr(refine, "POINTS", 512)
+    case = get_network("case33bw")
+    net = {k: (np.array(v, copy=True) if k != "baseMVA" else v) for k, v in case.network.items()}
+    net["branch"][:, 2] = 0.0
+    sim = network_simulator(net, case.load_p, case.gen_p_max)
+    torch.manual_seed(0)
+    pb = PowerBalanceNet(sim, hidden=16, depth=2)
+    rec = refine.choose_refine_steps(pb, sim, seed=5)
+    k_abs = next(i + 1 for i, q in enumerate(rec["residual_q_pu"]) if refine.rule_met(q))
+    assert rec["met"] and k_abs <= rec["k"] <= k_abs + 2, rec
+    assert rec["loss_median_pu"] == pytest.approx(refine.LOSS_FLOOR * pb.injection_scale())
+
+
 def test_rule_unmet_is_an_acceptance_failure(monkeypatch):
     """No k <= K_MAX meets the bar: the record says so at K_MAX steps and the training fails its acceptance bar."""
     sim = network_simulator("simbench_mv_semiurb")

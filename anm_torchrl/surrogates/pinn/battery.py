@@ -130,7 +130,7 @@ def diagnose(entry: dict[str, Any]) -> list[str]:
         why.append(f"terminal agreement {entry['terminal_agreement']:.2%} < 99 % (PINN flags "
                    f"{entry['terminal_rate_pinn']:.2%}, env {entry['terminal_rate_sim']:.2%}): the residual p99 "
                    f"{entry.get('pf_residual_p99')} vs the 0.005 p.u. threshold: a more accurate power balance")
-    if not meets["reward_rel_mae"]:
+    if not meets.get("reward_rel_mae", True):  # (entries measured before the target have no verdict on it)
         why.append(f"reward MAE {entry['reward_rel_mae']:.2%} of the rewards' mean |r| > 5 %: the slack injection "
                    f"(the power balance's residual, k = {entry.get('refine_steps')}) or the penalty's inputs")
     if not meets["train_wall_s"]:

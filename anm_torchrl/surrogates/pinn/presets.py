@@ -92,8 +92,8 @@ class ModuleTrainConfig:
         robust, robust_scale: power balance only: residual penalty (``squared``, ``pseudo_huber``, ``cauchy``) and
             its scale (p.u.), see :func:`.losses.power_balance_losses`.
         v_scale, ang_scale: power balance only: output scaling (p.u., rad per unit output).
-        refine_steps: power balance only: refinement steps after the network (damped Newton, rule v2), at inference and in the
-            validation errors, not in the training loss (:class:`.power_balance.PowerBalanceNet`; 0: none);
+        refine_steps: power balance only: refinement steps after the network (damped Newton, rules v2 and v3), at
+            inference and in the validation errors, not in the training loss (:class:`.power_balance.PowerBalanceNet`; 0: none);
             ``auto``: the smallest k meeting the physics rule of :mod:`.refine`, chosen after training and stored
             in the model file.
         val_size: held-out Sobol points.
@@ -372,7 +372,13 @@ def check_acceptance(cfg: PINNTrainConfig, report: dict[str, Any]) -> list[str]:
     if refine is not None and not refine.get("met"):
         kind = "Newton" if refine.get("method") == "newton" else "chord"
         bar = refine.get("bar_pu")  # rule v3; v1/v2 records: margin x threshold
-        bar = f"{bar:.3g} p.u." if bar is not None else f"{refine.get('margin')} x {refine.get('threshold_pu')} p.u."
+        if bar is None:
+            bar = f"{refine.get('margin')} x {refine.get('threshold_pu')} p.u."
+        elif bar < refine["margin"] * refine["threshold_pu"]:
+            bar = (f"{bar:.3g} p.u. ({refine.get('loss_fraction')} x the network's median losses "
+                   f"{refine.get('loss_median_pu'):.3g} p.u.)")
+        else:
+            bar = f"{bar:.3g} p.u."
         failed.append(f"power_balance.refine: no k <= {refine.get('k_max')} {kind} steps brings the "
                       f"{refine.get('quantile')} quantile of the power-flow residual to {bar} "
                       f"(after {refine.get('k')}: {refine.get('residual_q_pu')}); "

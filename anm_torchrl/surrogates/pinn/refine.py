@@ -10,7 +10,7 @@ the current estimate (:class:`.power_balance.PowerBalanceNet`, ``refine_method="
 operating points are far from the flat start in Jacobian terms (a 132/33 kV transformer with X = 0.55 p.u. on
 100 MVA and tap 1.03: the residual grew each step, no k met the bar, the model was refused). A v1 file still
 loads and runs its chord steps exactly as it was chosen with (:data:`RULE_METHODS`; its ``refine_method`` field is
-absent); ``python -m anm_torchrl.cli.pinn_refine`` moves it to v2 (same weights).
+absent); ``python -m anm_torchrl.cli.pinn_refine`` moves it to today's rule (same weights).
 
 A preset with ``power_balance.refine_steps: auto`` (``feeder``) gets, at the end of its power-balance training,
 the smallest k in 1…:data:`K_MAX` whose power-flow residual meets :func:`rule_met` — no simulator label enters:
@@ -73,6 +73,9 @@ QUANTILE = 0.99
 MARGIN = 0.5
 #: the residual quantile's bar relative to the network's median active losses at the box points (rule v3)
 LOSS_FRACTION = 0.1
+#: losses below this fraction of the network's injection scale count as this much: a lossless network (R = 0, which
+#: gym-anm allows) has round-off losses (~1e-17 p.u.) that no float64 residual (~1e-14) can be a tenth of
+LOSS_FLOOR = 1e-7
 POINTS = 4096
 K_MAX = REFINE_MAX
 SEED_OFFSET = 30_000
@@ -95,13 +98,14 @@ def rule_met(residual_q: float, loss_pu: float | None = None, threshold: float |
 
 def median_losses(pb: PowerBalanceNet, x: torch.Tensor) -> float:
     """The median over the samples of the network's active losses Σᵢ Pᵢ(V) (p.u.) at ``x`` (N, 2n−2) = [θ, |V|] of
-    the non-slack buses (the slack at 1∠0); non-finite samples ignored (NaN if none is finite)."""
+    the non-slack buses (the slack at 1∠0), at least :data:`LOSS_FLOOR` × ``pb.injection_scale()``; non-finite
+    samples ignored (NaN if none is finite)."""
     n = pb.n_bus - 1
     one, zero = torch.ones_like(x[:, :1]), torch.zeros_like(x[:, :1])
     v = bus_voltage(torch.cat([one, x[:, n:]], -1), torch.cat([zero, x[:, :n]], -1))
     loss = power_injection(v, pb.y_bus.to(v.dtype)).real.sum(-1)
     loss = loss[torch.isfinite(loss)]
-    return float(loss.median()) if loss.numel() else math.nan
+    return max(float(loss.median()), LOSS_FLOOR * pb.injection_scale()) if loss.numel() else math.nan
 
 
 def residual_quantiles(pb: PowerBalanceNet, p_bus: torch.Tensor, q_bus: torch.Tensor, k_max: int = K_MAX,
