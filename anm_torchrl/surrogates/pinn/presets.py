@@ -93,7 +93,8 @@ class ModuleTrainConfig:
             its scale (p.u.), see :func:`.losses.power_balance_losses`.
         v_scale, ang_scale: power balance only: output scaling (p.u., rad per unit output).
         refine_steps: power balance only: refinement steps after the network (damped Newton, rules v2 and v3), at
-            inference and in the validation errors, not in the training loss (:class:`.power_balance.PowerBalanceNet`; 0: none);
+            inference and in the validation errors, not in the training loss
+            (:class:`.power_balance.PowerBalanceNet`; 0: none);
             ``auto``: the smallest k meeting the physics rule of :mod:`.refine`, chosen after training and stored
             in the model file.
         val_size: held-out Sobol points.
