@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -114,3 +116,27 @@ def test_data_driven_battery_entry_on_a_small_network(tmp_path):
     assert "| radial (6) | 5 | lr |" in (tmp_path / "dd.md").read_text()
     assert json.loads((tmp_path / "dd.json").read_text())["command"].startswith(
         "python -m anm_torchrl.cli.data_driven_battery --seeds 6 --kinds lr")
+
+
+def test_data_driven_record_refreshes_its_pinn_rows(tmp_path):
+    """``--refresh-pinn`` re-reads the PINN's figures (reward MAE now among them) from a re-measured PINN battery
+    record into a data-driven record, keeps its data-driven figures and says where the PINN's came from; a missing
+    PINN record is refused by name."""
+    import shutil
+
+    from anm_torchrl.cli import data_driven_battery as cli
+
+    repo = Path(__file__).resolve().parents[1]
+    shutil.copy(repo / "results/pinn_battery/data_driven.json", tmp_path / "dd.json")
+    before = json.loads((tmp_path / "dd.json").read_text())
+    pinn = {"created": "now", "networks": [{"seed": e["seed"], "pq_rel_mae_max": 1e-6, "pq_rel_mae_mean": 1e-7,
+                                            "terminal_agreement": 1.0, "train_wall_s": 9.0, "vmag_mae_pu": 1e-9,
+                                            "reward_mae": 3.5e-7, "passed": True} for e in before["networks"]]}
+    (tmp_path / "pinn.json").write_text(json.dumps(pinn))
+    rec = cli.main(["--refresh-pinn", "--out", str(tmp_path / "dd"), "--pinn-record", str(tmp_path / "pinn.json")])
+    assert [e["kinds"] for e in rec["networks"]] == [e["kinds"] for e in before["networks"]]
+    assert all(e["pinn"]["reward_mae"] == 3.5e-7 for e in rec["networks"])
+    assert rec["pinn_refreshed"]["record"] == str(tmp_path / "pinn.json")
+    assert "| PINN (battery record) | 0.0001 | 3.50e-07 |" in (tmp_path / "dd.md").read_text()
+    with pytest.raises(FileNotFoundError, match="no PINN battery record at"):
+        cli.main(["--refresh-pinn", "--out", str(tmp_path / "dd"), "--pinn-record", str(tmp_path / "none.json")])

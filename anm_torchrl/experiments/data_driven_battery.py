@@ -100,7 +100,7 @@ def pinn_figures(record: Path, seed: int) -> dict[str, Any] | None:
     for e in json.loads(record.read_text())["networks"]:
         if e["seed"] == seed:
             return {k: e.get(k) for k in ("pq_rel_mae_max", "pq_rel_mae_mean", "terminal_agreement", "train_wall_s",
-                                          "vmag_mae_pu", "passed")}
+                                          "vmag_mae_pu", "reward_mae", "passed")}
     return None
 
 
@@ -113,8 +113,9 @@ def markdown(rec: dict[str, Any]) -> str:
         name = f"{e['topology']} ({e['seed']})"
         p = e.get("pinn")
         if p:
-            rows.append(f"| {name} | {e['n_bus']} | PINN (battery record) | {100 * p['pq_rel_mae_max']:.4f} | – | "
-                        f"{100 * p['terminal_agreement']:.2f} % | {p['train_wall_s']:.0f} |")
+            reward = "–" if p.get("reward_mae") is None else f"{p['reward_mae']:.2e}"  # (records before it: none)
+            rows.append(f"| {name} | {e['n_bus']} | PINN (battery record) | {100 * p['pq_rel_mae_max']:.4f} | "
+                        f"{reward} | {100 * p['terminal_agreement']:.2f} % | {p['train_wall_s']:.0f} |")
         for kind, m in e["kinds"].items():
             pq = "–" if m["pq_rel_mae_max"] is None else f"{100 * m['pq_rel_mae_max']:.3f}"
             rows.append(f"| {name} | {e['n_bus']} | {kind} | {pq} | {m['reward_mae']:.2e} | "
@@ -125,6 +126,26 @@ def markdown(rec: dict[str, Any]) -> str:
             f"P/Q MAE ≤ 1 % of each device's rating. Build time includes the dataset. Machine: "
             f"{rec['machine'].get('cpu', '?')}, {rec['machine'].get('usable_cores', '?')} usable cores.\n\n{head}\n"
             + "\n".join(rows) + "\n")
+
+
+def refresh_pinn(out: str | Path, pinn_record: str | Path = PINN_RECORD) -> dict[str, Any]:
+    """Re-read the PINN's figures of the record ``<out>.json`` from ``pinn_record`` (the PINN battery re-measured;
+    the data-driven figures are kept as measured), note it in the record, rewrite ``<out>.json`` and ``<out>.md``.
+
+    Raises:
+        FileNotFoundError: no ``<out>.json`` or no ``pinn_record``.
+    """
+    stem = Path(out)
+    rec = json.loads(stem.with_suffix(".json").read_text())
+    if not Path(pinn_record).is_file():
+        raise FileNotFoundError(f"no PINN battery record at {pinn_record}")
+    for e in rec["networks"]:
+        e["pinn"] = pinn_figures(Path(pinn_record), e["seed"])
+    rec["pinn_refreshed"] = {"record": str(pinn_record), "created": json.loads(Path(pinn_record).read_text()).get(
+        "created"), "command": f"python -m anm_torchrl.cli.data_driven_battery --refresh-pinn --out {out}"}
+    stem.with_suffix(".json").write_text(json_text(rec, indent=1) + "\n")
+    stem.with_suffix(".md").write_text(markdown(rec))
+    return rec
 
 
 def run(seeds: list[int], kinds: list[str], out: str | Path, n_random: int = 4000, n_jobs: int = 2,

@@ -12,7 +12,8 @@ off ANM6-Easy, :func:`.presets.network_preset_name`) trained by :func:`.cache.tr
   ``terminal_agreement`` (share of transitions whose ``terminated`` equals the exact env's non-convergence;
   target ≥ 0.99) on ``--n-random`` random transitions (:func:`.evaluate.random_transitions`, seed 12345, the
   metrics of :mod:`.generic_accuracy`);
-* ``reward_rel_mae``: the reward's MAE over the true rewards' mean |r| on the same transitions (target ≤ 0.05),
+* ``reward_mae`` and ``reward_rel_mae``: the reward's MAE, and over the true rewards' mean |r|, on the same
+  transitions (target ≤ 0.05),
   and ``absolute_bar``: the k that rule v2's absolute bar alone picks and the reward error at that k (what the
   loss-relative bar of rule v3, :mod:`.refine`, buys);
 * ``train_wall_s`` (target ≤ 600 s), the chosen refinement ``k`` and the box's power-flow solvability;
@@ -171,7 +172,7 @@ def measure(seed: int, model_dir: Path, n_random: int = 4000, overrides: dict[st
             "vmag_mae_pu": m["vmag_mae_pu"], "pf_residual_p99": m["pf_residual_p99"],
             "terminal_rate_sim": m["terminal_rate_sim"], "terminal_rate_pinn": m["terminal_rate_pinn"],
             "terminal_agreement": terminal_agreement(m), "n_random": n_random,
-            "reward_rel_mae": m["reward_rel_mae"], "module_time_s": {k: report[k].get("time_s") for k in tr.MODULES},
+            "reward_mae": m["reward_mae"], "reward_rel_mae": m["reward_rel_mae"], "module_time_s": {k: report[k].get("time_s") for k in tr.MODULES},
         })
         entry["absolute_bar"] = absolute_bar_entry(chain, sim, entry["refine"], m, n_random, eval_seed)
         entry["meets"] = {k: (entry[k] is not None and (entry[k] >= b if k == "terminal_agreement" else
