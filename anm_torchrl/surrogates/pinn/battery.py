@@ -172,7 +172,8 @@ def measure(seed: int, model_dir: Path, n_random: int = 4000, overrides: dict[st
             "vmag_mae_pu": m["vmag_mae_pu"], "pf_residual_p99": m["pf_residual_p99"],
             "terminal_rate_sim": m["terminal_rate_sim"], "terminal_rate_pinn": m["terminal_rate_pinn"],
             "terminal_agreement": terminal_agreement(m), "n_random": n_random,
-            "reward_mae": m["reward_mae"], "reward_rel_mae": m["reward_rel_mae"], "module_time_s": {k: report[k].get("time_s") for k in tr.MODULES},
+            "reward_mae": m["reward_mae"], "reward_rel_mae": m["reward_rel_mae"],
+            "module_time_s": {k: report[k].get("time_s") for k in tr.MODULES},
         })
         entry["absolute_bar"] = absolute_bar_entry(chain, sim, entry["refine"], m, n_random, eval_seed)
         entry["meets"] = {k: (entry[k] is not None and (entry[k] >= b if k == "terminal_agreement" else
