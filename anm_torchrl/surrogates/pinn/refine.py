@@ -214,8 +214,9 @@ def check_record(file: Path | str, config_k: Any, file_k: Any, record: Any, pres
                       f"{RULE} (or {sorted(set(RULE_METHODS) - {RULE})}) with k = refine_steps = {file_k}")
         if record["rule"] != RULE:  # it runs as chosen; an earlier rule's k may be short of today's bar
             log.warning("%s: its %d refinement steps were chosen by rule %s, not today's %s (whose bar is also "
-                        "relative to the network's losses); python -m anm_torchrl.cli.pinn_refine --network <name> "
-                        "--path %s re-chooses them (same weights)", file, file_k, record["rule"], RULE, file)
+                        "relative to the network's losses: where they are small in p.u., fewer steps leave reward "
+                        "errors); python -m anm_torchrl.cli.pinn_refine --network <name> --path %s re-chooses them "
+                        "(same weights)", file, file_k, record["rule"], RULE, file)
     elif config_k != file_k:
         raise bad(f"its config fixes refine_steps = {config_k!r} but the file says {file_k}")
     return file_k
