@@ -305,3 +305,21 @@ def test_a_v1_chord_file_still_loads_and_runs_its_chord_steps(auto_file, tmp_pat
     bad = _rewrite(file, tmp_path / "unknown.safetensors", lambda m: m.update(refine_method="secant"))
     with pytest.raises(ArtifactError, match="unknown.safetensors: refine_method must be one of"):
         tr.load_modules(bad, case33)
+
+
+def test_a_v2_file_loads_with_its_k_and_a_warning(auto_file, tmp_path, case33, caplog):
+    """A file whose k was chosen by rule v2 (absolute bar alone) is served with that k, Newton steps as chosen, and
+    a warning names the command that re-chooses it under today's rule; today's files load without it."""
+    import logging
+
+    file, _ = auto_file
+    old = _rewrite(file, tmp_path / "v2.safetensors",
+                   lambda m: m["report"]["power_balance"]["refine"].update(rule="sobol_box_quantile_v2"))
+    with caplog.at_level(logging.WARNING, logger="anm_torchrl.surrogates.pinn.refine"):
+        pb = tr.load_modules(old, case33)[0]["power_balance"]
+    assert pb.refine_steps == tr.read_pinn_file(file)["refine_steps"] and pb.refine_method == "newton"
+    assert "chosen by rule sobol_box_quantile_v2" in caplog.text and "cli.pinn_refine" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="anm_torchrl.surrogates.pinn.refine"):
+        tr.load_modules(file, case33)
+    assert "chosen by rule" not in caplog.text
