@@ -1,6 +1,6 @@
 """``ANMEnv`` on a custom network of our own against a live gym-anm 2.0.1 ``ANMEnv`` subclass, plus its contract.
 
-The network has every device type (a load on the slack bus, loads with and without PMAX, a classical generator,
+The network has every device type (loads with and without PMAX, a classical generator,
 renewable generators with and without capability corners, two storage units with SOC_MIN > 0 and their own
 EFF), unsorted and non-contiguous device ids, a transformer with tap and phase shift, line charging, a loop
 and a slack bus with VMAX != 1 (its |V| observation is clipped to (VMAX, VMAX) by gym-anm). Transitions are
@@ -32,7 +32,7 @@ NETWORK = {
                      [3, 1, 33, 1.05, 0.95], [4, 1, 33, 1.05, 0.95], [5, 1, 33, 1.05, 0.95]], dtype=object),
     "device": np.array([
         [0, 0, 0, N_, 100, -100, 100, -100, N_, N_, N_, N_, N_, N_, N_],
-        [12, 0, -1, 0.2, N_, -5, N_, N_, N_, N_, N_, N_, N_, N_, N_],  # load on the slack bus
+        [12, 4, -1, 0.2, N_, -5, N_, N_, N_, N_, N_, N_, N_, N_, N_],  # (bus 0: refused, validation.py)
         [3, 3, -1, 0.1, N_, -10, N_, N_, N_, N_, N_, N_, N_, N_, N_],
         [2, 2, -1, 0.3, 0, -15, N_, N_, N_, N_, N_, N_, N_, N_, N_],
         [5, 4, 1, N_, 20, 2, 60, -60, 15, N_, 5, -5, N_, N_, N_],  # classical generator
@@ -238,6 +238,9 @@ def _net(edits: dict | None = None):
     ({("bus", 2, 1): 2}, r"'bus', bus 2, column BUS_TYPE"),
     ({("device", 4, 2): 0}, r"'device'.*DEV_TYPE.*exactly one slack device"),
     ({("device", 0, 1): 3}, r"'device', device 0, column BUS_ID: the slack device must sit on the slack bus"),
+    # a load on bus 0: gym-anm's slack P is the whole bus-0 injection, the load would vanish from the energy balance
+    ({("device", 2, 1): 0}, r"'device', devices \[3\], column BUS_ID: only the slack device may sit on the slack "
+                            r"bus 0: gym-anm sets the slack device's P"),
     ({("device", 4, 5): 30}, r"'device', device 5, column PMAX: PMAX 20.0 < PMIN 30.0"),
     ({("device", 7, 12): None}, r"'device', device 10, column SOC_MAX: a storage unit needs SOC_MAX"),
     ({("device", 7, 14): 1.5}, r"'device', device 10, column EFF: must lie in \(0, 1\]"),

@@ -156,3 +156,16 @@ def test_own_reactive_limits_replace_the_defaults():
     net.sgen.loc[0, "min_q_mvar"] = 0.3
     with pytest.raises(ValueError, match=r"sgen 0: min_q_mvar 0.3 > max_q_mvar 0.1"):
         ppi.from_pandapower(net, pd.DataFrame({0: [1.0]}), pd.DataFrame({0: [0.4]}))
+
+
+def test_a_net_without_controllable_device_is_written_and_said_so(tmp_path, capsys):
+    """A loads-only net (9 of pandapower's 12 stock nets that import) is written (do-nothing can be evaluated on it)
+    but the command does not send the user to a training recipe that refuses it."""
+    net, _ = _feeder()
+    net.sgen.drop(net.sgen.index, inplace=True)
+    pp.to_json(net, str(tmp_path / "loads_only.json"))
+    out = import_network.main(["--pandapower", str(tmp_path / "loads_only.json"), "--rows", "4",
+                               "--out", str(tmp_path / "l.npz")])
+    printed = capsys.readouterr().out
+    assert out["devices"]["load"] == 1 and "train on it" not in printed
+    assert "no controllable device" in printed and "recipes/evaluate.py policy=do_nothing" in printed

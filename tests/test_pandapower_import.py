@@ -49,9 +49,15 @@ def test_antiparallel_plain_lines_merge_as_parallel_ones():
 
 
 @pytest.mark.parametrize("element, message", [
-    ("gen", r"pandapower gens \[0\] control their bus voltage \(PV buses\)"),
+    ("gen", r"gens \[0\] control their bus voltage \(PV buses\).*replace_gen_by_sgen"),
     ("reactive_load", r"pandapower load 1: p_mw 0 with q_mvar -1.5; a gym-anm load's Q follows its P"),
     ("nothing", "the pandapower net has no load, generator or storage unit besides its ext_grid"),
+    # every problem at once, by pandapower index, with what to do (one round trip, not one per problem)
+    ("several", r"cannot represent: shunt \[0\] \(gym-anm has no model for it\); gens \[0\] control.*; sgens "
+                r"\[1\] have p_mw < 0.*; 2 in-service ext_grids.*split the net.*set in_service=False"),
+    ("no_slack", r"0 in-service ext_grids; gym-anm has exactly one slack bus: add one"),
+    # gym-anm counts the slack device's P as the whole bus-0 injection: a load there would count nowhere
+    ("at_slack", r"elements on the ext_grid's bus \(load \[1\]\).*drop out of the energy balance"),
 ])
 def test_what_gym_anm_cannot_model_is_refused(element, message):
     net, b = _feeder()
@@ -59,11 +65,30 @@ def test_what_gym_anm_cannot_model_is_refused(element, message):
         pp.create_gen(net, b[2], p_mw=1.0, vm_pu=1.02, sn_mva=2.0)
     elif element == "reactive_load":  # its Q was dropped (Q/P = 0)
         pp.create_load(net, b[1], p_mw=0.0, q_mvar=-1.5)
+    elif element == "several":
+        pp.create_shunt(net, b[1], q_mvar=0.1)
+        pp.create_gen(net, b[2], p_mw=1.0, vm_pu=1.02, sn_mva=2.0)
+        pp.create_sgen(net, b[2], p_mw=-0.5, type="PV")
+        pp.create_ext_grid(net, b[2])
+    elif element == "no_slack":  # was: a 28-line traceback from pandapower's to_ppc
+        net.ext_grid["in_service"] = False
+    elif element == "at_slack":  # was: imported, do-nothing returns positive (a negative energy loss)
+        pp.create_load(net, b[0], p_mw=0.5, q_mvar=0.1)
     else:
         net.load.drop(net.load.index, inplace=True)
         net.sgen.drop(net.sgen.index, inplace=True)
     with pytest.raises(ValueError, match=message):
         _convert(net)
+
+
+def test_out_of_service_elements_of_unmodelled_kinds_are_left_out():
+    """An impedance (or shunt, trafo3w, ...) that is out of service has nothing to represent: the net converts as
+    without it (was: refused as 'not supported')."""
+    net, b = _feeder()
+    pp.create_impedance(net, b[1], b[2], 0.01, 0.02, sn_mva=10, in_service=False)
+    pp.create_shunt(net, b[1], q_mvar=0.1, in_service=False)
+    np.testing.assert_array_equal(np.asarray(_convert(net).network["branch"]),
+                                  np.asarray(_convert(_feeder()[0]).network["branch"]))
 
 
 def test_network_files_that_are_not_what_they_claim_are_refused(tmp_path):

@@ -80,8 +80,12 @@ def main(argv: list[str] | None = None) -> dict:
     dev = ", ".join(f"{n} {k}{'s' if n != 1 else ''}" for k, n in out["devices"].items())
     print(f"wrote {out['path']}: {out['buses']} buses; {dev}; {out['rows']} profile rows; do-nothing |V| "
           f"{out['vm_min']:.4f}-{out['vm_max']:.4f} p.u., loading up to {out['loading_max_percent']:.1f} % "
-          f"(pandapower); gym-anm's power flow within {out['vm_max_diff']:.1e} p.u. of pandapower's\n"
-          f"train on it: python recipes/ppo.py network={out['path']}")
+          f"(pandapower); gym-anm's power flow within {out['vm_max_diff']:.1e} p.u. of pandapower's")
+    if any(out["devices"][k] for k in ("classical generator", "renewable", "storage unit")):
+        print(f"train on it: python recipes/ppo.py network={out['path']}")
+    else:  # every training recipe refuses it (no action to take): say so here, not at the first training
+        print(f"it has no controllable device (a generator or storage unit besides the slack): no policy can act on "
+              f"it; evaluate it with python recipes/evaluate.py policy=do_nothing network={out['path']}")
     return out
 
 

@@ -90,20 +90,40 @@ class ImportResult:
 
 
 def prepare(net):
-    """A copy of ``net`` reduced to what gym-anm can represent (see module docstring); raises on the rest."""
+    """A copy of ``net`` reduced to what gym-anm can represent (see module docstring).
+
+    Raises:
+        ValueError: naming every element gym-anm cannot represent at once (pandapower indices), with what to do.
+    """
     net = copy.deepcopy(net)
+    problems = []
     for table in UNSUPPORTED:
-        if table in net and len(net[table]) and net[table]["in_service"].any():
-            raise ValueError(f"pandapower table {table!r} has in-service elements; gym-anm has no model for them")
+        if table in net and len(net[table]):
+            on = net[table].in_service.astype(bool)
+            if on.any():
+                problems.append(f"{table} {list(net[table].index[on])} (gym-anm has no model for it)")
+            net[table] = net[table].iloc[:0]  # the rest is out of service: nothing to represent
     const = [c for c in net.load.columns if c.startswith("const_")]
     bad = net.load.index[(net.load[const].fillna(0).abs() > 0).any(axis=1) & net.load.in_service]
     if len(bad):
-        raise ValueError(f"pandapower loads {list(bad)} are voltage dependent ({const}); gym-anm loads are "
-                         "constant power")
+        problems.append(f"loads {list(bad)} are voltage dependent ({const}); gym-anm loads are constant power")
     gens = net.gen.index[net.gen.in_service] if "gen" in net and len(net.gen) else []
     if len(gens):
-        raise ValueError(f"pandapower gens {list(gens)} control their bus voltage (PV buses); gym-anm's generators "
-                         "are P/Q set-points: model them as sgens (static generators)")
+        problems.append(f"gens {list(gens)} control their bus voltage (PV buses); gym-anm's generators are P/Q "
+                        "set-points: model them as sgens (pandapower.toolbox.replace_gen_by_sgen)")
+    neg = net.sgen.index[net.sgen.in_service & (net.sgen.p_mw * net.sgen.scaling < 0)] if len(net.sgen) else []
+    if len(neg):
+        problems.append(f"sgens {list(neg)} have p_mw < 0; gym-anm generators only inject: model them as loads")
+    n_eg = int(net.ext_grid.in_service.sum()) if "ext_grid" in net else 0
+    if n_eg != 1:
+        problems.append(f"{n_eg} in-service ext_grids; gym-anm has exactly one slack bus: "
+                        + ("add one (pandapower.create_ext_grid)" if n_eg == 0 else
+                           "split the net into one per ext_grid (e.g. pandapower.networks.mv_oberrhein("
+                           "separation_by_sub=True)) and import each"))
+    if problems:
+        raise ValueError("the pandapower net has what gym-anm cannot represent: " + "; ".join(problems)
+                         + " (set in_service=False on an element to leave it out, accepting the change in the power "
+                         "flow)")
     sw = net.switch[~net.switch.closed.astype(bool)]
     net.line.loc[sw.element[sw.et == "l"].unique(), "in_service"] = False
     net.trafo.loc[sw.element[sw.et == "t"].unique(), "in_service"] = False
@@ -119,6 +139,8 @@ def _ratings(net, ppc, lookup, defaults: ImportDefaults) -> np.ndarray:
     total = max(e for _, e in lookup.values())
     rate, status = np.full(total, np.inf), np.zeros(total, dtype=bool)
     for table, (s, e) in lookup.items():
+        if e == s:  # an empty table (its out-of-service rows left out by prepare)
+            continue
         if table not in ("line", "trafo"):
             raise ValueError(f"pandapower branch element {table!r} is not supported")
         df = net[table]
@@ -286,6 +308,13 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
         df = net[table]
         return df[df.in_service & df.bus.map(lambda b: b in bus_map)]
 
+    at_slack = {t: [int(i) for i in on_grid(t).index if bus_map[net[t].bus[i]] == 0]
+                for t in ("load", "sgen", "storage")}
+    if any(at_slack.values()):  # gym-anm's slack P is the whole bus-0 injection: theirs would count nowhere
+        named = "; ".join(f"{t} {idx}" for t, idx in at_slack.items() if idx)
+        raise ValueError(f"pandapower elements on the ext_grid's bus ({named}): gym-anm sets the slack device's P "
+                         "and Q to that bus's whole injection, so their power would drop out of the energy balance; "
+                         "connect them to a bus joined to the ext_grid's by a line or transformer")
     devices, load_idx, gen_elements, storage_idx = [], [], [], []
     loads = on_grid("load")
     if len(load_peak) != len(loads):

@@ -4,7 +4,9 @@
 the ``Bus``, ``TransmissionLine`` and device classes), plus what gym-anm accepts but cannot simulate (a NaN
 capability line that makes its cvxpy projection fail, a slack bus that is not bus 0, bus ids that are not
 0..n_bus-1: gym-anm's power flow silently treats bus 0 as the slack and sizes its Y-bus by the largest id;
-buses not connected to the slack bus, whose power flow cannot converge). Empty tables are (0, ncols) arrays;
+buses not connected to the slack bus, whose power flow cannot converge; a device other than the slack one on bus
+0, which gym-anm drops from the energy balance by setting the slack device's P to the whole bus injection). Empty
+tables are (0, ncols) arrays;
 an empty bus or device table is refused as empty, and a one-bus network deliberately (the power flow needs a
 non-slack bus).
 Every error is a ``ValueError`` naming the table, the row (bus / device / branch id) and the column.
@@ -289,6 +291,12 @@ def validate_network(network: Mapping) -> dict:
         raise ValueError("network table 'bus' has a single bus: a one-bus network (no branches) is not supported, "
                          "because the power flow (both backends) solves for the non-slack buses and needs at least "
                          "one; add a bus joined to the slack bus 0 by a branch")
+    others = dev[(dev[:, 1] == 0) & (dev[:, 2] != 0), 0].astype(int).tolist()
+    if others:  # gym-anm sets the slack device's P, Q to the whole bus-0 injection: theirs would vanish from it
+        raise _fail("device", f"devices {others}", "BUS_ID", "only the slack device may sit on the slack bus 0: "
+                    "gym-anm sets the slack device's P and Q to the whole bus-0 injection, so another device there would drop "
+                    "out of the energy balance (its power counted nowhere); connect it to a bus joined to bus 0 by a "
+                    "branch")
     _check_connected(br, bus.shape[0])
     return {"baseMVA": base, "bus": bus, "device": dev, "branch": br}
 
