@@ -58,6 +58,8 @@ def test_antiparallel_plain_lines_merge_as_parallel_ones():
     ("no_slack", r"0 in-service ext_grids; gym-anm has exactly one slack bus: add one"),
     # gym-anm counts the slack device's P as the whole bus-0 injection: a load there would count nowhere
     ("at_slack", r"elements on the ext_grid's bus \(load \[1\]\).*drop out of the energy balance"),
+    # an island (was: "pandapower's ppc has 2 branches, expected 3 in service")
+    ("island", r"buses \[3, 4\] are not supplied from the ext_grid .* in-service lines \[2\], loads \[1\]"),
 ])
 def test_what_gym_anm_cannot_model_is_refused(element, message):
     net, b = _feeder()
@@ -74,6 +76,10 @@ def test_what_gym_anm_cannot_model_is_refused(element, message):
         net.ext_grid["in_service"] = False
     elif element == "at_slack":  # was: imported, do-nothing returns positive (a negative energy loss)
         pp.create_load(net, b[0], p_mw=0.5, q_mvar=0.1)
+    elif element == "island":
+        i1, i2 = pp.create_bus(net, 20.0), pp.create_bus(net, 20.0)
+        pp.create_line_from_parameters(net, i1, i2, 1.0, 0.2, 0.4, 200, 0.4)
+        pp.create_load(net, i2, p_mw=0.3, q_mvar=0.1)
     else:
         net.load.drop(net.load.index, inplace=True)
         net.sgen.drop(net.sgen.index, inplace=True)

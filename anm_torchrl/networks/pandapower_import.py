@@ -120,6 +120,8 @@ def prepare(net):
                         + ("add one (pandapower.create_ext_grid)" if n_eg == 0 else
                            "split the net into one per ext_grid (e.g. pandapower.networks.mv_oberrhein("
                            "separation_by_sub=True)) and import each"))
+    if n_eg == 1:
+        problems += _unsupplied(net)
     if problems:
         raise ValueError("the pandapower net has what gym-anm cannot represent: " + "; ".join(problems)
                          + " (set in_service=False on an element to leave it out, accepting the change in the power "
@@ -132,6 +134,28 @@ def prepare(net):
     net.trafo["pfe_kw"] = 0.0
     net.line["g_us_per_km"] = 0.0
     return net
+
+
+def _unsupplied(net) -> list[str]:
+    """What sits in a part of ``net`` the ext_grid does not supply (an island, an out-of-service bus): its in-service
+    branches and devices, by pandapower index (empty: none; a bare bus is dropped silently, it carries nothing)."""
+    from pandapower import topology
+
+    buses = {int(b) for b in topology.unsupplied_buses(net)}
+    if not buses:
+        return []
+    found = []
+    for table, cols in (("line", ("from_bus", "to_bus")), ("trafo", ("hv_bus", "lv_bus")), ("load", ("bus",)),
+                        ("sgen", ("bus",)), ("storage", ("bus",))):
+        df = net[table]
+        hit = df.index[df.in_service.astype(bool) & np.logical_or.reduce([df[c].isin(buses) for c in cols])]
+        if len(hit):
+            found.append(f"{table}s {[int(i) for i in hit[:10]]}{' ...' if len(hit) > 10 else ''}")
+    if not found:
+        return []
+    return [f"buses {sorted(buses)[:10]}{' ...' if len(buses) > 10 else ''} are not supplied from the ext_grid (an "
+            f"island or an out-of-service bus) and carry in-service {', '.join(found)}: connect them or take "
+            "those out of service"]
 
 
 def _ratings(net, ppc, lookup, defaults: ImportDefaults) -> np.ndarray:
