@@ -60,6 +60,8 @@ def test_antiparallel_plain_lines_merge_as_parallel_ones():
     ("at_slack", r"elements on the ext_grid's bus \(load \[1\]\).*drop out of the energy balance"),
     # an island (was: "pandapower's ppc has 2 branches, expected 3 in service")
     ("island", r"buses \[3, 4\] are not supplied from the ext_grid .* in-service lines \[2\], loads \[1\]"),
+    # named by pandapower's buses (were gym-anm's ids and raw arrays), with what to do
+    ("parallel_taps", r"parallel branches between pandapower buses 2 and 3 differ in .* same tap and shift"),
 ])
 def test_what_gym_anm_cannot_model_is_refused(element, message):
     net, b = _feeder()
@@ -76,6 +78,10 @@ def test_what_gym_anm_cannot_model_is_refused(element, message):
         net.ext_grid["in_service"] = False
     elif element == "at_slack":  # was: imported, do-nothing returns positive (a negative energy loss)
         pp.create_load(net, b[0], p_mw=0.5, q_mvar=0.1)
+    elif element == "parallel_taps":  # two 20/0.4 kV units side by side, one at another tap position
+        lv = pp.create_bus(net, 0.4)
+        for tap in (0, 1):
+            pp.create_transformer(net, b[2], lv, "0.4 MVA 20/0.4 kV", tap_pos=tap)
     elif element == "island":
         i1, i2 = pp.create_bus(net, 20.0), pp.create_bus(net, 20.0)
         pp.create_line_from_parameters(net, i1, i2, 1.0, 0.2, 0.4, 200, 0.4)

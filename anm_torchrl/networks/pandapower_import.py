@@ -180,16 +180,19 @@ def _ratings(net, ppc, lookup, defaults: ImportDefaults) -> np.ndarray:
     return np.where(rate > defaults.unlimited_mva, NAN, rate)
 
 
-def _merge_parallel(rows: list[np.ndarray]) -> np.ndarray:
-    """One pi branch equal to parallel pi branches of the same (from, to, tap, shift)."""
+def _merge_parallel(rows: list[np.ndarray], where=str) -> np.ndarray:
+    """One pi branch equal to parallel pi branches of the same (from, to, tap, shift); ``where(f, t)`` names a
+    branch's ends for messages (pandapower's buses)."""
     first = rows[0]
     for k, r in enumerate(rows[1:], 1):
         if r[0] == first[1] and r[1] == first[0] and r[6] == 1.0 and r[7] == 0.0:
             rows[k] = r = r.copy()  # a plain line (no tap, no shift) is the same branch drawn either way
             r[[0, 1]] = first[[0, 1]]
         if not np.allclose(r[[0, 1, 6, 7]], first[[0, 1, 6, 7]]):
-            raise ValueError(f"parallel branches between buses {int(first[0])} and {int(first[1])} differ in "
-                             f"orientation, tap or shift ({first[[0, 1, 6, 7]]} vs {r[[0, 1, 6, 7]]})")
+            raise ValueError(f"parallel branches {where(int(first[0]), int(first[1]))} differ in orientation, tap "
+                             f"or shift ([from, to, tap, shift] {first[[0, 1, 6, 7]].tolist()} vs "
+                             f"{r[[0, 1, 6, 7]].tolist()}); gym-anm has no parallel branches and merges only equal "
+                             "ones: give them the same tap and shift, or take one out of service")
     y = sum(1.0 / (r[2] + 1j * r[3]) for r in rows)
     z = 1.0 / y
     out = first.copy()
@@ -199,7 +202,9 @@ def _merge_parallel(rows: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def _branches(ppc, keep_bus, new_id, rate, vm, va_deg) -> np.ndarray:
+def _branches(ppc, keep_bus, new_id, rate, vm, va_deg, where=lambda f, t: f"{f}-{t}") -> np.ndarray:
+    """gym-anm's branch table from ppc's branches; ``where(f, t)`` names a branch's ends (gym-anm bus ids) for
+    messages."""
     require("pandapower")
     from pandapower.pypower.idx_brch import BR_B, BR_R, BR_STATUS, BR_X, F_BUS, SHIFT, T_BUS, TAP
 
@@ -219,17 +224,23 @@ def _branches(ppc, keep_bus, new_id, rate, vm, va_deg) -> np.ndarray:
         tap = br[k, TAP] if br[k, TAP] != 0 else 1.0
         row = np.array([f, t, br[k, BR_R], br[k, BR_X], br[k, BR_B], rate[k], tap, br[k, SHIFT]])
         if row[3] < 0 or row[4] < 0:
-            raise ValueError(f"branch {f}-{t}: X = {row[3]} and B = {row[4]} must be >= 0 for gym-anm")
+            raise ValueError(f"the branch {where(f, t)} has X = {row[3]:.6g} and B = {row[4]:.6g} p.u.; gym-anm "
+                             "needs both >= 0 (a series capacitor or an equivalent with negative reactance has no "
+                             "model): take it out of service or replace it")
         if t == 0 and tap == 1.0 and row[7] == 0.0:
             row[[0, 1]] = [t, f]  # a plain line into the slack bus: orient it away so the fold below applies
         elif t == 0:
-            raise ValueError(f"transformer {f}-{t} has the slack bus on its tapped side's far end")
+            raise ValueError(f"the transformer {where(f, t)} has a tap or phase shift towards the ext_grid's bus; "
+                             "gym-anm puts a branch's tap on its from side and folds the slack's set-point into the "
+                             "branches leaving bus 0, so this one has no model: set its tap to neutral (tap_pos = "
+                             "tap_neutral) and shift to 0 if acceptable")
         if row[0] == 0:
             row[6] /= vm
             row[7] -= va_deg
         row[7] = row[7] % 360.0
         groups.setdefault((min(f, t), max(f, t)), []).append(row)
-    return np.array([_merge_parallel(g) if len(g) > 1 else g[0] for g in groups.values()], dtype=np.float64)
+    return np.array([_merge_parallel(g, where) if len(g) > 1 else g[0] for g in groups.values()],
+                    dtype=np.float64)
 
 
 def _drop_loop_free_shifts(branch: np.ndarray, n_bus: int) -> np.ndarray:
@@ -325,7 +336,15 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
     bus = np.column_stack([np.arange(len(order)), np.ones(len(order)), ppc["bus"][order, BASE_KV], vmax, vmin])
     bus[0, 1], bus[0, 2], bus[0, 3], bus[0, 4] = 0, bus[0, 2] * vm, 1.0, 1.0
 
-    branch = _branches(ppc, keep, new_id, _ratings(net, ppc, lookup["branch"], defaults), vm, va)
+    members: dict[int, list[int]] = {}  # gym-anm bus -> its pandapower buses (several where fused)
+    for b, g in bus_map.items():
+        members.setdefault(g, []).append(b)
+
+    def where(f: int, t: int) -> str:
+        name = lambda g: str(members[g][0]) if len(members.get(g, ())) == 1 else str(members.get(g, "?"))  # noqa
+        return f"between pandapower buses {name(f)} and {name(t)}"
+
+    branch = _branches(ppc, keep, new_id, _ratings(net, ppc, lookup["branch"], defaults), vm, va, where)
     branch = _drop_loop_free_shifts(branch, len(order))
 
     def on_grid(table):
