@@ -124,3 +124,18 @@ def test_network_files_that_are_not_what_they_claim_are_refused(tmp_path):
             get_network(str(tmp_path / f"{name}.npz"))
     with pytest.raises(ValueError, match="costs_clipping must be"):
         check_reward_args(0.25, 0.995, 100, 5)
+
+
+def test_what_the_conversion_leaves_out_is_said(caplog):
+    """A transformer's no-load losses (pfe_kw) have no gym-anm model: the conversion says how many kW of the
+    pandapower net's losses the env will not count (was: only in the module docstring)."""
+    import logging
+
+    net, b = _feeder()
+    lv = pp.create_bus(net, 0.4)
+    pp.create_transformer(net, b[2], lv, "0.4 MVA 20/0.4 kV")
+    pp.create_load(net, lv, p_mw=0.1, q_mvar=0.02)
+    with caplog.at_level(logging.WARNING, logger="anm_torchrl.networks.pandapower_import"):
+        ppi.prepare(net)
+    pfe = float(net.trafo.pfe_kw.sum())
+    assert pfe > 0 and f"transformer no-load losses, {pfe:.3g} kW in all" in caplog.text

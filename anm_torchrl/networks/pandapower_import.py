@@ -130,6 +130,13 @@ def prepare(net):
     net.line.loc[sw.element[sw.et == "l"].unique(), "in_service"] = False
     net.trafo.loc[sw.element[sw.et == "t"].unique(), "in_service"] = False
     net.switch = net.switch[net.switch.closed.astype(bool) | (net.switch.et == "b")]
+    on_t, on_l = net.trafo.in_service.astype(bool), net.line.in_service.astype(bool)
+    pfe = float(net.trafo.pfe_kw[on_t].sum()) if len(net.trafo) else 0.0
+    gl = bool((net.line.get("g_us_per_km", pd.Series(0.0, index=net.line.index))[on_l] > 0).any())
+    if pfe > 0 or gl:  # the reward's losses are the series losses alone: say how much is left out
+        logger.warning("left out (gym-anm's branches have no shunt conductance): transformer no-load losses, %.3g kW "
+                       "in all (pfe_kw), and magnetising currents (i0_percent)%s; the env's energy losses are the "
+                       "series losses only", pfe, ", and line shunt conductance (g_us_per_km)" if gl else "")
     net.trafo["i0_percent"] = 0.0
     net.trafo["pfe_kw"] = 0.0
     net.line["g_us_per_km"] = 0.0
