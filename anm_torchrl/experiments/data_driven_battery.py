@@ -122,7 +122,8 @@ def markdown(rec: dict[str, Any]) -> str:
                         f"{100 * m['terminal_agreement']:.2f} % | {m['build_s']:.0f} |")
     return (f"Data-driven surrogates built on first use (`make_env(<kind>, network=<dict>)`, 100,000 generative rows) "
             f"on the PINN battery's networks, scored on {rec['n_random']} held-out random transitions (seed 12345; "
-            f"the PINN's row from `results/pinn_battery/battery.json`, same transitions). Target of the PINN battery: "
+            f"the PINN's row from `{rec.get('pinn_refreshed', {}).get('record', 'results/pinn_battery/battery.json')}`"
+            f", same transitions). Target of the PINN battery: "
             f"P/Q MAE ≤ 1 % of each device's rating. Build time includes the dataset. Machine: "
             f"{rec['machine'].get('cpu', '?')}, {rec['machine'].get('usable_cores', '?')} usable cores.\n\n{head}\n"
             + "\n".join(rows) + "\n")
