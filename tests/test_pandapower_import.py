@@ -93,6 +93,29 @@ def test_what_gym_anm_cannot_model_is_refused(element, message):
         _convert(net)
 
 
+def test_a_symmetric_series_impedance_is_a_branch():
+    """pandapower's ``impedance`` element without shunt terms and equal both ways is a plain gym-anm branch (was
+    refused): the converted net's power flow lands on pandapower's; an asymmetric one is refused by index."""
+    net, b = _feeder()
+    bus = pp.create_bus(net, 20.0)
+    pp.create_impedance(net, b[2], bus, 0.01, 0.02, sn_mva=10)
+    pp.create_load(net, bus, p_mw=0.2, q_mvar=0.05)
+    from anm_torchrl.networks import pf_check
+
+    prepared = ppi.prepare(net)
+    loads = np.array([r.p_mw for _, r in prepared.load.iterrows()])
+    res = ppi.convert(prepared, loads)
+    p, q = pf_check.do_nothing_injections(res.network, -loads, np.array([0.5]))
+    pf_check.set_pandapower_point(prepared, res, p, q)
+    pf_check.run_pandapower(prepared)
+    vm, ok = pf_check.gym_anm_vm(res.network, p, q)
+    assert ok and np.abs(pf_check.compare_vm(prepared, res, vm)).max() < 1e-9
+    assert np.asarray(res.network["branch"]).shape[0] == 3
+    net.impedance.loc[0, "xtf_pu"] = 0.03
+    with pytest.raises(ValueError, match=r"impedance \[0\] \(asymmetric or with shunt terms"):
+        ppi.prepare(net)
+
+
 def test_out_of_service_elements_of_unmodelled_kinds_are_left_out():
     """An impedance (or shunt, trafo3w, ...) that is out of service has nothing to represent: the net converts as
     without it (was: refused as 'not supported')."""

@@ -12,8 +12,10 @@ What gym-anm can represent, and the defaults used where pandapower has no value 
 * **Unsupported physics is refused or removed, and the removal is applied to the pandapower net the checks
   run on** (:func:`prepare`): gym-anm branches have no shunt conductance and B >= 0, so transformer
   magnetising currents (``i0_percent``, ``pfe_kw``) and line conductance ``g_us_per_km`` are set to 0; bus
-  shunts, wards, impedances, DC lines, 3-winding transformers, voltage-dependent loads, voltage-controlled
-  generators (``gen``: model them as ``sgen``) and reactive-only loads (p_mw 0, q_mvar not) raise ``ValueError``.
+  shunts, wards, asymmetric impedances or ones with shunt terms, DC lines, 3-winding transformers,
+  voltage-dependent loads, voltage-controlled generators (``gen``: model them as ``sgen``) and reactive-only loads
+  (p_mw 0, q_mvar not) raise one ``ValueError`` naming them all; a symmetric series ``impedance`` is a branch
+  without rating.
 * **Parallel branches** (gym-anm forbids them) are merged into one pi branch (admittances and charging add,
   ratings add; a plain line drawn the other way is the same branch); parallel branches with different taps raise.
 * **Slack**: the in-service ``ext_grid`` bus becomes bus 0 (gym-anm's power flow fixes V = 1∠0 at bus 0; other
@@ -55,7 +57,7 @@ pd = require("pandas")  # pandapower's dependency: the [feeders] extra
 logger = logging.getLogger(__name__)
 
 RENEWABLE_TYPE = re.compile(r"(^|[^a-z])(pv|wp|res)([^a-z]|$)|wind|hydro|solar", re.IGNORECASE)
-UNSUPPORTED = ("shunt", "ward", "xward", "impedance", "dcline", "trafo3w", "svc", "tcsc", "ssc", "vsc",
+UNSUPPORTED = ("shunt", "ward", "xward", "dcline", "trafo3w", "svc", "tcsc", "ssc", "vsc",
                "asymmetric_load", "asymmetric_sgen", "motor")
 NAN = float("nan")
 
@@ -103,6 +105,15 @@ def prepare(net):
             if on.any():
                 problems.append(f"{table} {list(net[table].index[on])} (gym-anm has no model for it)")
             net[table] = net[table].iloc[:0]  # the rest is out of service: nothing to represent
+    if "impedance" in net and len(net.impedance):  # a plain series impedance is a gym-anm branch
+        imp = net.impedance
+        shunt = [c for c in ("gf_pu", "bf_pu", "gt_pu", "bt_pu") if c in imp]
+        odd = imp.index[imp.in_service.astype(bool) & ((imp.rft_pu != imp.rtf_pu) | (imp.xft_pu != imp.xtf_pu)
+                                                       | (imp[shunt].fillna(0).abs() > 0).any(axis=1))]
+        if len(odd):
+            problems.append(f"impedance {list(odd)} (asymmetric or with shunt terms; a symmetric series impedance "
+                            "converts)")
+        net.impedance = imp[imp.in_service.astype(bool)]
     const = [c for c in net.load.columns if c.startswith("const_")]
     bad = net.load.index[(net.load[const].fillna(0).abs() > 0).any(axis=1) & net.load.in_service]
     if len(bad):
@@ -172,10 +183,12 @@ def _ratings(net, ppc, lookup, defaults: ImportDefaults) -> np.ndarray:
     for table, (s, e) in lookup.items():
         if e == s:  # an empty table (its out-of-service rows left out by prepare)
             continue
-        if table not in ("line", "trafo"):
+        if table not in ("line", "trafo", "impedance"):
             raise ValueError(f"pandapower branch element {table!r} is not supported")
         df = net[table]
         status[s:e] = df.in_service.to_numpy(dtype=bool)
+        if table == "impedance":  # no thermal rating (its sn_mva is the base of its p.u. values)
+            continue
         if table == "line":
             vn = net.bus.vn_kv.loc[df.from_bus].to_numpy()
             rate[s:e] = df.max_i_ka.to_numpy() * df.df.to_numpy() * df.parallel.to_numpy() * np.sqrt(3) * vn
