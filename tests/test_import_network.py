@@ -27,6 +27,16 @@ def _feeder_json(tmp_path):
     return path
 
 
+def _lv_net():
+    """An LV feeder: ext_grid - line - bus 1 with a 20 kW load (1 MVA base)."""
+    net = pp.create_empty_network(sn_mva=1)
+    b = [pp.create_bus(net, 0.4) for _ in range(2)]
+    pp.create_ext_grid(net, b[0])
+    pp.create_line_from_parameters(net, b[0], b[1], 0.1, 0.2, 0.1, 100, 0.3)
+    pp.create_load(net, b[1], p_mw=0.02, q_mvar=0.005)
+    return net, b
+
+
 def test_pandapower_net_with_profiles_becomes_a_network_file(tmp_path, capsys):
     net = _feeder_json(tmp_path)
     t = np.arange(8)
@@ -81,11 +91,7 @@ def test_refusals_name_what_is_wrong(tmp_path):
 def test_one_way_storage_converts_inside_its_range(caplog):
     """SimBench's home batteries have max_p_mw 0 (discharge only): the inverter polygon's charging corner (-0.8 S)
     fell below PMIN = 0 and gym-anm refused the device table ("P- outside [PMIN, PMAX]")."""
-    net = pp.create_empty_network(sn_mva=1)
-    b = [pp.create_bus(net, 0.4) for _ in range(2)]
-    pp.create_ext_grid(net, b[0])
-    pp.create_line_from_parameters(net, b[0], b[1], 0.1, 0.2, 0.1, 100, 0.3)
-    pp.create_load(net, b[1], p_mw=0.02, q_mvar=0.005)
+    net, b = _lv_net()
     pp.create_storage(net, b[1], p_mw=-0.05, max_e_mwh=0.1, min_p_mw=-0.05, max_p_mw=0.0, name="home battery")
     import pandas as pd
 
@@ -111,11 +117,7 @@ def test_one_way_storage_converts_inside_its_range(caplog):
 
 def test_two_way_storage_option_is_recorded_in_the_file(tmp_path):
     """``--two-way-storage`` reaches the conversion (a one-way battery gets PMIN = -PMAX) and the file's source."""
-    net = pp.create_empty_network(sn_mva=1)
-    b = [pp.create_bus(net, 0.4) for _ in range(2)]
-    pp.create_ext_grid(net, b[0])
-    pp.create_line_from_parameters(net, b[0], b[1], 0.1, 0.2, 0.1, 100, 0.3)
-    pp.create_load(net, b[1], p_mw=0.02, q_mvar=0.005)
+    net, b = _lv_net()
     pp.create_storage(net, b[1], p_mw=0.0, max_e_mwh=0.1, min_p_mw=-0.05, max_p_mw=0.0)
     pp.to_json(net, str(tmp_path / "net.json"))
     for flag, pmin in (([], 0.0), (["--two-way-storage"], -0.05)):
@@ -169,3 +171,18 @@ def test_a_net_without_controllable_device_is_written_and_said_so(tmp_path, caps
     printed = capsys.readouterr().out
     assert out["devices"]["load"] == 1 and "train on it" not in printed
     assert "no controllable device" in printed and "recipes/evaluate.py policy=do_nothing" in printed
+
+
+def test_two_way_storage_names_only_the_units_it_changed(tmp_path, caplog):
+    """``--two-way-storage`` on a battery that is two-way already changes nothing and the file's source says
+    nothing; a unit without any P range (min_p_mw = max_p_mw = 0) is not 'mirrored' (found by review: it was counted
+    twice and the source claimed a change)."""
+    net, b = _lv_net()
+    pp.create_storage(net, b[1], p_mw=0.0, max_e_mwh=0.1, min_p_mw=-0.05, max_p_mw=0.05)
+    pp.create_storage(net, b[1], p_mw=0.0, max_e_mwh=0.1, min_p_mw=0.0, max_p_mw=0.0)
+    pp.to_json(net, str(tmp_path / "net.json"))
+    with caplog.at_level(logging.WARNING):
+        import_network.main(["--pandapower", str(tmp_path / "net.json"), "--rows", "4", "--out",
+                             str(tmp_path / "g.npz"), "--two-way-storage"])
+    assert "made two-way" not in load_network_file(tmp_path / "g.npz").source
+    assert "indices [1, 1]" not in caplog.text and "made two-way" not in caplog.text

@@ -62,8 +62,6 @@ def main(argv: list[str] | None = None) -> dict:
                                                                     args.rows)
     from anm_torchrl.networks.pandapower_import import ImportDefaults
 
-    if args.two_way_storage:
-        source += "; one-way storage units made two-way (P range mirrored, --two-way-storage)"
     out = user_import.import_network(net, load_mw, sgen_mw, args.out, source=source, check_rows=args.check_rows,
                                      overwrite=args.force,
                                      defaults=ImportDefaults(storage_two_way=args.two_way_storage))

@@ -46,7 +46,7 @@ from __future__ import annotations
 import copy
 import logging
 import re
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -89,6 +89,7 @@ class ImportResult:
     gen_elements: list  # ("sgen" | "gen", index, renewable: bool) of each non-slack generator, ID order
     storage_idx: list
     bus_map: dict  # pandapower bus index -> gym-anm bus id (fused buses share an id)
+    mirrored: list = field(default_factory=list)  # storage indices given the mirrored P range (storage_two_way)
 
 
 def prepare(net):
@@ -118,6 +119,10 @@ def prepare(net):
     bad = net.load.index[(net.load[const].fillna(0).abs() > 0).any(axis=1) & net.load.in_service]
     if len(bad):
         problems.append(f"loads {list(bad)} are voltage dependent ({const}); gym-anm loads are constant power")
+    reactive = net.load.index[net.load.in_service.astype(bool) & (net.load.p_mw == 0) & (net.load.q_mvar != 0)]
+    if len(reactive):
+        problems.append(f"loads {list(reactive)} have p_mw 0 and q_mvar not; a gym-anm load's Q follows its P (a "
+                        "constant Q/P), so a reactive-only load has no model")
     gens = net.gen.index[net.gen.in_service] if "gen" in net and len(net.gen) else []
     if len(gens):
         problems.append(f"gens {list(gens)} control their bus voltage (PV buses); gym-anm's generators are P/Q "
@@ -131,7 +136,7 @@ def prepare(net):
                         + ("add one (pandapower.create_ext_grid)" if n_eg == 0 else
                            "split the net into one per ext_grid (e.g. pandapower.networks.mv_oberrhein("
                            "separation_by_sub=True)) and import each"))
-    if n_eg == 1:
+    if n_eg == 1 and not problems:  # (after the rest: the tables emptied above can be what connects a part)
         problems += _unsupplied(net)
     if problems:
         raise ValueError("the pandapower net has what gym-anm cannot represent: " + "; ".join(problems)
@@ -145,9 +150,10 @@ def prepare(net):
     pfe = float(net.trafo.pfe_kw[on_t].sum()) if len(net.trafo) else 0.0
     gl = bool((net.line.get("g_us_per_km", pd.Series(0.0, index=net.line.index))[on_l] > 0).any())
     if pfe > 0 or gl:  # the reward's losses are the series losses alone: say how much is left out
-        logger.warning("left out (gym-anm's branches have no shunt conductance): transformer no-load losses, %.3g kW "
-                       "in all (pfe_kw), and magnetising currents (i0_percent)%s; the env's energy losses are the "
-                       "series losses only", pfe, ", and line shunt conductance (g_us_per_km)" if gl else "")
+        parts = ([f"transformer no-load losses, {pfe:.3g} kW in all (pfe_kw, with their magnetising currents)"]
+                 if pfe > 0 else []) + (["line shunt conductance (g_us_per_km)"] if gl else [])
+        logger.warning("left out (gym-anm's branches have no shunt conductance): %s; the env's energy losses are the "
+                       "series losses only", " and ".join(parts))
     net.trafo["i0_percent"] = 0.0
     net.trafo["pfe_kw"] = 0.0
     net.line["g_us_per_km"] = 0.0
@@ -159,12 +165,14 @@ def _unsupplied(net) -> list[str]:
     branches and devices, by pandapower index (empty: none; a bare bus is dropped silently, it carries nothing)."""
     from pandapower import topology
 
-    buses = {int(b) for b in topology.unsupplied_buses(net)}
+    buses = {int(b) for b in topology.unsupplied_buses(net)}  # (its graph leaves out-of-service buses out)
+    buses |= {int(b) for b in net.bus.index[~net.bus.in_service.astype(bool)]}
     if not buses:
         return []
     found = []
-    for table, cols in (("line", ("from_bus", "to_bus")), ("trafo", ("hv_bus", "lv_bus")), ("load", ("bus",)),
-                        ("sgen", ("bus",)), ("storage", ("bus",))):
+    for table, cols in (("line", ("from_bus", "to_bus")), ("trafo", ("hv_bus", "lv_bus")),
+                        ("impedance", ("from_bus", "to_bus")), ("load", ("bus",)), ("sgen", ("bus",)),
+                        ("storage", ("bus",))):
         df = net[table]
         hit = df.index[df.in_service.astype(bool) & np.logical_or.reduce([df[c].isin(buses) for c in cols])]
         if len(hit):
@@ -200,7 +208,7 @@ def _ratings(net, ppc, lookup, defaults: ImportDefaults) -> np.ndarray:
     return np.where(rate > defaults.unlimited_mva, NAN, rate)
 
 
-def _merge_parallel(rows: list[np.ndarray], where=str) -> np.ndarray:
+def _merge_parallel(rows: list[np.ndarray], where=lambda f, t: f"{f}-{t}") -> np.ndarray:
     """One pi branch equal to parallel pi branches of the same (from, to, tap, shift); ``where(f, t)`` names a
     branch's ends for messages (pandapower's buses)."""
     first = rows[0]
@@ -210,9 +218,8 @@ def _merge_parallel(rows: list[np.ndarray], where=str) -> np.ndarray:
             r[[0, 1]] = first[[0, 1]]
         if not np.allclose(r[[0, 1, 6, 7]], first[[0, 1, 6, 7]]):
             raise ValueError(f"parallel branches {where(int(first[0]), int(first[1]))} differ in orientation, tap "
-                             f"or shift ([from, to, tap, shift] {first[[0, 1, 6, 7]].tolist()} vs "
-                             f"{r[[0, 1, 6, 7]].tolist()}); gym-anm has no parallel branches and merges only equal "
-                             "ones: give them the same tap and shift, or take one out of service")
+                             f"or shift; gym-anm has no parallel branches and merges only equal ones: give them the "
+                             "same tap position and shift, or take one out of service")
     y = sum(1.0 / (r[2] + 1j * r[3]) for r in rows)
     z = 1.0 / y
     out = first.copy()
@@ -375,9 +382,11 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
                 for t in ("load", "sgen", "storage")}
     if any(at_slack.values()):  # gym-anm's slack P is the whole bus-0 injection: theirs would count nowhere
         named = "; ".join(f"{t} {idx}" for t, idx in at_slack.items() if idx)
-        raise ValueError(f"pandapower elements on the ext_grid's bus ({named}): gym-anm sets the slack device's P "
-                         "and Q to that bus's whole injection, so their power would drop out of the energy balance; "
-                         "connect them to a bus joined to the ext_grid's by a line or transformer")
+        raise ValueError(f"pandapower elements on the ext_grid's bus or a bus fused with it by a closed bus-bus "
+                         f"switch ({named}): gym-anm sets the slack device's P and Q to that bus's whole injection, "
+                         "so the slack's power leaves theirs out while the energy loss still counts it (a load there "
+                         "gives a negative loss); connect them to a bus joined to the ext_grid's by a line or "
+                         "transformer")
     devices, load_idx, gen_elements, storage_idx = [], [], [], []
     loads = on_grid("load")
     if len(load_peak) != len(loads):
@@ -404,18 +413,21 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
                 devices.append([-1, bus_map[row.bus], 1, NAN, s, 0.0, qmax, qmin, *[NAN] * 7])
             gen_elements.append((table, int(i), renewable))
     one_way = {"charge": [], "discharge": []}  # pandapower storage indices of units that work one way only
+    two_way = []  # of those, the ones given the mirrored range (defaults.storage_two_way)
     for i, row in on_grid("storage").iterrows():
         pmax = -row.min_p_mw if np.isfinite(row.get("min_p_mw", NAN)) else abs(row.p_mw)
         pmin = -row.max_p_mw if np.isfinite(row.get("max_p_mw", NAN)) else -abs(row.p_mw)
         s = max(pmax, -pmin)
-        if defaults.storage_two_way and (pmax <= 0 or pmin >= 0):
+        mirrored = defaults.storage_two_way and s > 0 and (pmax <= 0 or pmin >= 0)
+        if mirrored:
             one_way["charge" if pmax <= 0 else "discharge"].append(int(i))
+            two_way.append(int(i))
             pmax, pmin = s, -s
         inv = _inverter("storage", i, row, s, defaults)
         # the polygon's corners inside the P range: gym-anm wants PMIN <= P- <= P+ <= PMAX, and a one-way unit
         # (SimBench's home batteries: max_p_mw 0) or a lopsided one has one side shorter than 0.8 S
         inv[2], inv[3] = min(inv[2], pmax), max(-defaults.inverter_corner_p * s, pmin)
-        if pmax <= 0 or pmin >= 0:  # (a two-way reading was counted above)
+        if not mirrored and (pmax <= 0 or pmin >= 0):
             one_way["charge" if pmax <= 0 else "discharge"].append(int(i))
         emax = row.max_e_mwh if np.isfinite(row.get("max_e_mwh", NAN)) else defaults.storage_hours * pmax
         emin = row.min_e_mwh if np.isfinite(row.get("min_e_mwh", NAN)) else 0.0
@@ -423,8 +435,8 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
         storage_idx.append(int(i))
     for way, idx in one_way.items():
         if idx:
-            how = ("made two-way (--two-way-storage): P range mirrored" if defaults.storage_two_way else
-                   "imported as given (--two-way-storage mirrors their P range)")
+            how = ("made two-way (--two-way-storage): P range mirrored" if set(idx) <= set(two_way) else
+                   "imported as given (--two-way-storage mirrors a non-empty P range)")
             logger.warning("%d pandapower storage units can only %s (min_p_mw or max_p_mw 0), %s: indices %s",
                            len(idx), way, how, idx)
 
@@ -444,7 +456,7 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
     dev = np.vstack([slack_row, dev])
     dev[:, 0] = np.arange(dev.shape[0])
     network = {"baseMVA": float(net.sn_mva), "bus": bus, "device": dev, "branch": branch}
-    return ImportResult(network, load_idx, gen_elements, storage_idx, bus_map)
+    return ImportResult(network, load_idx, gen_elements, storage_idx, bus_map, two_way)
 
 
 def profiles(res: ImportResult, load_mw, sgen_mw) -> tuple[np.ndarray, np.ndarray]:

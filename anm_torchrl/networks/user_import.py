@@ -112,6 +112,8 @@ def import_network(net, load_mw, sgen_mw, out: str | os.PathLike, *, source: str
     """
     path = check_network_out(out, overwrite)
     prepared, res, load_p, gen_p_max = ppi.from_pandapower(net, load_mw, sgen_mw, defaults)
+    if res.mirrored:  # the file says what differs from the net as given
+        source += f"; storage units {res.mirrored} made two-way (P range mirrored, --two-way-storage)"
     sweep = pf_check.do_nothing_sweep(prepared, res, load_p, gen_p_max)
     network, diff = res.network, 0.0
     for t in np.unique(np.linspace(0, len(load_p) - 1, max(1, check_rows)).astype(int)):

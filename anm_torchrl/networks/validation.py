@@ -294,9 +294,9 @@ def validate_network(network: Mapping) -> dict:
     others = dev[(dev[:, 1] == 0) & (dev[:, 2] != 0), 0].astype(int).tolist()
     if others:  # gym-anm sets the slack device's P, Q to the whole bus-0 injection: theirs would vanish from it
         raise _fail("device", f"devices {others}", "BUS_ID", "only the slack device may sit on the slack bus 0: "
-                    "gym-anm sets the slack device's P and Q to the whole bus-0 injection, so another device there would drop "
-                    "out of the energy balance (its power counted nowhere); connect it to a bus joined to bus 0 by a "
-                    "branch")
+                    "gym-anm sets the slack device's P and Q to the whole bus-0 injection, so the slack's power "
+                    "leaves another device there out while the energy loss still counts it (a load there gives a "
+                    "negative loss); connect it to a bus joined to bus 0 by a branch")
     _check_connected(br, bus.shape[0])
     return {"baseMVA": base, "bus": bus, "device": dev, "branch": br}
 
