@@ -186,3 +186,28 @@ def test_two_way_storage_names_only_the_units_it_changed(tmp_path, caplog):
                              str(tmp_path / "g.npz"), "--two-way-storage"])
     assert "made two-way" not in load_network_file(tmp_path / "g.npz").source
     assert "indices [1, 1]" not in caplog.text and "made two-way" not in caplog.text
+
+
+@pytest.mark.parametrize("tap_pos, shift", [(-1, 0.0), (2, 5.0)])
+def test_a_transformer_tapped_towards_the_slack_bus_converts(tmp_path, tap_pos, shift):
+    """case118's transformer 67-68 has its tap on the side away from the ext_grid's bus (was refused: gym-anm's tap
+    is on a branch's from side and the slack's set-point folds into branches leaving bus 0). It is the same two-port
+    drawn from bus 0 (tap 1/τ, z·τ², B/τ²): the file is written only if gym-anm's power flow lands on pandapower's,
+    here with the slack at 1.035∠30°."""
+    net = pp.create_empty_network(sn_mva=100)
+    hv, slack, far = pp.create_bus(net, 161.0), pp.create_bus(net, 138.0), pp.create_bus(net, 161.0)
+    pp.create_ext_grid(net, slack, vm_pu=1.035, va_degree=30.0)
+    pp.create_transformer_from_parameters(net, hv, slack, sn_mva=9900, vn_hv_kv=161, vn_lv_kv=138, vkr_percent=0.1,
+                                          vk_percent=366.3, pfe_kw=0, i0_percent=0, tap_side="hv", tap_neutral=0,
+                                          tap_step_percent=6.5, tap_pos=tap_pos, shift_degree=shift,
+                                          tap_changer_type="Ratio")
+    pp.create_line_from_parameters(net, hv, far, 20.0, 0.05, 0.4, 10, 0.8)
+    pp.create_load(net, far, p_mw=60, q_mvar=15)
+    pp.create_sgen(net, hv, p_mw=20, type="PV")
+    pp.to_json(net, str(tmp_path / "net.json"))
+    out = import_network.main(["--pandapower", str(tmp_path / "net.json"), "--rows", "4", "--check-rows", "4",
+                               "--out", str(tmp_path / "t.npz")])
+    assert out["vm_max_diff"] < 1e-9
+    branch = load_network_file(tmp_path / "t.npz").network["branch"]
+    (trafo,) = branch[branch[:, 0] == 0]  # drawn from the slack bus, its tap on that side
+    assert trafo[1] == 1 and not np.isclose(trafo[6], 1.0)

@@ -5,7 +5,8 @@ What gym-anm can represent, and the defaults used where pandapower has no value 
 
 * **Topology** through pandapower's own ``pd2ppc`` (``to_ppc``): closed bus-bus switches fuse buses, tap
   positions become ratios, transformers become pi branches with the tap on the high-voltage (from) side —
-  gym-anm's TAP/SHIFT (SHIFT taken modulo 360°, gym-anm wants [0, 360]). Phase shifts that close no loop
+  gym-anm's TAP/SHIFT (SHIFT taken modulo 360°, gym-anm wants [0, 360]); one whose low-voltage side is the slack
+  bus is drawn from it instead (tap 1/τ, z·τ², B/τ²: the same two-port). Phase shifts that close no loop
   are set to 0 (they only rotate the angles behind them; gym-anm's flat-start Newton–Raphson fails behind a
   150° shift); so bus angles are pandapower's minus the shifts upstream. Lines and transformers behind an
   open switch, and every out-of-service element, are dropped; isolated buses are dropped.
@@ -229,6 +230,14 @@ def _merge_parallel(rows: list[np.ndarray], where=lambda f, t: f"{f}-{t}") -> np
     return out
 
 
+def _reversed_tap_branch(row: np.ndarray) -> np.ndarray:
+    """A branch ``[f, t, R, X, B, RATE, τ, θ°]`` (ideal transformer τ∠θ on the f side) as the equal two-port drawn from
+    t: tap 1/τ ∠ −θ, series impedance z·τ², line charging B/τ² (the bus admittance entries match exactly: Y_ff =
+    (y + jB/2)/τ², Y_tt = y + jB/2, Y_ft = −y/(τ∠−θ), Y_tf = −y/(τ∠θ) on both drawings)."""
+    f, t, r, x, b, rate, tau, shift = row
+    return np.array([t, f, r * tau ** 2, x * tau ** 2, b / tau ** 2, rate, 1.0 / tau, -shift])
+
+
 def _branches(ppc, keep_bus, new_id, rate, vm, va_deg, where=lambda f, t: f"{f}-{t}") -> np.ndarray:
     """gym-anm's branch table from ppc's branches; ``where(f, t)`` names a branch's ends (gym-anm bus ids) for
     messages."""
@@ -256,11 +265,8 @@ def _branches(ppc, keep_bus, new_id, rate, vm, va_deg, where=lambda f, t: f"{f}-
                              "model): take it out of service or replace it")
         if t == 0 and tap == 1.0 and row[7] == 0.0:
             row[[0, 1]] = [t, f]  # a plain line into the slack bus: orient it away so the fold below applies
-        elif t == 0:
-            raise ValueError(f"the transformer {where(f, t)} has a tap or phase shift towards the ext_grid's bus; "
-                             "gym-anm puts a branch's tap on its from side and folds the slack's set-point into the "
-                             "branches leaving bus 0, so this one has no model: set its tap to neutral (tap_pos = "
-                             "tap_neutral) and shift to 0 if acceptable")
+        elif t == 0:  # tapped towards the slack bus: the same two-port drawn from bus 0, its tap on the slack's side
+            row = _reversed_tap_branch(row)
         if row[0] == 0:
             row[6] /= vm
             row[7] -= va_deg
