@@ -209,7 +209,7 @@ def _ratings(net, ppc, lookup, defaults: ImportDefaults) -> np.ndarray:
     return np.where(rate > defaults.unlimited_mva, NAN, rate)
 
 
-def _merge_parallel(rows: list[np.ndarray], where=lambda f, t: f"{f}-{t}") -> np.ndarray:
+def _merge_parallel(rows: list[np.ndarray], where) -> np.ndarray:
     """One pi branch equal to parallel pi branches of the same (from, to, tap, shift); ``where(f, t)`` names a
     branch's ends for messages (pandapower's buses)."""
     first = rows[0]
@@ -238,7 +238,7 @@ def _reversed_tap_branch(row: np.ndarray) -> np.ndarray:
     return np.array([t, f, r * tau ** 2, x * tau ** 2, b / tau ** 2, rate, 1.0 / tau, -shift])
 
 
-def _branches(ppc, keep_bus, new_id, rate, vm, va_deg, where=lambda f, t: f"{f}-{t}") -> np.ndarray:
+def _branches(ppc, keep_bus, new_id, rate, vm, va_deg, where) -> np.ndarray:
     """gym-anm's branch table from ppc's branches; ``where(f, t)`` names a branch's ends (gym-anm bus ids) for
     messages."""
     require("pandapower")
@@ -373,8 +373,11 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
     for b, g in bus_map.items():
         members.setdefault(g, []).append(b)
 
+    def name(g: int) -> str:
+        m = members.get(g, [])
+        return str(m[0]) if len(m) == 1 else str(m)
+
     def where(f: int, t: int) -> str:
-        name = lambda g: str(members[g][0]) if len(members.get(g, ())) == 1 else str(members.get(g, "?"))  # noqa
         return f"between pandapower buses {name(f)} and {name(t)}"
 
     branch = _branches(ppc, keep, new_id, _ratings(net, ppc, lookup["branch"], defaults), vm, va, where)
@@ -424,17 +427,15 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
         pmax = -row.min_p_mw if np.isfinite(row.get("min_p_mw", NAN)) else abs(row.p_mw)
         pmin = -row.max_p_mw if np.isfinite(row.get("max_p_mw", NAN)) else -abs(row.p_mw)
         s = max(pmax, -pmin)
-        mirrored = defaults.storage_two_way and s > 0 and (pmax <= 0 or pmin >= 0)
-        if mirrored:
+        if pmax <= 0 or pmin >= 0:
             one_way["charge" if pmax <= 0 else "discharge"].append(int(i))
-            two_way.append(int(i))
-            pmax, pmin = s, -s
+            if defaults.storage_two_way and s > 0:  # (a unit without any P range has nothing to mirror)
+                two_way.append(int(i))
+                pmax, pmin = s, -s
         inv = _inverter("storage", i, row, s, defaults)
         # the polygon's corners inside the P range: gym-anm wants PMIN <= P- <= P+ <= PMAX, and a one-way unit
         # (SimBench's home batteries: max_p_mw 0) or a lopsided one has one side shorter than 0.8 S
         inv[2], inv[3] = min(inv[2], pmax), max(-defaults.inverter_corner_p * s, pmin)
-        if not mirrored and (pmax <= 0 or pmin >= 0):
-            one_way["charge" if pmax <= 0 else "discharge"].append(int(i))
         emax = row.max_e_mwh if np.isfinite(row.get("max_e_mwh", NAN)) else defaults.storage_hours * pmax
         emin = row.min_e_mwh if np.isfinite(row.get("min_e_mwh", NAN)) else 0.0
         devices.append([-1, bus_map[row.bus], 3, NAN, pmax, pmin, *inv, emax, emin, defaults.storage_eff])

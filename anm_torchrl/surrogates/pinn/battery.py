@@ -162,7 +162,8 @@ def measure(seed: int, model_dir: Path, n_random: int = 4000, overrides: dict[st
         _, report = cache.train_and_save(cfg, sim, path=file)
         entry["train_wall_s"] = time.perf_counter() - t0
         chain = load_pinn(sim, path=file, train_if_missing=False)
-        m = evaluate_pinn(chain, sim, *random_transitions(sim, n_random, eval_seed))
+        transitions = random_transitions(sim, n_random, eval_seed)
+        m = evaluate_pinn(chain, sim, *transitions)
         pb = report["power_balance"]
         entry.update({
             "preset": name, "overrides": overrides or {}, "accepted": report["accepted"],
@@ -175,7 +176,7 @@ def measure(seed: int, model_dir: Path, n_random: int = 4000, overrides: dict[st
             "reward_mae": m["reward_mae"], "reward_rel_mae": m["reward_rel_mae"],
             "module_time_s": {k: report[k].get("time_s") for k in tr.MODULES},
         })
-        entry["absolute_bar"] = absolute_bar_entry(chain, sim, entry["refine"], m, n_random, eval_seed)
+        entry["absolute_bar"] = absolute_bar_entry(chain, sim, entry["refine"], m, transitions)
         entry["meets"] = {k: (entry[k] is not None and (entry[k] >= b if k == "terminal_agreement" else
                                                         entry[k] <= b)) for k, b in TARGETS.items()}
         entry["passed"] = bool(entry["accepted"] and all(entry["meets"].values()))
@@ -185,11 +186,12 @@ def measure(seed: int, model_dir: Path, n_random: int = 4000, overrides: dict[st
     return entry
 
 
-def absolute_bar_entry(chain, sim, record: dict[str, Any] | None, m: dict[str, Any], n_random: int,
-                       eval_seed: int) -> dict[str, Any] | None:
+def absolute_bar_entry(chain, sim, record: dict[str, Any] | None, m: dict[str, Any],
+                       transitions: tuple) -> dict[str, Any] | None:
     """What rule v3's loss-relative bar bought (:mod:`.refine`): the k that the absolute bar alone (rule v2) picks
-    from the record's quantiles, and the reward error at that k on the same transitions (None: no rule record)."""
-    from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn, random_transitions
+    from the record's quantiles, and the reward error at that k on ``transitions`` (those ``m`` was measured on;
+    None: no rule record)."""
+    from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn
     from anm_torchrl.surrogates.pinn.refine import rule_met
 
     if not record or not record.get("residual_q_pu"):
@@ -202,7 +204,7 @@ def absolute_bar_entry(chain, sim, record: dict[str, Any] | None, m: dict[str, A
     k = pb.refine_steps
     pb.set_refine_steps(k_abs)
     try:
-        m_abs = evaluate_pinn(chain, sim, *random_transitions(sim, n_random, eval_seed))
+        m_abs = evaluate_pinn(chain, sim, *transitions)
     finally:
         pb.set_refine_steps(k)
     return {"k": k_abs, "reward_rel_mae": m_abs["reward_rel_mae"]}
