@@ -91,7 +91,8 @@ def test_battery_entry_on_a_small_network_with_few_steps(tmp_path, seed, n_bus, 
     assert e["refine"]["rule"] == RULE and e["refine"]["met"]
     # the reward error at the rule's k, and at the k the absolute bar alone would pick (<= the rule's: a looser bar)
     assert 0.0 <= e["reward_rel_mae"] < 1.0 and e["absolute_bar"]["k"] <= e["refine_steps"]
-    assert e["absolute_bar"]["reward_rel_mae"] >= 0.0
+    assert e["absolute_bar"]["reward_rel_mae"] >= 0.0 and e["box_only"]["k"] <= e["refine_steps"]
+    assert e["absolute_bar"]["k"] <= e["box_only"]["k"] and e["box_only"]["reward_rel_mae"] >= 0.0
     assert set(e["meets"]) == set(battery.TARGETS) and (e["passed"] or e["why"])
     assert 0.0 <= e["terminal_agreement"] <= 1.0 and e["vmag_mae_pu"] < 1e-2
     rec = {"created": "now", "command": "c", "machine": {"cpus": 1, "platform": "p", "torch": "t",

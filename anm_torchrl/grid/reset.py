@@ -123,6 +123,19 @@ def random_state(sim: GridSimulator, n: int, generator: torch.Generator | None =
     over the action box — and everything else follows from one transition at that time index (projection,
     SoC update, power flow). Non-converging draws are re-drawn.
     """
+    def draw(k: int) -> tuple[torch.Tensor, Transition]:
+        t, soc, setpoints = free_variables(sim, k, generator)
+        tr = sim.transition(soc, t, setpoints)
+        return sim.build_state(tr, t), tr
+
+    return resample(draw, n, max_attempts)
+
+
+def free_variables(sim: GridSimulator, n: int, generator: torch.Generator | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The free variables of :func:`random_state`'s draw: time index (n,) uniform in [0, T), SoC (n, n_des) p.u.·h
+    uniform in [SOC_MIN, SOC_MAX), set-points (n, action_dim) p.u. uniform over the action box (which must be
+    finite: ``ValueError`` otherwise)."""
     dev, b = sim.net.dev, sim.net.base_mva
     a_low, a_high = sim.action_bounds()
     if not (torch.isfinite(a_low).all() and torch.isfinite(a_high).all()):
@@ -130,15 +143,10 @@ def random_state(sim: GridSimulator, n: int, generator: torch.Generator | None =
                          f"{a_low.tolist()}, high {a_high.tolist()} (give PMAX/QMAX/QMIN or use a reset hook)")
     d = dev[sim.des_idx]
     kw = dict(generator=generator, dtype=dev.dtype, device=dev.device)
-
-    def draw(k: int) -> tuple[torch.Tensor, Transition]:
-        t = torch.randint(0, sim.n_time, (k,), generator=generator, device=dev.device)
-        soc = d[:, dv.SOC_MIN] + torch.rand(k, sim.n_des, **kw) * (d[:, dv.SOC_MAX] - d[:, dv.SOC_MIN])
-        a = a_low + torch.rand(k, sim.action_dim, **kw) * (a_high - a_low)
-        tr = sim.transition(soc, t, a / b)
-        return sim.build_state(tr, t), tr
-
-    return resample(draw, n, max_attempts)
+    t = torch.randint(0, sim.n_time, (n,), generator=generator, device=dev.device)
+    soc = d[:, dv.SOC_MIN] + torch.rand(n, sim.n_des, **kw) * (d[:, dv.SOC_MAX] - d[:, dv.SOC_MIN])
+    a = a_low + torch.rand(n, sim.action_dim, **kw) * (a_high - a_low)
+    return t, soc, a / b
 
 
 def resample(draw, n: int, max_attempts: int) -> tuple[torch.Tensor, Transition]:

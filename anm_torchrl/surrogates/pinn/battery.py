@@ -14,8 +14,9 @@ off ANM6-Easy, :func:`.presets.network_preset_name`) trained by :func:`.cache.tr
   metrics of :mod:`.generic_accuracy`);
 * ``reward_mae`` and ``reward_rel_mae``: the reward's MAE, and over the true rewards' mean |r|, on the same
   transitions (target ≤ 0.05),
-  and ``absolute_bar``: the k that rule v2's absolute bar alone picks and the reward error at that k (what the
-  loss-relative bar of rule v3, :mod:`.refine`, buys);
+  and ``absolute_bar`` / ``box_only``: the k that rule v2 (absolute bar alone) / rule v3 (box points alone) picks
+  and the reward error at that k (what the loss-relative bar and the env-like points of rule v4, :mod:`.refine`,
+  buy);
 * ``train_wall_s`` (target ≤ 600 s), the chosen refinement ``k`` and the box's power-flow solvability;
 * ``meets``: each target, ``passed``: all of them and the bar; ``why``: for each failure what it means and what
   to try (:func:`diagnose`).
@@ -176,7 +177,7 @@ def measure(seed: int, model_dir: Path, n_random: int = 4000, overrides: dict[st
             "reward_mae": m["reward_mae"], "reward_rel_mae": m["reward_rel_mae"],
             "module_time_s": {k: report[k].get("time_s") for k in tr.MODULES},
         })
-        entry["absolute_bar"] = absolute_bar_entry(chain, sim, entry["refine"], m, transitions)
+        entry.update(earlier_rule_entries(chain, sim, entry["refine"], m, transitions))
         entry["meets"] = {k: (entry[k] is not None and (entry[k] >= b if k == "terminal_agreement" else
                                                         entry[k] <= b)) for k, b in TARGETS.items()}
         entry["passed"] = bool(entry["accepted"] and all(entry["meets"].values()))
@@ -186,28 +187,38 @@ def measure(seed: int, model_dir: Path, n_random: int = 4000, overrides: dict[st
     return entry
 
 
-def absolute_bar_entry(chain, sim, record: dict[str, Any] | None, m: dict[str, Any],
-                       transitions: tuple) -> dict[str, Any] | None:
-    """What rule v3's loss-relative bar bought (:mod:`.refine`): the k that the absolute bar alone (rule v2) picks
-    from the record's quantiles, and the reward error at that k on ``transitions`` (those ``m`` was measured on;
-    None: no rule record)."""
-    from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn
+def earlier_rule_entries(chain, sim, record: dict[str, Any] | None, m: dict[str, Any],
+                         transitions: tuple) -> dict[str, dict[str, Any] | None]:
+    """What today's rule (:mod:`.refine`) buys over the earlier ones, on ``transitions`` (those ``m`` was measured
+    on): ``absolute_bar``, the k that rule v2's absolute bar alone picks from the record's box quantiles, and
+    ``box_only``, the k that rule v3 picks (the box's quantiles against its loss-relative bar, with the box's losses
+    at the chosen k), each with the reward error at that k (None: no rule record)."""
     from anm_torchrl.surrogates.pinn.refine import rule_met
 
     if not record or not record.get("residual_q_pu"):
-        return None
+        return {"absolute_bar": None, "box_only": None}
     qs = [math.inf if q is None else q for q in record["residual_q_pu"]]
-    k_abs = next((i + 1 for i, q in enumerate(qs) if rule_met(q)), len(qs))
+    loss = record.get("loss_median_pu")
+    k_v2 = next((i + 1 for i, q in enumerate(qs) if rule_met(q)), len(qs))
+    k_v3 = next((i + 1 for i, q in enumerate(qs) if rule_met(q, loss)), len(qs))
+    return {"absolute_bar": _reward_at(chain, sim, k_v2, m, transitions),
+            "box_only": _reward_at(chain, sim, k_v3, m, transitions)}
+
+
+def _reward_at(chain, sim, k: int, m: dict[str, Any], transitions: tuple) -> dict[str, Any]:
+    """``{"k", "reward_rel_mae"}`` of ``chain`` run with ``k`` refinement steps on ``transitions`` (``m``'s figure
+    where ``k`` is the chain's own)."""
+    from anm_torchrl.surrogates.pinn.evaluate import evaluate_pinn
+
     pb = chain[4].module
-    if k_abs == pb.refine_steps:
-        return {"k": k_abs, "reward_rel_mae": m["reward_rel_mae"]}
-    k = pb.refine_steps
-    pb.set_refine_steps(k_abs)
+    if k == pb.refine_steps:
+        return {"k": k, "reward_rel_mae": m["reward_rel_mae"]}
+    k_own = pb.refine_steps
+    pb.set_refine_steps(k)
     try:
-        m_abs = evaluate_pinn(chain, sim, *transitions)
+        return {"k": k, "reward_rel_mae": evaluate_pinn(chain, sim, *transitions)["reward_rel_mae"]}
     finally:
-        pb.set_refine_steps(k)
-    return {"k": k_abs, "reward_rel_mae": m_abs["reward_rel_mae"]}
+        pb.set_refine_steps(k_own)
 
 
 def _fmt(x: Any, spec: str) -> str:
@@ -218,7 +229,7 @@ def _pct(x: float | None) -> str:
     return "—" if x is None else f"{100 * x:.3g}"
 
 
-def _v2(a: dict[str, Any] | None) -> str:
+def _at_k(a: dict[str, Any] | None) -> str:
     return "—" if not a else f"{a['k']}: {_pct(a['reward_rel_mae'])}"
 
 
@@ -257,8 +268,9 @@ def markdown(record: dict[str, Any]) -> str:
              f"{record['machine']['torch']} ({record['machine']['torch_threads']} thread)", "",
              "Targets: device P/Q MAE ≤ 1 % of its rating (largest over devices), |V| MAE ≤ 1e-3 p.u., terminal "
              "agreement ≥ 99 %, reward MAE ≤ 5 % of the rewards' mean |r|, training ≤ 600 s, and the preset's "
-             "acceptance bar. 'k (v2)': the Newton steps that rule v2's absolute bar alone picks, and the reward "
-             "error there.", "", summary(record)]
+             "acceptance bar. 'k (v2)' / 'k (v3)': the Newton steps that rule v2's absolute bar alone / rule v3's "
+             "box points alone pick, and the reward error there (today's rule v4 meets its bar on the box and on "
+             "env-like injections).", "", summary(record)]
     for lo, hi in SIZE_CLASSES:
         cls = f"{lo}-{hi}"
         rows = [e for e in record["networks"] if e["size_class"] == cls]
@@ -267,21 +279,23 @@ def markdown(record: dict[str, Any]) -> str:
         n_pass = sum(e["passed"] for e in rows)
         lines += [f"## {lo}–{hi} buses: {n_pass} / {len(rows)} pass", "",
                   "| seed | buses | topology | base MVA | X_tr p.u. | tap | k | accepted | P/Q MAE max (mean) % | "
-                  "\\|V\\| MAE p.u. | term. agree % | reward err % | k (v2): reward err % | train s | pass |",
-                  "|---:|---:|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---|"]
+                  "\\|V\\| MAE p.u. | term. agree % | reward err % | k (v2): reward err % | k (v3): reward err % | "
+                  "train s | pass |",
+                  "|---:|---:|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
         for e in rows:
             tr_ = e["transformer"]
             if e.get("error"):
                 lines.append(f"| {e['seed']} | {e['n_bus']} | {e['topology']} | {e['base_mva']:.3g} | "
                              f"{tr_['x_pu']:.3f} | {tr_['tap']:.3f} | — | error | "
-                             "— | — | — | — | — | — | no |")
+                             "— | — | — | — | — | — | — | no |")
                 continue
             pq = f"{100 * e['pq_rel_mae_max']:.3f} ({100 * e['pq_rel_mae_mean']:.3f})" \
                 if e["pq_rel_mae_max"] is not None else "—"
             lines.append(f"| {e['seed']} | {e['n_bus']} | {e['topology']} | {e['base_mva']:.3g} | {tr_['x_pu']:.3f} | "
                          f"{tr_['tap']:.3f} | {e['refine_steps']} | {'yes' if e['accepted'] else 'no'} | {pq} | "
                          f"{_fmt(e['vmag_mae_pu'], '.2e')} | {100 * e['terminal_agreement']:.2f} | "
-                         f"{_pct(e.get('reward_rel_mae'))} | {_v2(e.get('absolute_bar'))} | "
+                         f"{_pct(e.get('reward_rel_mae'))} | {_at_k(e.get('absolute_bar'))} | "
+                         f"{_at_k(e.get('box_only'))} | "
                          f"{e['train_wall_s']:.0f} | {'yes' if e['passed'] else 'no'} |")
         lines.append("")
         for e in rows:
