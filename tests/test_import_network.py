@@ -163,14 +163,22 @@ def test_own_reactive_limits_replace_the_defaults():
 def test_a_net_without_controllable_device_is_written_and_said_so(tmp_path, capsys):
     """A loads-only net (9 of pandapower's 12 stock nets that import) is written (do-nothing can be evaluated on it)
     but the command does not send the user to a training recipe that refuses it."""
+    def imported(name):
+        pp.to_json(net, str(tmp_path / f"{name}.json"))
+        out = import_network.main(["--pandapower", str(tmp_path / f"{name}.json"), "--rows", "4",
+                                   "--out", str(tmp_path / f"{name}.npz")])
+        printed = capsys.readouterr().out
+        assert "train on it" not in printed and "recipes/evaluate.py policy=do_nothing" in printed
+        return out, printed
+
     net, _ = _feeder()
     net.sgen.drop(net.sgen.index, inplace=True)
-    pp.to_json(net, str(tmp_path / "loads_only.json"))
-    out = import_network.main(["--pandapower", str(tmp_path / "loads_only.json"), "--rows", "4",
-                               "--out", str(tmp_path / "l.npz")])
-    printed = capsys.readouterr().out
-    assert out["devices"]["load"] == 1 and "train on it" not in printed
-    assert "no controllable device" in printed and "recipes/evaluate.py policy=do_nothing" in printed
+    out, printed = imported("loads_only")
+    assert out["devices"]["load"] == 1 and "no controllable device" in printed
+    # a storage unit without any P or Q range: a device, but nothing to act on (was: "train on it", which refused)
+    pp.create_storage(net, 2, p_mw=0.0, max_e_mwh=1.0, min_p_mw=0.0, max_p_mw=0.0, min_q_mvar=0.0, max_q_mvar=0.0)
+    out, printed = imported("flat")
+    assert out["devices"]["storage unit"] == 1 and "every controllable device is a single value" in printed
 
 
 def test_two_way_storage_names_only_the_units_it_changed(tmp_path, caplog):

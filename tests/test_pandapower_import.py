@@ -58,6 +58,9 @@ def test_antiparallel_plain_lines_merge_as_parallel_ones():
     ("no_slack", r"0 in-service ext_grids; gym-anm has exactly one slack bus: add one"),
     # gym-anm counts the slack device's P as the whole bus-0 injection: a load there would count nowhere
     ("at_slack", r"elements on the ext_grid's bus .*\(load \[1\]\).*energy loss still counts it"),
+    # named in the same message as the other problems (was: a second round, after the user fixed the first)
+    ("at_slack_and_gen", r"gens \[0\] control.*; pandapower elements on the ext_grid's bus or a bus fused with it by "
+                         r"a closed bus-bus switch \(load \[1\]; sgen \[1\]\)"),
     # an island (was: "pandapower's ppc has 2 branches, expected 3 in service")
     ("island", r"buses \[3, 4\] are not supplied from the ext_grid .* in-service lines \[2\], loads \[1\]"),
     # an out-of-service bus that still carries an in-service load (was: 'load_peak has 2 entries, expected 1')
@@ -80,6 +83,12 @@ def test_what_gym_anm_cannot_model_is_refused(element, message):
         net.ext_grid["in_service"] = False
     elif element == "at_slack":  # was: imported, do-nothing returns positive (a negative energy loss)
         pp.create_load(net, b[0], p_mw=0.5, q_mvar=0.1)
+    elif element == "at_slack_and_gen":  # the sgen on a bus fused with the ext_grid's by a closed bus-bus switch
+        pp.create_gen(net, b[2], p_mw=1.0, vm_pu=1.02, sn_mva=2.0)
+        pp.create_load(net, b[0], p_mw=0.5, q_mvar=0.1)
+        fused = pp.create_bus(net, 20.0)
+        pp.create_switch(net, b[0], fused, et="b", closed=True)
+        pp.create_sgen(net, fused, p_mw=0.2, type="PV")
     elif element == "parallel_taps":  # two 20/0.4 kV units side by side, one at another tap position
         lv = pp.create_bus(net, 0.4)
         for tap in (0, 1):

@@ -79,11 +79,15 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"wrote {out['path']}: {out['buses']} buses; {dev}; {out['rows']} profile rows; do-nothing |V| "
           f"{out['vm_min']:.4f}-{out['vm_max']:.4f} p.u., loading up to {out['loading_max_percent']:.1f} % "
           f"(pandapower); gym-anm's power flow within {out['vm_max_diff']:.1e} p.u. of pandapower's")
-    if any(out["devices"][k] for k in ("classical generator", "renewable", "storage unit")):
+    from anm_torchrl.networks.resolve import check_controllable  # the training recipes' own check: one home
+
+    try:
+        check_controllable(out["path"])
+    except ValueError as err:  # every training recipe refuses it: say so here, not at the first training
+        print(f"no policy can be trained on it ({err}); evaluate it with python recipes/evaluate.py "
+              f"policy=do_nothing network={out['path']}")
+    else:
         print(f"train on it: python recipes/ppo.py network={out['path']}")
-    else:  # every training recipe refuses it (no action to take): say so here, not at the first training
-        print(f"it has no controllable device (a generator or storage unit besides the slack): no policy can act on "
-              f"it; evaluate it with python recipes/evaluate.py policy=do_nothing network={out['path']}")
     return out
 
 

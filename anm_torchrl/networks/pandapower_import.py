@@ -137,6 +137,9 @@ def prepare(net):
                         + ("add one (pandapower.create_ext_grid)" if n_eg == 0 else
                            "split the net into one per ext_grid (e.g. pandapower.networks.mv_oberrhein("
                            "separation_by_sub=True)) and import each"))
+    at_slack = _slack_bus_devices(net) if n_eg == 1 else {}
+    if any(at_slack.values()):
+        problems.append(_at_slack_problem(at_slack))
     if n_eg == 1 and not problems:  # (after the rest: the tables emptied above can be what connects a part)
         problems += _unsupplied(net)
     if problems:
@@ -159,6 +162,33 @@ def prepare(net):
     net.trafo["pfe_kw"] = 0.0
     net.line["g_us_per_km"] = 0.0
     return net
+
+
+def _at_slack_problem(at_slack: dict[str, list[int]]) -> str:
+    """Why devices on the ext_grid's bus (``{table: indices}``) are refused, and what to do."""
+    named = "; ".join(f"{t} {idx}" for t, idx in at_slack.items() if idx)
+    # gym-anm's slack P is the whole bus-0 injection: theirs would count nowhere
+    return (f"pandapower elements on the ext_grid's bus or a bus fused with it by a closed bus-bus switch ({named}): "
+            "gym-anm sets the slack device's P and Q to that bus's whole injection, so the slack's power leaves "
+            "theirs out while the energy loss still counts it (a load there gives a negative loss); connect them to "
+            "a bus joined to the ext_grid's by a line or transformer")
+
+
+def _slack_bus_devices(net) -> dict[str, list[int]]:
+    """In-service loads, sgens and storage units (pandapower indices per table) on the in-service ext_grid's bus or
+    a bus joined to it by closed bus-bus switches (what pandapower fuses into one bus)."""
+    fused = {int(net.ext_grid.bus[net.ext_grid.in_service.astype(bool)].iloc[0])}
+    sw = net.switch[(net.switch.et == "b") & net.switch.closed.astype(bool)] if len(net.switch) else net.switch
+    pairs = [(int(a), int(b)) for a, b in zip(sw.bus, sw.element)] if len(sw) else []
+    grew = True
+    while grew:  # the closure of the switches' pairs around the ext_grid's bus
+        grew = False
+        for a, b in pairs:
+            if (a in fused) != (b in fused):
+                fused |= {a, b}
+                grew = True
+    return {t: [int(i) for i in net[t].index[net[t].in_service.astype(bool) & net[t].bus.isin(fused)]]
+            for t in ("load", "sgen", "storage") if t in net and len(net[t])}
 
 
 def _unsupplied(net) -> list[str]:
@@ -389,13 +419,8 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
 
     at_slack = {t: [int(i) for i in on_grid(t).index if bus_map[net[t].bus[i]] == 0]
                 for t in ("load", "sgen", "storage")}
-    if any(at_slack.values()):  # gym-anm's slack P is the whole bus-0 injection: theirs would count nowhere
-        named = "; ".join(f"{t} {idx}" for t, idx in at_slack.items() if idx)
-        raise ValueError(f"pandapower elements on the ext_grid's bus or a bus fused with it by a closed bus-bus "
-                         f"switch ({named}): gym-anm sets the slack device's P and Q to that bus's whole injection, "
-                         "so the slack's power leaves theirs out while the energy loss still counts it (a load there "
-                         "gives a negative loss); connect them to a bus joined to the ext_grid's by a line or "
-                         "transformer")
+    if any(at_slack.values()):  # prepare() names them first; here after pandapower's own fusion of buses
+        raise ValueError(_at_slack_problem(at_slack))
     devices, load_idx, gen_elements, storage_idx = [], [], [], []
     loads = on_grid("load")
     if len(load_peak) != len(loads):
