@@ -187,6 +187,7 @@ def test_rule_unmet_is_an_acceptance_failure(monkeypatch):
               "storage": {"devices": 0}}
     failures = tr.check_acceptance(cfg, report)
     assert len(failures) == 1 and failures[0].startswith("power_balance.refine: no k <= 1 Newton steps")
+    assert "on the injection box (after 1:" in failures[0] and "on env-like injections to" in failures[0]
     assert "lower the device ratings" in failures[0]
 
 

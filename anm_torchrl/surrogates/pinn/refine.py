@@ -165,7 +165,8 @@ def env_injections(sim: GridSimulator, n: int, seed: int) -> tuple[torch.Tensor,
     """Bus injections (P, Q) (n, n_bus) p.u. of ``n`` env-like steps, from the network's tables alone: the free
     variables of the env's random states (:func:`anm_torchrl.grid.reset.free_variables`: time index, SoC,
     set-points), the loads and potentials of the series at that index (clipped as the simulator clips them), the
-    set-points projected by the devices' exact constraints; no power flow runs. The slack column is 0."""
+    set-points projected by the devices' exact constraints; no power flow runs. The slack column is 0. (A
+    ``next_vars`` hook's exogenous process needs states to run: the network's series stands for it here.)"""
     t, soc, a = free_variables(sim, n, torch.Generator(device=sim.net.dev.device).manual_seed(seed))
     ng, nd = sim.n_gen, sim.n_des
     gen_pq = sim.project_generators(torch.stack([a[:, :ng], a[:, ng:2 * ng]], -1), sim.p_pot_at(t))
