@@ -5,6 +5,7 @@ mis-modelled)."""
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -126,6 +127,46 @@ def test_a_symmetric_series_impedance_is_a_branch():
     assert np.asarray(res.network["branch"]).shape[0] == 3
     net.impedance.loc[0, "xtf_pu"] = 0.03
     with pytest.raises(ValueError, match=r"impedance \[0\] \(asymmetric or with shunt terms"):
+        ppi.prepare(net)
+
+
+def test_a_three_winding_transformer_converts_through_its_star_point():
+    """A 110/20/10 kV trafo3w (tap on hv, a 150 degree shift on lv, no-load losses) below an ext_grid at 1.02 p.u.
+    (was: refused as 'no model'): three branches through a star-point bus without voltage limits, rated per winding;
+    gym-anm's power flow lands on pandapower's (no-load losses removed in both, as prepare logs) within 1e-9 p.u.;
+    a winding whose star-equivalent R is negative is named; out of service, it is left out (and the buses behind
+    it with it are named as unsupplied)."""
+    from anm_torchrl.networks import pf_check
+
+    net = pp.create_empty_network(sn_mva=1)
+    hv, mv, lv, mv2 = (pp.create_bus(net, v) for v in (110.0, 20.0, 10.0, 20.0))
+    pp.create_ext_grid(net, hv, vm_pu=1.02)
+    pp.create_transformer3w(net, hv, mv, lv, "63/25/38 MVA 110/20/10 kV", tap_pos=2)
+    net.trafo3w["shift_lv_degree"] = 150.0
+    pp.create_line_from_parameters(net, mv, mv2, 3.0, 0.2, 0.4, 200, 0.4)
+    pp.create_load(net, mv2, p_mw=8.0, q_mvar=2.0)
+    pp.create_load(net, lv, p_mw=5.0, q_mvar=1.0)
+    pp.create_sgen(net, mv2, p_mw=3.0, type="PV")
+    prepared = ppi.prepare(net)
+    loads = np.array([r.p_mw for _, r in prepared.load.iterrows()])
+    res = ppi.convert(prepared, loads)
+    bus, branch = np.asarray(res.network["bus"]), np.asarray(res.network["branch"])
+    star = 4  # pandapower's buses 0-3 keep their order, the star point comes last
+    assert bus.shape[0] == 5 and (bus[star, 3], bus[star, 4], bus[star, 2]) == (ppi.STAR_POINT_VMAX, 0.0, 110.0)
+    windings = {tuple(sorted(r[:2].astype(int))): r[5] for r in branch if star in r[:2]}
+    assert windings == {(0, star): 63.0, (1, star): 25.0, (2, star): 38.0}
+    p, q = pf_check.do_nothing_injections(res.network, -loads, np.array([1.5]))
+    pf_check.set_pandapower_point(prepared, res, p, q)
+    pf_check.run_pandapower(prepared)
+    vm, ok = pf_check.gym_anm_vm(res.network, p, q)
+    assert ok and np.abs(pf_check.compare_vm(prepared, res, vm)).max() < 1e-9
+    # its star equivalent can have R < 0 on one winding (example_multivoltage's does): named, not gym-anm's traceback
+    bad = copy.deepcopy(net)
+    bad.trafo3w["vkr_lv_percent"] = 1.5
+    with pytest.raises(ValueError, match=r"between pandapower buses \(the star point of trafo3w 0\) and 1 has R = -"):
+        ppi.convert(ppi.prepare(bad), loads)
+    net.trafo3w["in_service"] = False
+    with pytest.raises(ValueError, match=r"buses \[1, 2, 3\] are not supplied from the ext_grid"):
         ppi.prepare(net)
 
 

@@ -13,10 +13,12 @@ What gym-anm can represent, and the defaults used where pandapower has no value 
 * **Unsupported physics is refused or removed, and the removal is applied to the pandapower net the checks
   run on** (:func:`prepare`): gym-anm branches have no shunt conductance and B >= 0, so transformer
   magnetising currents (``i0_percent``, ``pfe_kw``) and line conductance ``g_us_per_km`` are set to 0; bus
-  shunts, wards, asymmetric impedances or ones with shunt terms, DC lines, 3-winding transformers,
-  voltage-dependent loads, voltage-controlled generators (``gen``: model them as ``sgen``) and reactive-only loads
-  (p_mw 0, q_mvar not) raise one ``ValueError`` naming them all; a symmetric series ``impedance`` is a branch
-  without rating.
+  shunts, wards, asymmetric impedances or ones with shunt terms, DC lines, voltage-dependent loads,
+  voltage-controlled generators (``gen``: model them as ``sgen``) and reactive-only loads (p_mw 0, q_mvar not) raise
+  one ``ValueError`` naming them all; a symmetric series ``impedance`` is a branch without rating.
+* **Three-winding transformers** are pandapower's three two-winding branches through the star point (pd2ppc's
+  auxiliary bus, at the hv voltage): a gym-anm bus without devices, VMIN 0 and VMAX :data:`STAR_POINT_VMAX` (no
+  voltage limit at a fictional node, so no penalty there); windings rated sn_hv/mv/lv_mva.
 * **Parallel branches** (gym-anm forbids them) are merged into one pi branch (admittances and charging add,
   ratings add; a plain line drawn the other way is the same branch); parallel branches with different taps raise.
 * **Slack**: the in-service ``ext_grid`` bus becomes bus 0 (gym-anm's power flow fixes V = 1∠0 at bus 0; other
@@ -58,9 +60,11 @@ pd = require("pandas")  # pandapower's dependency: the [feeders] extra
 logger = logging.getLogger(__name__)
 
 RENEWABLE_TYPE = re.compile(r"(^|[^a-z])(pv|wp|res)([^a-z]|$)|wind|hydro|solar", re.IGNORECASE)
-UNSUPPORTED = ("shunt", "ward", "xward", "dcline", "trafo3w", "svc", "tcsc", "ssc", "vsc",
+UNSUPPORTED = ("shunt", "ward", "xward", "dcline", "svc", "tcsc", "ssc", "vsc",
                "asymmetric_load", "asymmetric_sgen", "motor")
 NAN = float("nan")
+#: VMAX (p.u.) of a three-winding transformer's star point, with VMIN 0: a fictional node has no voltage limit
+STAR_POINT_VMAX = 10.0
 
 
 @dataclass(frozen=True)
@@ -149,17 +153,22 @@ def prepare(net):
     sw = net.switch[~net.switch.closed.astype(bool)]
     net.line.loc[sw.element[sw.et == "l"].unique(), "in_service"] = False
     net.trafo.loc[sw.element[sw.et == "t"].unique(), "in_service"] = False
+    if len(net.trafo3w):  # (an open switch at one winding opens that winding alone in pandapower: see _unsupplied)
+        net.trafo3w.loc[sw.element[sw.et == "t3"].unique(), "in_service"] = False
     net.switch = net.switch[net.switch.closed.astype(bool) | (net.switch.et == "b")]
     on_t, on_l = net.trafo.in_service.astype(bool), net.line.in_service.astype(bool)
     pfe = float(net.trafo.pfe_kw[on_t].sum()) if len(net.trafo) else 0.0
+    if len(net.trafo3w):
+        pfe += float(net.trafo3w.pfe_kw[net.trafo3w.in_service.astype(bool)].sum())
     gl = bool((net.line.get("g_us_per_km", pd.Series(0.0, index=net.line.index))[on_l] > 0).any())
     if pfe > 0 or gl:  # the reward's losses are the series losses alone: say how much is left out
         parts = ([f"transformer no-load losses, {pfe:.3g} kW in all (pfe_kw, with their magnetising currents)"]
                  if pfe > 0 else []) + (["line shunt conductance (g_us_per_km)"] if gl else [])
         logger.warning("left out (gym-anm's branches have no shunt conductance): %s; the env's energy losses are the "
                        "series losses only", " and ".join(parts))
-    net.trafo["i0_percent"] = 0.0
-    net.trafo["pfe_kw"] = 0.0
+    for table in ("trafo", "trafo3w"):
+        net[table]["i0_percent"] = 0.0
+        net[table]["pfe_kw"] = 0.0
     net.line["g_us_per_km"] = 0.0
     return net
 
@@ -191,6 +200,17 @@ def _slack_bus_devices(net) -> dict[str, list[int]]:
             for t in ("load", "sgen", "storage") if t in net and len(net[t])}
 
 
+def _star_points(net, bus_lookup, new_id) -> dict[int, int]:
+    """gym-anm bus id -> pandapower index of the in-service trafo3w whose star point (pd2ppc's auxiliary bus) it
+    is."""
+    t3 = net.trafo3w
+    if not len(t3):
+        return {}
+    aux = net._pd2ppc_lookups["aux"]["trafo3w"]
+    return {int(new_id[bus_lookup[a]]): int(i) for a, i, on in zip(aux, t3.index, t3.in_service.astype(bool))
+            if on and new_id[bus_lookup[a]] >= 0}
+
+
 def _unsupplied(net) -> list[str]:
     """What sits in a part of ``net`` the ext_grid does not supply (an island, an out-of-service bus): its in-service
     branches and devices, by pandapower index (empty: none; a bare bus is dropped silently, it carries nothing)."""
@@ -202,6 +222,7 @@ def _unsupplied(net) -> list[str]:
         return []
     found = []
     for table, cols in (("line", ("from_bus", "to_bus")), ("trafo", ("hv_bus", "lv_bus")),
+                        ("trafo3w", ("hv_bus", "mv_bus", "lv_bus")),
                         ("impedance", ("from_bus", "to_bus")), ("load", ("bus",)), ("sgen", ("bus",)),
                         ("storage", ("bus",))):
         df = net[table]
@@ -222,9 +243,13 @@ def _ratings(net, ppc, lookup, defaults: ImportDefaults) -> np.ndarray:
     for table, (s, e) in lookup.items():
         if e == s:  # an empty table (its out-of-service rows left out by prepare)
             continue
-        if table not in ("line", "trafo", "impedance"):
+        if table not in ("line", "trafo", "trafo3w", "impedance"):
             raise ValueError(f"pandapower branch element {table!r} is not supported")
         df = net[table]
+        if table == "trafo3w":  # three two-winding branches each: every hv winding, then mv, then lv (pd2ppc)
+            status[s:e] = np.tile(df.in_service.to_numpy(dtype=bool), 3)
+            rate[s:e] = np.concatenate([df[f"sn_{w}_mva"].to_numpy() for w in ("hv", "mv", "lv")])
+            continue
         status[s:e] = df.in_service.to_numpy(dtype=bool)
         if table == "impedance":  # no thermal rating (its sn_mva is the base of its p.u. values)
             continue
@@ -289,10 +314,10 @@ def _branches(ppc, keep_bus, new_id, rate, vm, va_deg, where) -> np.ndarray:
             raise ValueError(f"branch {k} of pandapower's ppc connects fused bus {f} to itself")
         tap = br[k, TAP] if br[k, TAP] != 0 else 1.0
         row = np.array([f, t, br[k, BR_R], br[k, BR_X], br[k, BR_B], rate[k], tap, br[k, SHIFT]])
-        if row[3] < 0 or row[4] < 0:
-            raise ValueError(f"the branch {where(f, t)} has X = {row[3]:.6g} and B = {row[4]:.6g} p.u.; gym-anm "
-                             "needs both >= 0 (a series capacitor or an equivalent with negative reactance has no "
-                             "model): take it out of service or replace it")
+        if row[2] < 0 or row[3] < 0 or row[4] < 0:  # (a three-winding transformer's star equivalent can be)
+            raise ValueError(f"the branch {where(f, t)} has R = {row[2]:.6g}, X = {row[3]:.6g} and B = {row[4]:.6g} "
+                             "p.u.; gym-anm needs all three >= 0 (a series capacitor, or an equivalent with negative "
+                             "resistance or reactance, has no model): take it out of service or replace it")
         if t == 0 and tap == 1.0 and row[7] == 0.0:
             row[[0, 1]] = [t, f]  # a plain line into the slack bus: orient it away so the fold below applies
         elif t == 0:  # tapped towards the slack bus: the same two-port drawn from bus 0, its tap on the slack's side
@@ -402,8 +427,13 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
     members: dict[int, list[int]] = {}  # gym-anm bus -> its pandapower buses (several where fused)
     for b, g in bus_map.items():
         members.setdefault(g, []).append(b)
+    star = _star_points(net, bus_lookup, new_id)
+    for g, i in star.items():  # a fictional node: no voltage limit (finite, as gym-anm needs), no penalty there
+        bus[g, 3], bus[g, 4] = STAR_POINT_VMAX, 0.0
 
     def name(g: int) -> str:
+        if g in star:
+            return f"(the star point of trafo3w {star[g]})"
         m = members.get(g, [])
         return str(m[0]) if len(m) == 1 else str(m)
 
