@@ -170,6 +170,50 @@ def test_a_three_winding_transformer_converts_through_its_star_point():
         ppi.prepare(net)
 
 
+def test_an_open_switch_at_one_winding_opens_that_winding_alone():
+    """An open switch at a trafo3w's lv winding (found by review: the whole trafo3w was taken out of service, so a
+    10 MW wind sgen on its mv side was dropped silently, or a load behind it refused): the other two windings still
+    carry power, as in pandapower (pd2ppc's bus at the open end is left out: nothing is attached there); the sgen is
+    kept and the power flow lands on pandapower's within 1e-9 p.u. A bare lv bus behind the open winding is not named
+    as unsupplied."""
+    from anm_torchrl.networks import pf_check
+
+    for fed in (True, False):  # lv also fed by a two-winding transformer, or bare
+        net = pp.create_empty_network(sn_mva=1)
+        hv, mv, lv, lv2 = (pp.create_bus(net, v) for v in (110.0, 20.0, 10.0, 10.0))
+        pp.create_ext_grid(net, hv, vm_pu=1.02)
+        t = pp.create_transformer3w(net, hv, mv, lv, "63/25/38 MVA 110/20/10 kV", tap_pos=2)
+        if fed:
+            pp.create_transformer(net, hv, lv, "25 MVA 110/10 kV")
+            pp.create_line_from_parameters(net, lv, lv2, 1.0, 0.2, 0.4, 200, 0.4)
+            pp.create_load(net, lv2, p_mw=6.0, q_mvar=1.0)
+        else:
+            pp.create_load(net, mv, p_mw=6.0, q_mvar=1.0)
+        pp.create_sgen(net, mv, p_mw=10.0, type="wind")
+        pp.create_switch(net, lv, t, et="t3", closed=False)
+        prepared = ppi.prepare(net)
+        loads = np.array([6.0])
+        res = ppi.convert(prepared, loads)
+        assert res.gen_elements == [("sgen", 0, True)] and prepared.trafo3w.in_service.all()
+        p, q = pf_check.do_nothing_injections(res.network, -loads, np.array([10.0]))
+        pf_check.set_pandapower_point(prepared, res, p, q)
+        pf_check.run_pandapower(prepared)
+        vm, ok = pf_check.gym_anm_vm(res.network, p, q)
+        assert ok and np.abs(pf_check.compare_vm(prepared, res, vm)).max() < 1e-9
+
+
+def test_a_bus_switch_with_impedance_does_not_fuse_buses():
+    """A closed bus-bus switch with z_ohm > 0 is an impedance in pandapower, not a fusion (found by review: a load
+    behind one was refused as 'on the ext_grid's bus'; what gym-anm cannot model there is the switch itself)."""
+    net, b = _feeder()
+    behind = pp.create_bus(net, 20.0)
+    pp.create_switch(net, b[0], behind, et="b", closed=True, z_ohm=0.5)
+    pp.create_load(net, behind, p_mw=0.2, q_mvar=0.05)
+    assert ppi._slack_bus_devices(net) == {"load": [], "sgen": []}
+    net.switch["z_ohm"] = 0.0
+    assert ppi._slack_bus_devices(net) == {"load": [1], "sgen": []}
+
+
 def test_out_of_service_elements_of_unmodelled_kinds_are_left_out():
     """An impedance (or shunt, trafo3w, ...) that is out of service has nothing to represent: the net converts as
     without it (was: refused as 'not supported')."""

@@ -153,9 +153,8 @@ def prepare(net):
     sw = net.switch[~net.switch.closed.astype(bool)]
     net.line.loc[sw.element[sw.et == "l"].unique(), "in_service"] = False
     net.trafo.loc[sw.element[sw.et == "t"].unique(), "in_service"] = False
-    if len(net.trafo3w):  # (an open switch at one winding opens that winding alone in pandapower: see _unsupplied)
-        net.trafo3w.loc[sw.element[sw.et == "t3"].unique(), "in_service"] = False
-    net.switch = net.switch[net.switch.closed.astype(bool) | (net.switch.et == "b")]
+    # an open switch at one winding of a trafo3w opens that winding alone: pd2ppc does it (its row's BR_STATUS 0)
+    net.switch = net.switch[net.switch.closed.astype(bool) | net.switch.et.isin(("b", "t3"))]
     on_t, on_l = net.trafo.in_service.astype(bool), net.line.in_service.astype(bool)
     pfe = float(net.trafo.pfe_kw[on_t].sum()) if len(net.trafo) else 0.0
     if len(net.trafo3w):
@@ -187,7 +186,11 @@ def _slack_bus_devices(net) -> dict[str, list[int]]:
     """In-service loads, sgens and storage units (pandapower indices per table) on the in-service ext_grid's bus or
     a bus joined to it by closed bus-bus switches (what pandapower fuses into one bus)."""
     fused = {int(net.ext_grid.bus[net.ext_grid.in_service.astype(bool)].iloc[0])}
-    sw = net.switch[(net.switch.et == "b") & net.switch.closed.astype(bool)] if len(net.switch) else net.switch
+    sw = net.switch
+    if len(sw):  # pandapower fuses a closed bus-bus switch without impedance between in-service buses
+        z = sw.z_ohm.fillna(0.0) if "z_ohm" in sw else pd.Series(0.0, index=sw.index)
+        on = set(net.bus.index[net.bus.in_service.astype(bool)])
+        sw = sw[(sw.et == "b") & sw.closed.astype(bool) & (z <= 0) & sw.bus.isin(on) & sw.element.isin(on)]
     pairs = [(int(a), int(b)) for a, b in zip(sw.bus, sw.element)] if len(sw) else []
     grew = True
     while grew:  # the closure of the switches' pairs around the ext_grid's bus
@@ -221,12 +224,17 @@ def _unsupplied(net) -> list[str]:
     if not buses:
         return []
     found = []
+    sw = net.switch[~net.switch.closed.astype(bool)]
+    opened = {(et, int(e), int(b)) for et, e, b in zip(sw.et, sw.element, sw.bus)}  # a branch's end left open
     for table, cols in (("line", ("from_bus", "to_bus")), ("trafo", ("hv_bus", "lv_bus")),
                         ("trafo3w", ("hv_bus", "mv_bus", "lv_bus")),
                         ("impedance", ("from_bus", "to_bus")), ("load", ("bus",)), ("sgen", ("bus",)),
                         ("storage", ("bus",))):
         df = net[table]
-        hit = df.index[df.in_service.astype(bool) & np.logical_or.reduce([df[c].isin(buses) for c in cols])]
+        et = {"line": "l", "trafo": "t", "trafo3w": "t3"}.get(table)
+        ends = [df[c].isin(buses) & ~pd.Series([(et, int(i), int(b)) in opened for i, b in zip(df.index, df[c])],
+                                               index=df.index, dtype=bool) for c in cols]
+        hit = df.index[df.in_service.astype(bool) & np.logical_or.reduce(ends)]
         if len(hit):
             found.append(f"{table}s {[int(i) for i in hit[:10]]}{' ...' if len(hit) > 10 else ''}")
     if not found:
@@ -401,6 +409,11 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
     lookup = net._pd2ppc_lookups
     bus_lookup = lookup["bus"]
     keep = ppc["bus"][:, BUS_TYPE] != NONE
+    # the net's buses and the trafo3w star points; not pd2ppc's bus at a winding's open switch (nothing is
+    # attached there and the winding, without magnetising branch, carries no current to it)
+    stars = lookup.get("aux", {}).get("trafo3w", [])
+    known = {int(bus_lookup[b]) for b in net.bus.index} | {int(bus_lookup[a]) for a in stars}
+    keep &= np.isin(np.arange(len(keep)), sorted(known))
     slack = np.flatnonzero(ppc["bus"][:, BUS_TYPE] == REF)
     if slack.size != 1:
         raise ValueError(f"the net must have exactly one in-service ext_grid (slack), found {slack.size}")
