@@ -177,3 +177,23 @@ def test_one_function_resolves_a_network():
         simulator("nope")
     with pytest.raises(ValueError, match="gamma must lie in"):
         simulator(case, gamma=1.0)
+
+
+def test_the_import_checks_stopping_rule_scales_with_the_y_bus():
+    """The import check's Newton–Raphson stops at a mismatch of 1e-11 p.u., or 100 eps x the Y-bus's largest row sum
+    where that is larger: case33bw on a base 10,000 times smaller (R, X / 1e4, B x 1e4; injections x 1e4 in p.u.,
+    like an HV grid on 1 MVA) cannot reach 1e-11 in float64 (found on SimBench's 1-HV-urban--0-sw, refused as "not
+    converged" though pandapower and gym-anm agree to 6e-15 p.u.); with the scaled rule it converges to the same |V|
+    as on its own base (tolerance: the solves' round-off)."""
+    from anm_torchrl.networks import pf_check
+
+    case = get_network("case33bw")
+    small = {k: (np.array(v, copy=True) if k != "baseMVA" else v / 1e4) for k, v in case.network.items()}
+    small["branch"][:, 2:4] /= 1e4
+    small["branch"][:, 4] *= 1e4
+    p, q = pf_check.do_nothing_injections(case.network, case.load_p[0], case.gen_p_max[0])
+    vm, ok = pf_check.gym_anm_vm(case.network, p, q)
+    assert ok
+    assert not pf_check.gym_anm_vm(small, p, q, xtol=pf_check.XTOL)[1]
+    vm_small, ok = pf_check.gym_anm_vm(small, p, q)
+    assert ok and np.abs(vm_small - vm).max() < 1e-9

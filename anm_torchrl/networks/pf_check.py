@@ -66,13 +66,21 @@ def run_pandapower(net) -> None:
              max_iteration=50, numba=False)
 
 
-def gym_anm_vm(network: dict, p: np.ndarray, q: np.ndarray, xtol: float = 1e-11) -> tuple[np.ndarray, bool]:
+#: the import check's stopping tolerance on the power mismatch (p.u.), and its floor relative to the round-off of
+#: the mismatch itself (float64 eps x the Y-bus's largest row sum |Y|: an HV grid on a 1 MVA base, SimBench's
+#: 1-HV-urban--0-sw, has row sums ~1e6 p.u., so 1e-11 was out of reach and a sound net was refused as "not converged")
+XTOL = 1e-11
+XTOL_ROUNDOFF = 100 * float(np.finfo(np.float64).eps)
+
+
+def gym_anm_vm(network: dict, p: np.ndarray, q: np.ndarray, xtol: float | None = None) -> tuple[np.ndarray, bool]:
     """|V| (n_bus,) p.u. solved with gym-anm's own Y-bus and Newton–Raphson (``solve_load_flow``).
 
     Args:
         network: gym-anm dict.
         p, q: device injections (MW/MVAr, device-ID order); the slack device's entries are ignored.
-        xtol: stopping tolerance on the power mismatch (p.u.); gym-anm's env uses 1e-5.
+        xtol: stopping tolerance on the power mismatch (p.u.; gym-anm's env uses 1e-5); None: :data:`XTOL`, or
+            :data:`XTOL_ROUNDOFF` x the Y-bus's largest absolute row sum where that is larger.
 
     Returns:
         ``(|V|, converged)`` with gym-anm's convergence rule (finite and mismatch <= xtol).
@@ -88,6 +96,8 @@ def gym_anm_vm(network: dict, p: np.ndarray, q: np.ndarray, xtol: float = 1e-11)
     keep = dev[:, 2] != 0
     pb = np.bincount(bus[keep], p[keep], minlength=n_bus) / network["baseMVA"]
     qb = np.bincount(bus[keep], q[keep], minlength=n_bus) / network["baseMVA"]
+    if xtol is None:
+        xtol = max(XTOL, XTOL_ROUNDOFF * float(abs(sim.Y_bus).sum(axis=1).max()))
     guess = np.concatenate([np.zeros(n_bus - 1), np.ones(n_bus - 1)])
     x, _, diff, ok = _newton_raphson_sparse(guess, pb[1:], qb[1:], sim.Y_bus, x_tol=xtol)
     return np.abs(_construct_v_from_guess(x)), bool(ok and diff <= xtol)
