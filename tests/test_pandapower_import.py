@@ -202,6 +202,21 @@ def test_an_open_switch_at_one_winding_opens_that_winding_alone():
         assert ok and np.abs(pf_check.compare_vm(prepared, res, vm)).max() < 1e-9
 
 
+def test_sgens_without_rating_are_left_out(caplog):
+    """An sgen with p_mw x scaling = 0 and sn_mva 0 (56 of SimBench 1-HV-urban--0-sw's 98 renewables) can never
+    inject: it is left out with a warning (it was imported with a single-value action range, on which the PINN, the
+    main job's surrogate, refuses to train); one with sn_mva > 0 and p_mw 0 is kept."""
+    import logging
+
+    net, b = _feeder()
+    pp.create_sgen(net, b[2], p_mw=0.0, sn_mva=0.0, type="PV")
+    pp.create_sgen(net, b[1], p_mw=0.0, sn_mva=0.3, type="PV")
+    with caplog.at_level(logging.WARNING, logger=ppi.__name__):
+        res = _convert(net)
+    assert [i for _, i, _ in res.gen_elements] == [0, 2]
+    assert "sgens [1] have no rating" in caplog.text
+
+
 def test_a_bus_switch_with_impedance_does_not_fuse_buses():
     """A closed bus-bus switch with z_ohm > 0 is an impedance in pandapower, not a fusion (found by review: a load
     behind one was refused as 'on the ext_grid's bus'; what gym-anm cannot model there is the switch itself)."""

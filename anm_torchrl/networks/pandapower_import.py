@@ -150,6 +150,12 @@ def prepare(net):
         raise ValueError("the pandapower net has what gym-anm cannot represent: " + "; ".join(problems)
                          + " (set in_service=False on an element to leave it out, accepting the change in the power "
                          "flow)")
+    if len(net.sgen):  # a unit rated 0 MVA can never inject (its potential is clipped to 0): no action to learn
+        inert = [i for i in net.sgen.index[net.sgen.in_service.astype(bool)] if _sgen_rating(net.sgen.loc[i]) <= 0]
+        if inert:
+            net.sgen.loc[inert, "in_service"] = False
+            logger.warning("left out: sgens %s have no rating (p_mw x scaling and sn_mva 0): they can never inject",
+                           inert[:10] + (["..."] if len(inert) > 10 else []))
     sw = net.switch[~net.switch.closed.astype(bool)]
     net.line.loc[sw.element[sw.et == "l"].unique(), "in_service"] = False
     net.trafo.loc[sw.element[sw.et == "t"].unique(), "in_service"] = False
