@@ -166,6 +166,13 @@ class GridSimulator:
     def action_dim(self) -> int:
         return 2 * self.n_gen + 2 * self.n_des
 
+    def split_action(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """gym-anm's action layout ``[P_gen, Q_gen, P_des, Q_des]`` (..., action_dim) as the generators' and the
+        storage units' (P, Q) targets: (..., n_gen, 2) and (..., n_des, 2), in the action's units."""
+        ng, nd = self.n_gen, self.n_des
+        return (torch.stack([action[..., :ng], action[..., ng:2 * ng]], -1),
+                torch.stack([action[..., 2 * ng:2 * ng + nd], action[..., 2 * ng + nd:]], -1))
+
     @property
     def state_sizes(self) -> dict[str, int]:
         """Width of each ``GridState`` block (:mod:`anm_torchrl.grid.state`)."""

@@ -209,14 +209,13 @@ def _slack_bus_devices(net) -> dict[str, list[int]]:
             for t in ("load", "sgen", "storage") if t in net and len(net[t])}
 
 
-def _star_points(net, bus_lookup, new_id) -> dict[int, int]:
-    """gym-anm bus id -> pandapower index of the in-service trafo3w whose star point (pd2ppc's auxiliary bus) it
-    is."""
+def _star_points(net, stars, bus_lookup, new_id) -> dict[int, int]:
+    """gym-anm bus id -> pandapower index of the in-service trafo3w whose star point it is; ``stars``: pd2ppc's
+    auxiliary bus of each trafo3w row (``_pd2ppc_lookups["aux"]["trafo3w"]``; empty without trafo3w)."""
     t3 = net.trafo3w
     if not len(t3):
         return {}
-    aux = net._pd2ppc_lookups["aux"]["trafo3w"]
-    return {int(new_id[bus_lookup[a]]): int(i) for a, i, on in zip(aux, t3.index, t3.in_service.astype(bool))
+    return {int(new_id[bus_lookup[a]]): int(i) for a, i, on in zip(stars, t3.index, t3.in_service.astype(bool))
             if on and new_id[bus_lookup[a]] >= 0}
 
 
@@ -237,9 +236,11 @@ def _unsupplied(net) -> list[str]:
                         ("impedance", ("from_bus", "to_bus")), ("load", ("bus",)), ("sgen", ("bus",)),
                         ("storage", ("bus",))):
         df = net[table]
-        et = {"line": "l", "trafo": "t", "trafo3w": "t3"}.get(table)
-        ends = [df[c].isin(buses) & ~pd.Series([(et, int(i), int(b)) in opened for i, b in zip(df.index, df[c])],
-                                               index=df.index, dtype=bool) for c in cols]
+        et = {"line": "l", "trafo": "t", "trafo3w": "t3"}.get(table)  # the tables a switch can open an end of
+        ends = [df[c].isin(buses) for c in cols]
+        if et is not None and opened:
+            ends = [end & ~pd.Series([(et, int(i), int(b)) in opened for i, b in zip(df.index, df[c])],
+                                     index=df.index, dtype=bool) for end, c in zip(ends, cols)]
         hit = df.index[df.in_service.astype(bool) & np.logical_or.reduce(ends)]
         if len(hit):
             found.append(f"{table}s {[int(i) for i in hit[:10]]}{' ...' if len(hit) > 10 else ''}")
@@ -446,7 +447,7 @@ def convert(net, load_peak: np.ndarray, defaults: ImportDefaults = ImportDefault
     members: dict[int, list[int]] = {}  # gym-anm bus -> its pandapower buses (several where fused)
     for b, g in bus_map.items():
         members.setdefault(g, []).append(b)
-    star = _star_points(net, bus_lookup, new_id)
+    star = _star_points(net, stars, bus_lookup, new_id)
     for g, i in star.items():  # a fictional node: no voltage limit (finite, as gym-anm needs), no penalty there
         bus[g, 3], bus[g, 4] = STAR_POINT_VMAX, 0.0
 

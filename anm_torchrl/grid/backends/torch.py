@@ -22,7 +22,7 @@ def transition(sim, soc: torch.Tensor, p_load: torch.Tensor, p_pot: torch.Tensor
     :meth:`~anm_torchrl.grid.simulator.GridSimulator.apply` (p.u.). ``power_flow(y_bus, s_bus)`` returns a
     :class:`~anm_torchrl.grid.powerflow.PowerFlowResult` (:mod:`anm_torchrl.grid.implicit` gives a differentiable
     one)."""
-    net, ng, nd = sim.net, sim.n_gen, sim.n_des
+    net = sim.net
     n_env = setpoints.shape[0]
     p_dev = setpoints.new_zeros(n_env, net.n_dev)
     q_dev = setpoints.new_zeros(n_env, net.n_dev)
@@ -30,10 +30,10 @@ def transition(sim, soc: torch.Tensor, p_load: torch.Tensor, p_pot: torch.Tensor
     p_dev[:, sim.load_idx], q_dev[:, sim.load_idx] = sim.load_pq(p_load)
     # 2. non-slack generators: potential, then projection onto the capability polygon.
     p_pot = sim.clip_p_pot(p_pot)
-    gen = sim.project_generators(torch.stack([setpoints[:, :ng], setpoints[:, ng:2 * ng]], -1), p_pot)
+    gen_target, des_target = sim.split_action(setpoints)
+    gen = sim.project_generators(gen_target, p_pot)
     p_dev[:, sim.gen_idx], q_dev[:, sim.gen_idx] = gen[..., 0], gen[..., 1]
     # 3. storage: SoC-dependent projection, then SoC update.
-    des_target = torch.stack([setpoints[:, 2 * ng:2 * ng + nd], setpoints[:, 2 * ng + nd:]], -1)
     des = sim.project_storage(des_target, soc)
     p_dev[:, sim.des_idx], q_dev[:, sim.des_idx] = des[..., 0], des[..., 1]
     soc_next = sim.soc_update(soc, des[..., 0])

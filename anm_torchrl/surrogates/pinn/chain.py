@@ -102,11 +102,9 @@ class ExogenousInputs(nn.Module):
         sim, b = self.sim, self.sim.net.base_mva
         sl = sim.state_slices()
         state, action = state.to(torch.float64), action.to(torch.float64) / b
-        ng, nd = sim.n_gen, sim.n_des
         p_load_mw, p_pot_mw, aux = sim.next_vars(state)
         p_load, q_load = sim.load_pq(p_load_mw / b)
-        gen_target = torch.stack([action[:, :ng], action[:, ng:2 * ng]], -1)
-        des_target = torch.stack([action[:, 2 * ng:2 * ng + nd], action[:, 2 * ng + nd:]], -1)
+        gen_target, des_target = sim.split_action(action)
         return (gen_target, sim.clip_p_pot(p_pot_mw / b), des_target, state[:, sl["des_soc"]] / b, p_load, q_load,
                 aux.squeeze(1))
 

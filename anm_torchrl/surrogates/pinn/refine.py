@@ -168,9 +168,9 @@ def env_injections(sim: GridSimulator, n: int, seed: int) -> tuple[torch.Tensor,
     set-points projected by the devices' exact constraints; no power flow runs. The slack column is 0. (A
     ``next_vars`` hook's exogenous process needs states to run: the network's series stands for it here.)"""
     t, soc, a = free_variables(sim, n, torch.Generator(device=sim.net.dev.device).manual_seed(seed))
-    ng, nd = sim.n_gen, sim.n_des
-    gen_pq = sim.project_generators(torch.stack([a[:, :ng], a[:, ng:2 * ng]], -1), sim.p_pot_at(t))
-    des_pq = sim.project_storage(torch.stack([a[:, 2 * ng:2 * ng + nd], a[:, 2 * ng + nd:]], -1), soc)
+    gen_target, des_target = sim.split_action(a)
+    gen_pq = sim.project_generators(gen_target, sim.p_pot_at(t))
+    des_pq = sim.project_storage(des_target, soc)
     _, _, p_bus, q_bus = BusAggregation(sim)(gen_pq, des_pq, *sim.loads_at(t))
     return p_bus, q_bus
 
