@@ -100,3 +100,16 @@ def test_a_run_through_a_models_gradients_says_so_and_shows_its_model_frames():
     text = leaderboard.markdown({"network": "anm6_easy", "rows": list(rows.values()),
                                  "protocol": {"episodes": 1, "seed": 0, "steps": 5, "gamma": 0.995}})
     assert "| 0 (1,000 model) |" in text
+
+
+def test_a_warm_started_run_is_its_own_row_with_its_teachers_model_frames():
+    base = {"algorithm": "ppo", "surrogate": "pinn", "seed": 0, "true_env_frames": 0, "model_frames": None,
+            "wall_s": 1.0}
+    runs = [{**base, "discounted_return": -2.0},
+            {**base, "discounted_return": -1.0, "warm_start": "shac", "warm_start_model_frames": 5000}]
+    rows = {r["row"]: r for r in leaderboard.trained_rows(runs)}
+    assert rows["ppo_pinn"]["policy"] == "PPO trained on the pinn surrogate"
+    assert rows["ppo_pinn"]["model_frames"] is None
+    warm = rows["ppo_pinn_from_shac"]
+    assert warm["policy"] == "PPO trained on the pinn surrogate, started from SHAC through its gradients"
+    assert warm["model_frames"] == 5000 and warm["discounted_return"] == -1.0

@@ -106,6 +106,8 @@ def test_a_damaged_network_file_is_one_line(recipe, tmp_path):
     ("train_surrogate", "network=case34bw", "unknown network 'case34bw'"),
     ("reproduce", "preset.experiments=[nope]", "unknown experiment 'nope'"),
     ("sac", "checkpoint.resume=missing.pt", "checkpoint.resume: no file"),
+    ("ppo", "checkpoint.init_from=missing.pt", "checkpoint.init_from: no file"),
+    ("ppo", "checkpoint.resume=a.pt checkpoint.init_from=b.pt", "checkpoint.resume and checkpoint.init_from: give one"),
     # a surrogate choice that failed once the run had started (a traceback, a Hydra-only run directory left)
     ("ppo", "surrogate=gym_anm network=case33bw", "surrogate=gym_anm runs gym-anm's ANM6Easy only"),
     ("ppo", "surrogate=xgb surrogate.dataset=nope", "surrogate.dataset must be one of generative, agent; got 'nope'"),

@@ -82,7 +82,9 @@ def evaluate_run(run_dir: str | Path, protocol: dict) -> dict:
     surrogate = ckpt["config"]["surrogate"]["name"]
     if (ckpt["config"].get("model") or {}).get("dynamics") == "pinn":  # SHAC through the PINN (surrogate unread)
         surrogate = "pinn"
+    warm = summary.get("warm_start") or {}  # a teacher trained first (warm_start.algorithm); its time is in wall_time
     return {"run_dir": str(run_dir), "algorithm": ckpt["algorithm"], "surrogate": surrogate,
+            "warm_start": warm.get("algorithm"), "warm_start_model_frames": warm.get("model_frames"),
             "seed": int(ckpt["config"]["seed"]), "discounted_return": float(result.discounted_returns.mean()),
             "per_episode": result.discounted_returns.tolist(), "best_frames": int(ckpt["frames"]),
             "frames": int(summary["frames"]), "true_env_frames": int(summary["frames"]) if surrogate == "none" else 0,
@@ -91,22 +93,30 @@ def evaluate_run(run_dir: str | Path, protocol: dict) -> dict:
             "stopped_early": bool(summary["stopped_early"])}
 
 
+def group_of(run: dict) -> tuple[str, str, str]:
+    """A run's row: (algorithm, training env, the algorithm of its warm start or "")."""
+    return run["algorithm"], run["surrogate"], run.get("warm_start") or ""
+
+
 def trained_rows(runs: list[dict]) -> list[dict]:
     """One row per (algorithm, training env): mean over its seeds, with the spread."""
-    groups: dict[tuple[str, str], list[dict]] = {}
+    groups: dict[tuple[str, str, str], list[dict]] = {}
     for r in runs:
-        groups.setdefault((r["algorithm"], r["surrogate"]), []).append(r)
+        groups.setdefault(group_of(r), []).append(r)
     rows = []
-    for (algorithm, surrogate), rs in sorted(groups.items()):
+    for (algorithm, surrogate, warm), rs in sorted(groups.items()):
         values = [r["discounted_return"] for r in rs]
-        model_frames = [r["model_frames"] for r in rs if r.get("model_frames") is not None]
-        if model_frames:  # trained through a differentiable model's gradients, not on its sampled rewards
+        model_frames = [r.get("model_frames") or r.get("warm_start_model_frames") for r in rs]
+        model_frames = [m for m in model_frames if m is not None]
+        if model_frames and not warm:  # trained through a differentiable model's gradients, not on sampled rewards
             where = "the exact simulator" if surrogate == "none" else f"the {surrogate} surrogate"
             policy = f"{algorithm.upper()} through {where}'s gradients"
         else:
             where = "the true env" if surrogate == "none" else f"the {surrogate} surrogate"
             policy = f"{algorithm.upper()} trained on {where}"
-        rows.append({"policy": policy, "row": f"{algorithm}_{surrogate}",
+        if warm:  # the teacher's model transitions are the row's model frames
+            policy += f", started from {warm.upper()} through its gradients"
+        rows.append({"policy": policy, "row": f"{algorithm}_{surrogate}" + (f"_from_{warm}" if warm else ""),
                      "model_frames": statistics.fmean(model_frames) if model_frames else None,
                      "discounted_return": statistics.fmean(values),
                      "std_over_seeds": statistics.stdev(values) if len(values) > 1 else None,
@@ -139,8 +149,8 @@ def build(network: str, run_dirs: list[str | Path], gap_table: dict | None = Non
     # the earlier record first: a wrong one fails before the runs' evaluations (minutes), not after them
     earlier = kept_runs(keep, protocol, keep_source) if keep is not None else []
     runs = [evaluate_run(d, protocol) for d in run_dirs]
-    replaced = {(r["algorithm"], r["surrogate"]) for r in runs}
-    runs = [r for r in earlier if (r["algorithm"], r["surrogate"]) not in replaced] + runs
+    replaced = {group_of(r) for r in runs}
+    runs = [r for r in earlier if group_of(r) not in replaced] + runs
     opt, dn = reference_returns(network, gap_table)
     rows = baseline_rows(gap_table) + trained_rows(runs)
     for r in rows:

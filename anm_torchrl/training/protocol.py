@@ -98,7 +98,7 @@ def _with_newest_best(resume: dict, best_path: Path, resume_path: Path) -> dict:
 
 
 def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop, read top to bottom
-          network_defaults: dict | None = None) -> dict:
+          network_defaults: dict | None = None, warm_start: dict | None = None) -> dict:
     """Train ``cfg.algorithm`` as configured by ``cfg`` (a recipe's composed config) into ``run_dir``; returns the
     summary (also written to ``run_dir/summary.json``).
 
@@ -107,7 +107,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     ``network_defaults`` (written to the summary); a programmatic caller does the same or sets the keys itself.
 
     ``cfg.checkpoint.resume`` is a path (absolute, or relative to the current directory). Every range of ``cfg`` is
-    checked first.
+    checked first. ``warm_start``: what :func:`~anm_torchrl.training.warm_start.run_teacher` returned for the run
+    ``cfg.checkpoint.init_from`` names; recorded in the summary, its wall time counted in the run's.
 
     Raises:
         ValueError: a config value out of range, or a resume checkpoint of another algorithm or architecture.
@@ -172,9 +173,18 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     if resume:
         check_network(resume, eval_env.sim, str(resume_path))
 
+    init = None
+    if cfg.checkpoint.get("init_from") and not resume:
+        from anm_torchrl.training.warm_start import read_init
+
+        init = read_init(cfg.checkpoint.init_from, algorithm_cls, config, device)
+        check_network(init, eval_env.sim, str(cfg.checkpoint.init_from))
+
     # ---- the algorithm: its envs, models, loss, optimisers ---------------------------------------------------------
     algo = algorithm_cls(cfg, device=device, seed=seed, budget=max(total_frames - frames, 0),
                          reward_scale=reward_scale["reward_scale"], resume=resume)
+    if init is not None:
+        algo.start_from(init)
     actor = algo.actor
 
     # ---- logger -------------------------------------------------------------------------------------------
@@ -196,7 +206,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     evals_since_best = int(resume.get("evals_since_best", 0)) if resume else 0
     n_evals = 0
     last_eval = resume.get("last_eval") if resume else None
-    wall_before = float(resume.get("wall_time", 0.0)) if resume else 0.0
+    # a resumed run's time so far (its warm start's included), or its warm start's
+    wall_before = float(resume.get("wall_time", 0.0)) if resume else float((warm_start or {}).get("wall_time", 0.0))
     # learning curve (summary.json "curve"): validation and, with eval.track_test, test returns per validation point
     curve: list[dict] = list(resume.get("curve", [])) if resume else []
     track_s = float(resume.get("track_seconds", 0.0)) if resume else 0.0
@@ -218,7 +229,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                 "obs_norm": algo.normalizer.stats(), "state": algo.state_dict(), "frames": frames, "update": update,
                 "logger_step": frames, "best_eval": best, "evals_since_best": evals_since_best, "last_eval": last_eval,
                 "wall_time": wall_before + time.perf_counter() - t_start, "curve": curve, "track_seconds": track_s,
-                "network_key": trained_network, "profiles_key": trained_profiles}
+                "network_key": trained_network, "profiles_key": trained_profiles,
+                "reward_scale": reward_scale["reward_scale"]}
 
     test_max_steps = int(cfg.eval.max_steps if cfg.eval.test_max_steps is None else cfg.eval.test_max_steps)
 
@@ -308,6 +320,10 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                 stopped_early = True  # a run resumed after its early stop: no batch more that nothing would validate
                 log.warning("checkpoint stopped early (%d evaluations without improvement, eval.patience=%s); "
                             "nothing to train (raise eval.patience to train on)", evals_since_best, patience)
+            if init is not None and eval_interval is not None:
+                # the networks a warm start begins with compete for best.pt: training must beat them
+                record({"frames": 0, "update": 0, "true_env_frames": 0, "payload": None, "wall_s": wall_before
+                        + time.perf_counter() - t_start}, run_eval(actor, val_states, eval_env, trained=(0, 0)))
             while frames < total_frames and not stopped_early:
                 n_frames, train_metrics = algo.iterate(total_frames - frames)
                 frames += n_frames  # counted once the update is done: an interrupted update is not a trained batch
@@ -413,6 +429,9 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                               "do_nothing_discounted_return": do_nothing},
                "test": test, "curve": curve, "track_seconds": track_s, "reward_scale": reward_scale,
                "network_defaults": network_defaults,
+               "warm_start": warm_start,
+               "init_from": None if init is None else {"path": str(cfg.checkpoint.init_from),
+                                                       "algorithm": init["algorithm"], "frames": int(init["frames"])},
                "checkpoints": {name: str(ckpt_dir / f"{name}.pt") if (ckpt_dir / f"{name}.pt").is_file() else None
                                for name in ("best", "last")},
                "config": config}
@@ -489,10 +508,18 @@ def run_recipe(cfg: DictConfig) -> dict:
         check_algorithm_config(cfg)
         check_device(cfg.env.device)
         check_artifact_cache(cfg.surrogate)  # a surrogate trained on first use is saved under ANM_TORCHRL_HOME
-        if cfg.checkpoint.resume:  # relative to where the command was typed, not to the run directory
-            cfg.checkpoint.resume = hydra.utils.to_absolute_path(str(cfg.checkpoint.resume))
-            if not Path(cfg.checkpoint.resume).is_file():
-                raise FileNotFoundError(f"checkpoint.resume: no file {cfg.checkpoint.resume}")
+        if cfg.checkpoint.resume and cfg.checkpoint.get("init_from"):
+            raise ValueError("checkpoint.resume and checkpoint.init_from: give one (resume continues a run, init_from "
+                             "starts a new one from another run's networks)")
+        warm = cfg.get("warm_start", {}).get("algorithm")
+        if warm and cfg.checkpoint.get("init_from"):
+            raise ValueError(f"warm_start.algorithm={warm} and checkpoint.init_from: give one (both choose the "
+                             "networks the run starts from)")
+        for key in ("resume", "init_from"):  # relative to where the command was typed, not to the run directory
+            if cfg.checkpoint.get(key):
+                cfg.checkpoint[key] = hydra.utils.to_absolute_path(str(cfg.checkpoint[key]))
+                if not Path(cfg.checkpoint[key]).is_file():
+                    raise FileNotFoundError(f"checkpoint.{key}: no file {cfg.checkpoint[key]}")
         for key in ("path", "classifier_path"):  # a trained surrogate's file or folder: likewise
             if cfg.surrogate.get(key):
                 cfg.surrogate[key] = hydra.utils.to_absolute_path(str(cfg.surrogate[key]))
@@ -522,11 +549,32 @@ def run_recipe(cfg: DictConfig) -> dict:
 
             _, resume, _ = read_resume(cfg, str(cfg.algorithm))
             check_network(resume, sim, str(cfg.checkpoint.resume))
+        if cfg.checkpoint.get("init_from"):  # likewise for a warm start's source
+            from anm_torchrl.training.algorithms import get_algorithm
+            from anm_torchrl.training.checkpoint import check_network
+            from anm_torchrl.training.warm_start import read_init
+
+            init = read_init(cfg.checkpoint.init_from, get_algorithm(str(cfg.algorithm)),
+                             OmegaConf.to_container(cfg, resolve=True))
+            check_network(init, sim, str(cfg.checkpoint.init_from))
+        teacher = None
+        if warm and not cfg.checkpoint.resume:  # a resumed run continues after its warm start
+            from anm_torchrl.training.warm_start import teacher_config
+
+            teacher_config(cfg, log_now=False)  # its config's errors now, not after the PINN's training
     log_network_defaults(defaults)
     print(f"run directory: {run_dir}", flush=True)
     with stop_signals():
         try:
-            return train(cfg, run_dir, network_defaults=defaults)
+            if warm and not cfg.checkpoint.resume:
+                from anm_torchrl.training.warm_start import teacher_config, teacher_record
+
+                teacher_cfg, teacher_defaults = teacher_config(cfg)
+                log.info("warm start: %s through the %s first, into %s", teacher_cfg.algorithm,
+                         "PINN" if teacher_cfg.model.dynamics == "pinn" else "exact simulator", run_dir / "warm_start")
+                teacher = teacher_record(train(teacher_cfg, run_dir / "warm_start", network_defaults=teacher_defaults))
+                cfg.checkpoint.init_from = teacher["checkpoint"]
+            return train(cfg, run_dir, network_defaults=defaults, warm_start=teacher)
         except KeyboardInterrupt:
             raise SystemExit(143 if stop_requested() == "SIGTERM" else 130) from None
         finally:

@@ -6,10 +6,16 @@ and test states, early stop, checkpoints, logging and Ctrl-C; it calls an algori
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from omegaconf import DictConfig
+
+if TYPE_CHECKING:
+    import torch
+
+log = logging.getLogger(__name__)
 
 
 def anneal_lr(optimizer, lr: float, frames: int, total_frames: int, start: float = 0.0) -> None:
@@ -29,6 +35,23 @@ def set_optimizer_options(optimizer, **options: float) -> None:
         group.update({key: float(value) for key, value in options.items()})
 
 
+def load_networks(init: dict[str, Any], actor: torch.nn.Module, critic: torch.nn.Module, reward_scale: float) -> None:
+    """A warm start (:mod:`anm_torchrl.training.warm_start`): copy the checkpoint ``init``'s actor and critic weights
+    into ``actor`` and ``critic`` (in place), the critic's output layer rescaled from the source's reward scale to
+    ``reward_scale`` (the critic predicts returns of scaled rewards)."""
+    import torch
+
+    actor.load_state_dict(init["actor"])
+    critic.load_state_dict(init["state"]["critic"])
+    ratio = float(reward_scale) / float(init["reward_scale"])
+    last = [m for m in critic.modules() if isinstance(m, torch.nn.Linear)][-1]
+    with torch.no_grad():
+        last.weight.mul_(ratio)
+        last.bias.mul_(ratio)
+    log.info("started from the actor and critic of a %s run (%d frames; critic values x %.4g for this run's reward "
+             "scale)", init["algorithm"], int(init["frames"]), ratio)
+
+
 class Algorithm:
     """One training algorithm. Subclasses set the class attributes and implement every method.
 
@@ -43,6 +66,8 @@ class Algorithm:
 
     name: ClassVar[str]
     architecture_keys: ClassVar[tuple[str, ...]] = ("network",)
+    # algorithms of one family build the same actor and critic: a run starts from another's (checkpoint.init_from)
+    network_family: ClassVar[str | None] = None
 
     def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
                  resume: Mapping[str, Any] | None):
@@ -68,6 +93,11 @@ class Algorithm:
 
     def state_dict(self) -> dict[str, Any]:
         """Everything beyond the actor needed to resume (other networks, optimisers, buffers' counters)."""
+        raise NotImplementedError
+
+    def start_from(self, init: dict[str, Any]) -> None:
+        """Take the actor and critic of ``init``, a checkpoint of this ``network_family`` checked by
+        :func:`~anm_torchrl.training.warm_start.read_init` (a warm start: nothing else of that run)."""
         raise NotImplementedError
 
     def close(self, interrupted: bool = False) -> None:

@@ -20,7 +20,7 @@ import torch
 from omegaconf import DictConfig
 from tensordict import TensorDict
 
-from anm_torchrl.training.algorithms.base import Algorithm, anneal_lr, set_optimizer_options
+from anm_torchrl.training.algorithms.base import Algorithm, anneal_lr, load_networks, set_optimizer_options
 
 
 # what ClipPPOLoss reads once GAE has written the advantage and value target
@@ -117,6 +117,7 @@ class PPO(Algorithm):
     name = "ppo"
     architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip",
                          "model.time_features", "model.state_dependent_scale", "model.forecast_steps")
+    network_family = "ppo"
 
     def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
                  resume: Mapping[str, Any] | None):
@@ -218,6 +219,11 @@ class PPO(Algorithm):
         metrics.update({"time/collect": t_collect, "time/update": t_update,
                         "time/fps": n_frames / max(t_collect + t_update, 1e-9)})
         return n_frames, metrics
+
+    def start_from(self, init: dict[str, Any]) -> None:
+        load_networks(init, self.actor, self.critic, self.reward_scale)
+        if self.collector is not None:  # a collector in other processes holds its own copy of the weights
+            self.collector.update_policy_weights_()
 
     def state_dict(self) -> dict[str, Any]:
         return {"critic": self.critic.state_dict(), "optimizer": self.optim.state_dict(),

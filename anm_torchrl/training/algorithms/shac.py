@@ -42,7 +42,7 @@ from omegaconf import DictConfig
 from tensordict import TensorDict
 
 from anm_torchrl.training.algorithms.base import Algorithm, anneal_lr, set_optimizer_options
-from anm_torchrl.training.algorithms.ppo import model_options
+from anm_torchrl.training.algorithms.ppo import PPO, model_options
 from anm_torchrl.training.algorithms.shac_critic import (CriticSettings, CriticWorker, Rollout, move_towards,
                                                         update_critic, value)
 
@@ -139,8 +139,8 @@ class SHAC(Algorithm):
 
     name = "shac"
     budget_unit = "model_frames"
-    architecture_keys = ("network", "model.actor_cells", "model.critic_cells", "model.activation", "model.obs_clip",
-                         "model.time_features", "model.state_dependent_scale", "model.forecast_steps")
+    # PPO's actor and critic (make_ppo_models): a PPO run can start from a SHAC run's (checkpoint.init_from)
+    architecture_keys, network_family = PPO.architecture_keys, PPO.network_family
 
     def __init__(self, cfg: DictConfig, *, device, seed: int, budget: int, reward_scale: float,
                  resume: Mapping[str, Any] | None):
