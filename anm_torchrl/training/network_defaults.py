@@ -127,6 +127,11 @@ def apply_network_defaults(cfg: DictConfig, explicit: Iterable[str] = (), log_no
     with open_dict(cfg):
         for key, value in applied.items():
             OmegaConf.update(cfg, key, value, merge=False)
+        # PPO after a warm start (warm_start.algorithm) learns at warm_start.lr, unless optim.lr was given
+        warm = cfg.get("warm_start")
+        if warm is not None and warm.get("algorithm") and warm.get("lr") is not None and not given("optim.lr"):
+            applied["optim.lr"] = warm.lr
+            OmegaConf.update(cfg, "optim.lr", warm.lr, merge=False)
     out = {"network": str(cfg.network), "entry": name, "applied": applied, "kept": kept}
     if log_now:
         log_network_defaults(out)

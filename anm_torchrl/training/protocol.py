@@ -505,13 +505,13 @@ def run_recipe(cfg: DictConfig) -> dict:
         check_model_group(cfg)  # another recipe's model group lacks the keys the per-network conditions read
         # logged once the config has passed its checks: a wrong value is then the only line printed
         defaults = apply_network_defaults(cfg, explicit_keys(hydra_cfg.overrides.task, conf_dir), log_now=False)
+        warm = cfg.get("warm_start", {}).get("algorithm")
         check_algorithm_config(cfg)
         check_device(cfg.env.device)
         check_artifact_cache(cfg.surrogate)  # a surrogate trained on first use is saved under ANM_TORCHRL_HOME
         if cfg.checkpoint.resume and cfg.checkpoint.get("init_from"):
             raise ValueError("checkpoint.resume and checkpoint.init_from: give one (resume continues a run, init_from "
                              "starts a new one from another run's networks)")
-        warm = cfg.get("warm_start", {}).get("algorithm")
         if warm and cfg.checkpoint.get("init_from"):
             raise ValueError(f"warm_start.algorithm={warm} and checkpoint.init_from: give one (both choose the "
                              "networks the run starts from)")
