@@ -135,3 +135,27 @@ def test_a_bad_warm_start_is_one_line(args, message, tmp_path):
     proc = run(PPO_RECIPE, *TINY, *args, f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path, check=False)
     last = proc.stderr.strip().splitlines()[-1]
     assert proc.returncode != 0 and re.search(message, last), proc.stderr[-2000:]
+
+
+def test_train_itself_runs_the_warm_start(tmp_path):
+    """A programmatic caller (a study's cell composing the recipe's config) gets what the recipe does."""
+    summary = train(_cfg("config", *PPO, "warm_start.algorithm=shac", SHAC_BRIEF), tmp_path)
+    assert summary["warm_start"]["model_frames"] == 64 and (tmp_path / "warm_start" / "summary.json").is_file()
+    assert summary["init_from"]["path"] == summary["warm_start"]["checkpoint"]
+
+
+def test_the_main_jobs_entry_and_the_studies_plain_ppo():
+    from anm_torchrl.experiments.ppo_runs import ppo_overrides
+    from anm_torchrl.training.network_defaults import compose_recipe_config
+
+    cfg, defaults = compose_recipe_config(["surrogate=pinn"])  # ANM6-Easy's entry: SHAC first, PPO at lr 1e-5
+    assert cfg.warm_start.algorithm == "shac" and cfg.optim.lr == 1e-5 and defaults["applied"]["optim.lr"] == 1e-5
+    cfg, _ = compose_recipe_config(["surrogate=pinn", "optim.lr=3e-5"])  # the command line's lr wins
+    assert cfg.warm_start.algorithm == "shac" and cfg.optim.lr == 3e-5
+    cfg, _ = compose_recipe_config(["surrogate=pinn", "warm_start.algorithm=null"])  # no warm start: PPO's own lr
+    assert cfg.optim.lr == 1e-4
+    cfg, _ = compose_recipe_config(["surrogate=none"])
+    assert cfg.warm_start.algorithm is None and cfg.optim.lr == 1e-4
+    # the paper's experiments and the payoff study compare PPO from fresh networks on every training env
+    cfg, _ = compose_recipe_config(ppo_overrides({"name": "pinn"}, 0, {}))
+    assert cfg.warm_start.algorithm is None and cfg.optim.lr == 1e-4

@@ -107,8 +107,10 @@ def run_ppo(overrides: list[str], run_dir: str | Path, timeout_s: float | None =
 
 def ppo_overrides(surrogate: dict[str, Any], seed: int, base: dict[str, Any]) -> list[str]:
     """Hydra overrides for one run: the surrogate group (``surrogate=<name>`` + its options), the seed and the
-    preset's ``base`` overrides (``{"env.num_envs": 4, ...}``)."""
-    out = [f"surrogate={surrogate['name']}", f"seed={seed}"]
+    preset's ``base`` overrides (``{"env.num_envs": 4, ...}``). The experiments compare PPO on each training env
+    from fresh networks: ``warm_start.algorithm=null`` (the main job's SHAC warm start on ANM6-Easy, its network
+    entry, is not theirs) unless ``base`` sets it."""
+    out = [f"surrogate={surrogate['name']}", f"seed={seed}", "warm_start.algorithm=null"]
     out += [f"surrogate.{k}={'null' if v is None else v}" for k, v in surrogate.items() if k != "name"]
     out += [f"{k}={'null' if v is None else v}" for k, v in base.items()]
     return out

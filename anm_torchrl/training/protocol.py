@@ -98,7 +98,7 @@ def _with_newest_best(resume: dict, best_path: Path, resume_path: Path) -> dict:
 
 
 def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop, read top to bottom
-          network_defaults: dict | None = None, warm_start: dict | None = None) -> dict:
+          network_defaults: dict | None = None) -> dict:
     """Train ``cfg.algorithm`` as configured by ``cfg`` (a recipe's composed config) into ``run_dir``; returns the
     summary (also written to ``run_dir/summary.json``).
 
@@ -107,8 +107,10 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     ``network_defaults`` (written to the summary); a programmatic caller does the same or sets the keys itself.
 
     ``cfg.checkpoint.resume`` is a path (absolute, or relative to the current directory). Every range of ``cfg`` is
-    checked first. ``warm_start``: what :func:`~anm_torchrl.training.warm_start.run_teacher` returned for the run
-    ``cfg.checkpoint.init_from`` names; recorded in the summary, its wall time counted in the run's.
+    checked first. With ``cfg.warm_start.algorithm`` (PPO) and neither ``checkpoint.resume`` nor
+    ``checkpoint.init_from``, that algorithm is trained first into ``run_dir/warm_start``
+    (:func:`~anm_torchrl.training.warm_start.teacher_config`) and the run starts from its ``best.pt``; the summary
+    records it and the run's wall time counts it.
 
     Raises:
         ValueError: a config value out of range, or a resume checkpoint of another algorithm or architecture.
@@ -131,6 +133,18 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
     from anm_torchrl.evaluation import draw_initial_states
     from anm_torchrl.training.factory import make_true_env
     from anm_torchrl.training.validation import BackgroundValidation, InlineValidation, evaluate, use_background
+
+    warm_start = None
+    if (cfg.get("warm_start", {}).get("algorithm") and not cfg.checkpoint.resume
+            and not cfg.checkpoint.get("init_from")):
+        from anm_torchrl.training.warm_start import teacher_config, teacher_record
+
+        teacher_cfg, teacher_defaults = teacher_config(cfg)
+        teacher_dir = Path(run_dir).resolve() / "warm_start"
+        log.info("warm start: %s through the %s first, into %s", teacher_cfg.algorithm,
+                 "PINN" if teacher_cfg.model.dynamics == "pinn" else "exact simulator", teacher_dir)
+        warm_start = teacher_record(train(teacher_cfg, teacher_dir, network_defaults=teacher_defaults))
+        cfg.checkpoint.init_from = warm_start["checkpoint"]
 
     t_start = time.perf_counter()
     config = OmegaConf.to_container(cfg, resolve=True)
@@ -557,7 +571,6 @@ def run_recipe(cfg: DictConfig) -> dict:
             init = read_init(cfg.checkpoint.init_from, get_algorithm(str(cfg.algorithm)),
                              OmegaConf.to_container(cfg, resolve=True))
             check_network(init, sim, str(cfg.checkpoint.init_from))
-        teacher = None
         if warm and not cfg.checkpoint.resume:  # a resumed run continues after its warm start
             from anm_torchrl.training.warm_start import teacher_config
 
@@ -566,15 +579,7 @@ def run_recipe(cfg: DictConfig) -> dict:
     print(f"run directory: {run_dir}", flush=True)
     with stop_signals():
         try:
-            if warm and not cfg.checkpoint.resume:
-                from anm_torchrl.training.warm_start import teacher_config, teacher_record
-
-                teacher_cfg, teacher_defaults = teacher_config(cfg)
-                log.info("warm start: %s through the %s first, into %s", teacher_cfg.algorithm,
-                         "PINN" if teacher_cfg.model.dynamics == "pinn" else "exact simulator", run_dir / "warm_start")
-                teacher = teacher_record(train(teacher_cfg, run_dir / "warm_start", network_defaults=teacher_defaults))
-                cfg.checkpoint.init_from = teacher["checkpoint"]
-            return train(cfg, run_dir, network_defaults=defaults, warm_start=teacher)
+            return train(cfg, run_dir, network_defaults=defaults)
         except KeyboardInterrupt:
             raise SystemExit(143 if stop_requested() == "SIGTERM" else 130) from None
         finally:
