@@ -159,3 +159,14 @@ def test_the_main_jobs_entry_and_the_studies_plain_ppo():
     # the paper's experiments and the payoff study compare PPO from fresh networks on every training env
     cfg, _ = compose_recipe_config(ppo_overrides({"name": "pinn"}, 0, {}))
     assert cfg.warm_start.algorithm is None and cfg.optim.lr == 1e-4
+
+
+def test_a_resumed_warm_started_run_keeps_its_warm_start_and_does_not_train_it_again(tmp_path):
+    first = train(_cfg("config", *PPO, "warm_start.algorithm=shac", SHAC_BRIEF), tmp_path / "a")
+    teacher_mtime = (tmp_path / "a" / "warm_start" / "summary.json").stat().st_mtime_ns
+    resumed = train(_cfg("config", *PPO, "warm_start.algorithm=shac", SHAC_BRIEF, "collector.total_frames=96",
+                         f"checkpoint.resume={tmp_path / 'a' / 'checkpoints' / 'last.pt'}"), tmp_path / "b")
+    assert not (tmp_path / "b" / "warm_start").exists()  # not trained again
+    assert (tmp_path / "a" / "warm_start" / "summary.json").stat().st_mtime_ns == teacher_mtime
+    assert resumed["warm_start"] == first["warm_start"] and resumed["frames"] == 96
+    assert resumed["wall_time"] > first["wall_time"] > first["warm_start"]["wall_time"]

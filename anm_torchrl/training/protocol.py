@@ -165,6 +165,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
             ckpt_dir.mkdir(parents=True, exist_ok=True)  # the best policy so far stays next to the new last.pt
             shutil.copy2(resume_path.parent / "best.pt", ckpt_dir / "best.pt")
         resume = _with_newest_best(resume, ckpt_dir / "best.pt", resume_path)
+    if resume:  # a resumed warm-started run keeps its warm start's record (its time is in the checkpoint's)
+        warm_start = resume.get("warm_start")
     frames = int(resume["frames"]) if resume else 0
     update = int(resume["update"]) if resume else 0
     seed = int(cfg.seed) + update  # a resumed run does not replay the first run's random streams
@@ -244,7 +246,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                 "logger_step": frames, "best_eval": best, "evals_since_best": evals_since_best, "last_eval": last_eval,
                 "wall_time": wall_before + time.perf_counter() - t_start, "curve": curve, "track_seconds": track_s,
                 "network_key": trained_network, "profiles_key": trained_profiles,
-                "reward_scale": reward_scale["reward_scale"]}
+                "reward_scale": reward_scale["reward_scale"], "warm_start": warm_start}
 
     test_max_steps = int(cfg.eval.max_steps if cfg.eval.test_max_steps is None else cfg.eval.test_max_steps)
 
