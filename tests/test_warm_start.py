@@ -61,12 +61,33 @@ def test_the_critic_is_the_sources_in_the_runs_reward_units(shac_best):
     src_actor, src_critic, _ = make_ppo_models(env, **model_options(cfg))
     src_actor.load_state_dict(source["actor"])
     src_critic.load_state_dict(source["state"]["critic"])
-    load_networks(source, actor, critic, reward_scale=0.01)
+    load_networks(source, actor, critic, reward_scale=0.01, loss=cfg.loss)
     td = env.reset()
     ratio = 0.01 / source["reward_scale"]
     assert ratio != pytest.approx(1.0)  # SHAC's auto scale (~0.23 on ANM6-Easy) against PPO's 0.01: a real rescale
     torch.testing.assert_close(critic(td.clone())["state_value"], src_critic(td.clone())["state_value"] * ratio)
     torch.testing.assert_close(actor(td.clone())["loc"], src_actor(td.clone())["loc"])
+
+
+def test_a_critic_of_another_discount_is_not_taken(shac_best, caplog):
+    from anm_torchrl.training.algorithms.ppo import model_options
+    from anm_torchrl.training.factory import make_true_env
+    from anm_torchrl.training.models import make_ppo_models
+    from anm_torchrl.training.algorithms.base import load_networks
+
+    source = load_checkpoint(shac_best)
+    cfg = _cfg("config", *PPO, "loss.gamma=0.9")  # SHAC's 0.995: its values are of another return
+    actor, critic, _ = make_ppo_models(make_true_env(4, "cpu", seed=0, network="anm6_easy"), **model_options(cfg))
+    fresh = {k: v.clone() for k, v in critic.state_dict().items()}
+    load_networks(source, actor, critic, reward_scale=0.01, loss=cfg.loss)
+    assert "the critic starts fresh" in caplog.text
+    assert all(torch.equal(v, fresh[k]) for k, v in critic.state_dict().items())
+    assert all(torch.equal(v, source["actor"][k]) for k, v in actor.state_dict().items())
+
+
+def test_the_start_is_tracked_on_the_test_states_like_every_point(shac_best, tmp_path):
+    summary = train(_cfg("config", *PPO, "eval.track_test=true", f"checkpoint.init_from={shac_best}"), tmp_path)
+    assert summary["curve"][0]["frames"] == 0 and all("test" in point for point in summary["curve"])
 
 
 def test_an_architecture_that_differs_is_named(shac_best, tmp_path):
@@ -123,6 +144,8 @@ def test_the_recipe_trains_its_warm_start_first_and_counts_its_time(tmp_path):
     (["warm_start.algorithm=sac"], "warm_start.algorithm must be null or shac, got 'sac'"),
     (["warm_start.algorithm=shac", "surrogate=lr"], "surrogate=lr has no gradients to train through"),
     (["warm_start.algorithm=shac", "checkpoint.init_from=x.pt"], "warm_start.algorithm=shac and checkpoint.init_from"),
+    (["warm_start.algorithm=shac", "warm_start.overrides=['model.actor_cells=[8]','eval.num_episodes=3']"],
+     r"warm_start.overrides sets eval.num_episodes, model.actor_cells: the warm start takes these from the PPO run"),
     (["warm_start.algorithm=shac", "warm_start.overrides=['loss.horizn=8']"],
      r"warm_start.overrides=\['loss.horizn=8'\]: Could not override 'loss.horizn'"),
 ])
@@ -138,8 +161,11 @@ def test_a_bad_warm_start_is_one_line(args, message, tmp_path):
 
 
 def test_train_itself_runs_the_warm_start(tmp_path):
-    """A programmatic caller (a study's cell composing the recipe's config) gets what the recipe does."""
-    summary = train(_cfg("config", *PPO, "warm_start.algorithm=shac", SHAC_BRIEF), tmp_path)
+    """A programmatic caller (a study's cell composing the recipe's config) gets what the recipe does, and its
+    config is left as composed (a study compares it with the cell's)."""
+    cfg = _cfg("config", *PPO, "warm_start.algorithm=shac", SHAC_BRIEF)
+    summary = train(cfg, tmp_path)
+    assert cfg.checkpoint.init_from is None and summary["config"]["checkpoint"]["init_from"] is None
     assert summary["warm_start"]["model_frames"] == 64 and (tmp_path / "warm_start" / "summary.json").is_file()
     assert summary["init_from"]["path"] == summary["warm_start"]["checkpoint"]
 
@@ -156,6 +182,9 @@ def test_the_main_jobs_entry_and_the_studies_plain_ppo():
     assert cfg.optim.lr == 1e-4
     cfg, _ = compose_recipe_config(["surrogate=none"])
     assert cfg.warm_start.algorithm is None and cfg.optim.lr == 1e-4
+    # networks given on the command line: no warm start of the entry, PPO at the warm start's lr
+    cfg, _ = compose_recipe_config(["surrogate=pinn", "checkpoint.init_from=/a/best.pt"])
+    assert cfg.warm_start.algorithm is None and cfg.optim.lr == 1e-5
     # the paper's experiments and the payoff study compare PPO from fresh networks on every training env
     cfg, _ = compose_recipe_config(ppo_overrides({"name": "pinn"}, 0, {}))
     assert cfg.warm_start.algorithm is None and cfg.optim.lr == 1e-4

@@ -122,14 +122,18 @@ def apply_network_defaults(cfg: DictConfig, explicit: Iterable[str] = (), log_no
         parts = key.split(".")
         return any(".".join(parts[:i]) in explicit for i in range(1, len(parts) + 1))
 
-    applied = {k: v for k, v in values.items() if not given(k)}
+    init_from = (cfg.get("checkpoint") or {}).get("init_from")
+    # a run given the networks it starts from (checkpoint.init_from) trains no warm start of its network's entry
+    applied = {k: v for k, v in values.items() if not given(k) and not (init_from and k == "warm_start.algorithm")}
     kept = {k: OmegaConf.select(cfg, k) for k in values if given(k)}
     with open_dict(cfg):
         for key, value in applied.items():
             OmegaConf.update(cfg, key, value, merge=False)
-        # PPO after a warm start (warm_start.algorithm) learns at warm_start.lr, unless optim.lr was given
+        # PPO after a warm start (warm_start.algorithm or checkpoint.init_from) learns at warm_start.lr, unless
+        # optim.lr was given
         warm = cfg.get("warm_start")
-        if warm is not None and warm.get("algorithm") and warm.get("lr") is not None and not given("optim.lr"):
+        if (warm is not None and (warm.get("algorithm") or init_from) and warm.get("lr") is not None
+                and not given("optim.lr")):
             applied["optim.lr"] = warm.lr
             OmegaConf.update(cfg, "optim.lr", warm.lr, merge=False)
     out = {"network": str(cfg.network), "entry": name, "applied": applied, "kept": kept}

@@ -143,8 +143,13 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
         teacher_dir = Path(run_dir).resolve() / "warm_start"
         log.info("warm start: %s through the %s first, into %s", teacher_cfg.algorithm,
                  "PINN" if teacher_cfg.model.dynamics == "pinn" else "exact simulator", teacher_dir)
-        warm_start = teacher_record(train(teacher_cfg, teacher_dir, network_defaults=teacher_defaults))
-        cfg.checkpoint.init_from = warm_start["checkpoint"]
+        try:
+            warm_start = teacher_record(train(teacher_cfg, teacher_dir, network_defaults=teacher_defaults))
+        except KeyboardInterrupt:
+            log.warning("the warm start was interrupted: continue it with python recipes/shac.py (its config is in %s) "
+                        "and checkpoint.resume=%s, then start PPO from its best.pt with checkpoint.init_from",
+                        teacher_dir / "summary.json", teacher_dir / "checkpoints" / "last.pt")
+            raise
 
     t_start = time.perf_counter()
     config = OmegaConf.to_container(cfg, resolve=True)
@@ -190,11 +195,13 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
         check_network(resume, eval_env.sim, str(resume_path))
 
     init = None
-    if cfg.checkpoint.get("init_from") and not resume:
+    # the caller's config is not changed: it still reads as composed (a study compares it with its cell's)
+    init_path = cfg.checkpoint.get("init_from") or (warm_start or {}).get("checkpoint")
+    if init_path and not resume:
         from anm_torchrl.training.warm_start import read_init
 
-        init = read_init(cfg.checkpoint.init_from, algorithm_cls, config, device)
-        check_network(init, eval_env.sim, str(cfg.checkpoint.init_from))
+        init = read_init(init_path, algorithm_cls, config, device)
+        check_network(init, eval_env.sim, str(init_path))
 
     # ---- the algorithm: its envs, models, loss, optimisers ---------------------------------------------------------
     algo = algorithm_cls(cfg, device=device, seed=seed, budget=max(total_frames - frames, 0),
@@ -338,8 +345,13 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                             "nothing to train (raise eval.patience to train on)", evals_since_best, patience)
             if init is not None and eval_interval is not None:
                 # the networks a warm start begins with compete for best.pt: training must beat them
-                record({"frames": 0, "update": 0, "true_env_frames": 0, "payload": None, "wall_s": wall_before
-                        + time.perf_counter() - t_start}, run_eval(actor, val_states, eval_env, trained=(0, 0)))
+                snapshot = {"frames": 0, "update": 0, "true_env_frames": 0, "payload": None}
+                if cfg.eval.track_test:  # as every other validation point (a study reads test beside it)
+                    t_track = time.perf_counter()
+                    snapshot["tracked"] = run_eval(actor, test_states, test_env, steps=test_max_steps)
+                    track_s += time.perf_counter() - t_track
+                snapshot["wall_s"] = wall_before + time.perf_counter() - t_start - track_s
+                record(snapshot, run_eval(actor, val_states, eval_env, trained=(0, 0)))
             while frames < total_frames and not stopped_early:
                 n_frames, train_metrics = algo.iterate(total_frames - frames)
                 frames += n_frames  # counted once the update is done: an interrupted update is not a trained batch
@@ -446,7 +458,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                "test": test, "curve": curve, "track_seconds": track_s, "reward_scale": reward_scale,
                "network_defaults": network_defaults,
                "warm_start": warm_start,
-               "init_from": None if init is None else {"path": str(cfg.checkpoint.init_from),
+               "init_from": None if init is None else {"path": str(init_path),
                                                        "algorithm": init["algorithm"], "frames": int(init["frames"])},
                "checkpoints": {name: str(ckpt_dir / f"{name}.pt") if (ckpt_dir / f"{name}.pt").is_file() else None
                                for name in ("best", "last")},

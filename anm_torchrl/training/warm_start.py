@@ -6,9 +6,12 @@ The source may be a run of another algorithm whose networks are the same family 
 PPO's and SHAC's actor and state-value critic are built by :func:`~anm_torchrl.training.models.make_ppo_models`),
 trained on the same network with the same architecture keys.
 
-The critic predicts returns of **scaled** rewards; a source trained under another reward scale (SHAC's ``auto``
-against PPO's fixed 0.01 on ANM6-Easy) has its output layer multiplied by ``this scale / source scale``, the same
-value function in the new run's units.
+The actor comes whole, its exploration scale included (SHAC's ANM6-Easy entry trains at log-std -6, so PPO after it
+samples that narrowly; the run's ``model.init_log_std`` does not apply). The critic predicts discounted returns of
+**scaled** rewards: a source trained under another reward scale (SHAC's ``auto`` against PPO's fixed 0.01 on
+ANM6-Easy) has its output layer multiplied by ``this scale / source scale``, the same value function in the new
+run's units; a source with another discount (``loss.gamma``) or either run with ``loss.return_norm`` keeps the new
+run's fresh critic (warned), since no factor converts it.
 """
 
 from __future__ import annotations
@@ -45,8 +48,10 @@ def read_init(path: str | Path, algorithm_cls, config: dict, device="cpu") -> di
         raise ValueError(f"checkpoint.init_from={path}: its networks are {ckpt['algorithm']}'s, another family than "
                          f"{algorithm_cls.name}'s")
     keys = [k for k in algorithm_cls.architecture_keys if k in source.architecture_keys and k != "network"]
+    # a flag or count added after the checkpoint was written (absent there) was off (0) when it was
     differ = [(k, _value(ckpt["config"], k), _value(config, k)) for k in keys
-              if _value(ckpt["config"], k) != _value(config, k)]
+              if _value(ckpt["config"], k) != _value(config, k)
+              and not (_value(ckpt["config"], k) is None and _value(config, k) in (False, 0))]
     if differ:
         details = "; ".join(f"{k}: checkpoint {a!r}, this run {b!r}" for k, a, b in differ)
         raise ValueError(f"checkpoint.init_from={path}: its networks have another architecture ({details})")
@@ -95,6 +100,12 @@ def teacher_config(cfg, log_now: bool = True):
         raise ValueError(f"warm_start.algorithm=shac trains through the PINN (surrogate=pinn) or the exact simulator "
                          f"(surrogate=none); surrogate={surrogate} has no gradients to train through")
     user = [str(o) for o in ws.overrides]
+    arch = [k for k in get_algorithm(str(cfg.algorithm)).architecture_keys if k.startswith("model.")]
+    taken = sorted(k for k in explicit_keys(user, RECIPE_CONF)
+                   if k in arch or k in {f"eval.{e}" for e in SHARED_EVAL_KEYS} or k == "env.device")
+    if taken:
+        raise ValueError(f"warm_start.overrides sets {', '.join(taken)}: the warm start takes these from the PPO run "
+                         "(its networks must load into PPO's, its states be PPO's); set them on the command line")
     overrides = [f"model={'pinn' if surrogate == 'pinn' else 'exact'}", *user]
     try:
         teacher = compose_config(overrides, "shac")
@@ -111,9 +122,9 @@ def teacher_config(cfg, log_now: bool = True):
     with open_dict(teacher):
         for key in SHARED_EVAL_KEYS:
             teacher.eval[key] = cfg.eval[key]
-        for key in get_algorithm(str(cfg.algorithm)).architecture_keys:
-            if key.startswith("model."):
-                teacher.model[key.split(".", 1)[1]] = cfg.model.get(key.split(".", 1)[1])
+        teacher.env.device = cfg.env.device
+        for key in arch:
+            teacher.model[key.split(".", 1)[1]] = cfg.model.get(key.split(".", 1)[1])
     check_algorithm_config(teacher)
     return teacher, defaults
 

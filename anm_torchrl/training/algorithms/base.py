@@ -35,13 +35,23 @@ def set_optimizer_options(optimizer, **options: float) -> None:
         group.update({key: float(value) for key, value in options.items()})
 
 
-def load_networks(init: dict[str, Any], actor: torch.nn.Module, critic: torch.nn.Module, reward_scale: float) -> None:
+def load_networks(init: dict[str, Any], actor: torch.nn.Module, critic: torch.nn.Module, reward_scale: float,
+                  loss: Mapping[str, Any]) -> None:
     """A warm start (:mod:`anm_torchrl.training.warm_start`): copy the checkpoint ``init``'s actor and critic weights
     into ``actor`` and ``critic`` (in place), the critic's output layer rescaled from the source's reward scale to
-    ``reward_scale`` (the critic predicts returns of scaled rewards)."""
+    ``reward_scale`` (the critic predicts returns of scaled rewards). ``loss``: the run's ``loss`` group; where its
+    ``gamma`` differs from the source's or either uses ``return_norm``, the critic stays as built (warned)."""
     import torch
 
     actor.load_state_dict(init["actor"])
+    source = init["config"].get("loss", {})
+    if (float(source.get("gamma", -1)) != float(loss.get("gamma")) or source.get("return_norm")
+            or loss.get("return_norm")):
+        log.warning("checkpoint.init_from: the actor only; the critic starts fresh (the source's loss.gamma %s and "
+                    "return_norm %s against this run's %s and %s: its values are of another return)",
+                    source.get("gamma"), bool(source.get("return_norm")), loss.get("gamma"),
+                    bool(loss.get("return_norm")))
+        return
     critic.load_state_dict(init["state"]["critic"])
     ratio = float(reward_scale) / float(init["reward_scale"])
     last = [m for m in critic.modules() if isinstance(m, torch.nn.Linear)][-1]

@@ -221,7 +221,7 @@ class PPO(Algorithm):
         return n_frames, metrics
 
     def start_from(self, init: dict[str, Any]) -> None:
-        load_networks(init, self.actor, self.critic, self.reward_scale)
+        load_networks(init, self.actor, self.critic, self.reward_scale, self.cfg.loss)
         if self.collector is not None:  # a collector in other processes holds its own copy of the weights
             self.collector.update_policy_weights_()
 
