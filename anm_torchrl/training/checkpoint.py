@@ -247,18 +247,29 @@ def check_resume_config(saved: dict, config: dict, source: str = "checkpoint", n
 
     # checkpoints that predate the keys: PPO on ANM6-Easy
     saved = {"network": "anm6_easy", "algorithm": "ppo", **saved}
-    def value(cfg: dict, key: str):
-        for part in key.split("."):
-            cfg = cfg.get(part) if isinstance(cfg, dict) else None
-        return cfg
-
-    changed = config_diff(saved, config)
-    # an architecture flag or count added after the checkpoint was written (absent there) was off (0) when it was
-    arch = [k for k in changed if k in get_algorithm(saved["algorithm"]).architecture_keys
-            and not (value(saved, k) is None and value(config, k) in (False, 0))
-            and not (k == "network" and network_by_key)]
+    keys = [k for k in get_algorithm(saved["algorithm"]).architecture_keys if not (k == "network" and network_by_key)]
+    arch = architecture_differences(saved, config, keys)
     if arch:
-        details = "; ".join(f"{k}: checkpoint {value(saved, k)!r}, this run {value(config, k)!r}" for k in arch)
+        details = "; ".join(f"{k}: checkpoint {a!r}, this run {b!r}" for k, a, b in arch)
         raise ValueError(f"cannot resume from {source}: its networks were built with another architecture "
                          f"({details}); pass the checkpoint's values or start a new run")
-    return changed
+    return config_diff(saved, config)
+
+
+def config_value(cfg: dict, key: str) -> Any:
+    """The value of a dotted ``key`` in a nested config dict (None where a level is missing)."""
+    for part in key.split("."):
+        cfg = cfg.get(part) if isinstance(cfg, dict) else None
+    return cfg
+
+
+def architecture_differences(saved: dict, config: dict, keys) -> list[tuple[str, Any, Any]]:
+    """``(key, saved value, config value)`` of each of ``keys`` (dotted) whose values differ between a checkpoint's
+    config and a run's. A flag or count added after the checkpoint was written (absent there) was off (0) when it
+    was: absent against False or 0 does not differ."""
+    out = []
+    for key in keys:
+        a, b = config_value(saved, key), config_value(config, key)
+        if a != b and not (a is None and b in (False, 0)):
+            out.append((key, a, b))
+    return out

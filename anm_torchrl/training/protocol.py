@@ -316,6 +316,19 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                  time.perf_counter() - t_start, last_eval["discounted_return"], best["discounted_return"],
                  last_eval["return"], last_eval["penalty"], last_eval["terminated"])
 
+    def take_snapshot(payload: dict | None) -> dict:
+        """The run at a validation point: frames, update, ``payload`` (best.pt's content, or None to take the run's
+        when the pass is recorded), with ``eval.track_test`` the test states' figures, and the wall time without
+        the tracking's."""
+        nonlocal track_s
+        snapshot = {"frames": frames, "update": update, "true_env_frames": true_env_frames(), "payload": payload}
+        if cfg.eval.track_test:  # a measurement only: nothing the training does reads it
+            t_track = time.perf_counter()
+            snapshot["tracked"] = run_eval(actor, test_states, test_env, steps=test_max_steps)
+            track_s += time.perf_counter() - t_track
+        snapshot["wall_s"] = wall_before + time.perf_counter() - t_start - track_s
+        return snapshot
+
     def take_results(wait: bool) -> None:
         for snapshot, result in validation.results(wait=wait):
             record(snapshot, result)
@@ -345,13 +358,7 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                             "nothing to train (raise eval.patience to train on)", evals_since_best, patience)
             if init is not None and eval_interval is not None:
                 # the networks a warm start begins with compete for best.pt: training must beat them
-                snapshot = {"frames": 0, "update": 0, "true_env_frames": 0, "payload": None}
-                if cfg.eval.track_test:  # as every other validation point (a study reads test beside it)
-                    t_track = time.perf_counter()
-                    snapshot["tracked"] = run_eval(actor, test_states, test_env, steps=test_max_steps)
-                    track_s += time.perf_counter() - t_track
-                snapshot["wall_s"] = wall_before + time.perf_counter() - t_start - track_s
-                record(snapshot, run_eval(actor, val_states, eval_env, trained=(0, 0)))
+                record(take_snapshot(None), run_eval(actor, val_states, eval_env))
             while frames < total_frames and not stopped_early:
                 n_frames, train_metrics = algo.iterate(total_frames - frames)
                 frames += n_frames  # counted once the update is done: an interrupted update is not a trained batch
@@ -364,14 +371,8 @@ def train(cfg: DictConfig, run_dir: str | Path,  # noqa: C901 - a training loop,
                 decisive = False
                 if evaluated:
                     take_results(wait=True)  # one pass queued at a time: the curve lags by one pass at most
-                    snapshot = {"frames": frames, "update": update, "true_env_frames": true_env_frames(),
-                                # best.pt's content if this pass is the best: training goes on while it runs
-                                "payload": copy.deepcopy(checkpoint_payload()) if background else None}
-                    if cfg.eval.track_test:  # a measurement only: nothing below reads it
-                        t_track = time.perf_counter()
-                        snapshot["tracked"] = run_eval(actor, test_states, test_env, steps=test_max_steps)
-                        track_s += time.perf_counter() - t_track
-                    snapshot["wall_s"] = wall_before + time.perf_counter() - t_start - track_s
+                    # best.pt's content if this pass is the best: training goes on while it runs
+                    snapshot = take_snapshot(copy.deepcopy(checkpoint_payload()) if background else None)
                     n_evals += 1
                     if render_interval and n_evals % render_interval == 0:
                         log_episode_figure(logger, actor, val_states[:1], cfg, frames)

@@ -33,9 +33,8 @@ def read_init(path: str | Path, algorithm_cls, config: dict, device="cpu") -> di
         FileNotFoundError / ValueError: an unreadable file (:func:`~anm_torchrl.training.checkpoint.load_checkpoint`).
     """
     from anm_torchrl.training.algorithms import get_algorithm
-    from anm_torchrl.training.checkpoint import load_checkpoint
-
     from anm_torchrl.training.algorithms.base import Algorithm
+    from anm_torchrl.training.checkpoint import architecture_differences, load_checkpoint
 
     path = Path(path)
     family = algorithm_cls.network_family
@@ -48,10 +47,7 @@ def read_init(path: str | Path, algorithm_cls, config: dict, device="cpu") -> di
         raise ValueError(f"checkpoint.init_from={path}: its networks are {ckpt['algorithm']}'s, another family than "
                          f"{algorithm_cls.name}'s")
     keys = [k for k in algorithm_cls.architecture_keys if k in source.architecture_keys and k != "network"]
-    # a flag or count added after the checkpoint was written (absent there) was off (0) when it was
-    differ = [(k, _value(ckpt["config"], k), _value(config, k)) for k in keys
-              if _value(ckpt["config"], k) != _value(config, k)
-              and not (_value(ckpt["config"], k) is None and _value(config, k) in (False, 0))]
+    differ = architecture_differences(ckpt["config"], config, keys)
     if differ:
         details = "; ".join(f"{k}: checkpoint {a!r}, this run {b!r}" for k, a, b in differ)
         raise ValueError(f"checkpoint.init_from={path}: its networks have another architecture ({details})")
@@ -59,12 +55,6 @@ def read_init(path: str | Path, algorithm_cls, config: dict, device="cpu") -> di
         raise ValueError(f"checkpoint.init_from={path}: the checkpoint records no reward scale (written before warm "
                          "starts), so its critic's values cannot be put in this run's units; train the source again")
     return ckpt
-
-
-def _value(cfg: dict, key: str):
-    for part in key.split("."):
-        cfg = cfg.get(part) if isinstance(cfg, dict) else None
-    return cfg
 
 
 #: the PPO run's eval keys its teacher takes: the same validation and test states and score (how often the teacher
@@ -86,6 +76,7 @@ def teacher_config(cfg, log_now: bool = True):
     Raises:
         ValueError: another teacher than shac, a surrogate without gradients, or an override SHAC does not take.
     """
+    from hydra.errors import HydraException
     from omegaconf import OmegaConf, open_dict
 
     from anm_torchrl.training.algorithms import check_algorithm_config, get_algorithm
@@ -109,7 +100,7 @@ def teacher_config(cfg, log_now: bool = True):
     overrides = [f"model={'pinn' if surrogate == 'pinn' else 'exact'}", *user]
     try:
         teacher = compose_config(overrides, "shac")
-    except Exception as err:  # noqa: BLE001 - Hydra's override errors, as one line naming the override
+    except HydraException as err:  # an unknown key or group option, a malformed override: one line naming it
         raise ValueError(f"warm_start.overrides={user}: {str(err).splitlines()[0]} (the overrides are of "
                          "recipes/shac.py's config: python recipes/shac.py --help)") from None
     with open_dict(teacher):
